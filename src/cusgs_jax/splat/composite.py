@@ -82,41 +82,77 @@ def pixel_centers(grid: TileGrid, dtype=jnp.float32) -> tuple[jax.Array, jax.Arr
 
 
 class _Chunk(NamedTuple):
+    """One chunk of B Gaussians for every tile, pixel axis last ([T, B, S])."""
+
     gid: jax.Array  # [T, B] sorted-Gaussian index
-    in_range: jax.Array  # [T, B]
-    dx: jax.Array  # [T, S, B]
-    dy: jax.Array
+    in_range: jax.Array  # [T, B] slot belongs to the tile
+    mean: jax.Array  # [T, B, 2]
     conic: jax.Array  # [T, B, 3]
     opacity: jax.Array  # [T, B]
-    gauss: jax.Array  # [T, S, B] e^{−σ}
-    alpha: jax.Array  # [T, S, B] clamped
-    unclamped: jax.Array  # [T, S, B]
-    valid: jax.Array  # [T, S, B] passes σ ≥ 0 and α ≥ 1/255
+    dx: jax.Array  # [T, B, S] mean − pixel
+    dy: jax.Array
+    gauss: jax.Array  # [T, B, S] e^{−σ}
+    alpha: jax.Array  # [T, B, S] min(0.999, o e^{−σ})
+    unclamped: jax.Array  # [T, B, S] o e^{−σ} < 0.999
+    valid: jax.Array  # [T, B, S] σ ≥ 0 and α ≥ 1/255 (and a real pixel)
 
 
-def _chunk(k0, chunk, means2d, conics, opacities, pairs, starts, ends, pixels, inside) -> _Chunk:
+def _chunk(k0, chunk, records, pairs, starts, ends, pixels, inside) -> _Chunk:
+    """Gather chunk ``[k0, k0 + B)`` of every tile and evaluate its Gaussians.
+
+    ``records`` is [G, 6] = (mean x, mean y, conic a, b, c, opacity) so that a
+    single gather fetches everything.
+    """
     slots = starts[:, None] + k0 + jnp.arange(chunk, dtype=jnp.int32)[None, :]
     in_range = slots < ends[:, None]
     gid = pairs[jnp.minimum(slots, pairs.shape[0] - 1)]
-    mean = means2d[gid]
-    conic = conics[gid]
-    opacity = opacities[gid]
-    dx = mean[:, None, :, 0] - pixels[:, :, None, 0]
-    dy = mean[:, None, :, 1] - pixels[:, :, None, 1]
-    a, b, c = (conic[:, None, :, i] for i in range(3))
+    rec = records[gid]  # [T, B, 6]
+    mean, conic, opacity = rec[..., 0:2], rec[..., 2:5], rec[..., 5]
+    dx = mean[..., 0:1] - pixels[:, None, :, 0]
+    dy = mean[..., 1:2] - pixels[:, None, :, 1]
+    a, b, c = conic[..., 0:1], conic[..., 1:2], conic[..., 2:3]
     sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
     gauss = jnp.exp(-jnp.maximum(sigma, 0.0))
-    raw = opacity[:, None, :] * gauss
+    raw = opacity[..., None] * gauss
     alpha = jnp.minimum(MAX_ALPHA, raw)
-    valid = (in_range[:, None, :] & inside[:, :, None]
+    valid = (in_range[..., None] & inside[:, None, :]
              & (sigma >= 0) & (alpha >= ALPHA_THRESHOLD))
-    return _Chunk(gid, in_range, dx, dy, conic, opacity, gauss, alpha, raw < MAX_ALPHA, valid)
+    return _Chunk(gid, in_range, mean, conic, opacity, dx, dy, gauss, alpha,
+                  raw < MAX_ALPHA, valid)
 
 
-def _exclusive_cumprod(x: jax.Array) -> jax.Array:
-    """Exclusive cumulative product along the last axis."""
-    inclusive = jnp.cumprod(x, axis=-1)
-    return jnp.concatenate([jnp.ones_like(x[..., :1]), inclusive[..., :-1]], axis=-1), inclusive
+def _running_product(factors: jax.Array, start: jax.Array):
+    """Exclusive and inclusive running products along the chunk axis.
+
+    An unrolled loop over B slices of [T, S]: on CPU this fuses into one pass
+    and is several times faster than ``jnp.cumprod`` (a reduce_window).
+
+    Args:
+      factors: [T, B, S]; start: [T, S].
+    Returns:
+      (before [T, B, S], after [T, B, S]) with ``before[:, k] = start ·
+      Π_{j<k} factors[:, j]`` and ``after[:, k] = before[:, k] · factors[:, k]``.
+    """
+    before, after = [], []
+    running = start
+    for k in range(factors.shape[1]):
+        before.append(running)
+        running = running * factors[:, k]
+        after.append(running)
+    return jnp.stack(before, axis=1), jnp.stack(after, axis=1)
+
+
+def _running_sum(terms: jax.Array) -> jax.Array:
+    """Inclusive running sum along the chunk axis of [T, B, S] (unrolled)."""
+    out, running = [], jnp.zeros_like(terms[:, 0])
+    for k in range(terms.shape[1]):
+        running = running + terms[:, k]
+        out.append(running)
+    return jnp.stack(out, axis=1)
+
+
+def _records(means2d, conics, opacities):
+    return jnp.concatenate([means2d, conics, opacities[:, None]], axis=-1)
 
 
 def _forward(grid, chunk, means2d, conics, opacities, features, pairs, starts, ends) -> Composite:
@@ -124,6 +160,7 @@ def _forward(grid, chunk, means2d, conics, opacities, features, pairs, starts, e
     num_tiles, num_pixels = pixels.shape[:2]
     num_gaussians, channels = features.shape
     dtype = means2d.dtype
+    records = _records(means2d, conics, opacities)
     lengths = ends - starts
     max_length = jnp.max(lengths) if num_tiles else jnp.int32(0)
 
@@ -133,25 +170,24 @@ def _forward(grid, chunk, means2d, conics, opacities, features, pairs, starts, e
         return (k0 < max_length) & jnp.any(active)
 
     def body(state):
-        k0, trans, done, color, n_contrib, last, significance, hits = state
-        ch = _chunk(k0, chunk, means2d, conics, opacities, pairs, starts, ends, pixels, inside)
+        k0, trans, done, color, n_contrib, last, stats = state
+        ch = _chunk(k0, chunk, records, pairs, starts, ends, pixels, inside)
         a = jnp.where(ch.valid, ch.alpha, 0.0)
-        before, after = _exclusive_cumprod(1.0 - a)
-        t_before = trans[..., None] * before
-        t_after = trans[..., None] * after
-        keep = ch.valid & (t_after > TRANSMITTANCE_STOP) & ~done[..., None]
+        t_before, t_after = _running_product(1.0 - a, trans)
+        keep = ch.valid & (t_after > TRANSMITTANCE_STOP) & ~done[:, None, :]
         weight = jnp.where(keep, a * t_before, 0.0)
-        color = color + jnp.einsum("tsb,tbc->tsc", weight, features[ch.gid])
-        trans = trans * jnp.prod(jnp.where(keep, 1.0 - a, 1.0), axis=-1)
-        done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=-1)
-        n_contrib = n_contrib + jnp.sum(keep, axis=-1, dtype=jnp.int32)
+        color = color + jnp.einsum("tbs,tbc->tsc", weight, features[ch.gid])
+        trans = trans * jnp.prod(jnp.where(keep, 1.0 - a, 1.0), axis=1)
+        done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
+        n_contrib = n_contrib + jnp.sum(keep, axis=1, dtype=jnp.int32)
         slot = k0 + jnp.arange(1, chunk + 1, dtype=jnp.int32)
-        last = jnp.maximum(last, jnp.max(jnp.where(keep, slot, 0), axis=-1))
-        sig = jnp.sum(jnp.where(keep, ch.opacity[:, None, :] * t_before, 0.0), axis=1)
-        significance = significance.at[ch.gid].add(jnp.where(ch.in_range, sig, 0.0))
-        hit = jnp.sum(keep, axis=1, dtype=jnp.int32)
-        hits = hits.at[ch.gid].add(jnp.where(ch.in_range, hit, 0))
-        return k0 + chunk, trans, done, color, n_contrib, last, significance, hits
+        last = jnp.maximum(last, jnp.max(jnp.where(keep, slot[None, :, None], 0), axis=1))
+        # LightGaussian significance Σ o·T and hit counts, per pair then per Gaussian.
+        sig = jnp.sum(jnp.where(keep, ch.opacity[..., None] * t_before, 0.0), axis=-1)
+        hit = jnp.sum(keep, axis=-1).astype(dtype)
+        pair_stats = jnp.where(ch.in_range[..., None], jnp.stack([sig, hit], axis=-1), 0.0)
+        stats = stats.at[ch.gid].add(pair_stats)
+        return k0 + chunk, trans, done, color, n_contrib, last, stats
 
     init = (
         jnp.int32(0),
@@ -160,11 +196,11 @@ def _forward(grid, chunk, means2d, conics, opacities, features, pairs, starts, e
         jnp.zeros((num_tiles, num_pixels, channels), dtype),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
-        jnp.zeros((num_gaussians,), dtype),
-        jnp.zeros((num_gaussians,), jnp.int32),
+        jnp.zeros((num_gaussians, 2), dtype),
     )
-    _, trans, _, color, n_contrib, last, significance, hits = jax.lax.while_loop(cond, body, init)
-    return Composite(color, trans, n_contrib, last, significance, hits)
+    _, trans, _, color, n_contrib, last, stats = jax.lax.while_loop(cond, body, init)
+    hits = jnp.round(stats[:, 1]).astype(jnp.int32)
+    return Composite(color, trans, n_contrib, last, stats[:, 0], hits)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1))
@@ -197,7 +233,9 @@ def _composite_bwd(grid, chunk, residuals, cotangents):
     g_color, g_trans = cotangents.colors, cotangents.transmittance
     pixels, inside = pixel_centers(grid, means2d.dtype)
     num_tiles, num_pixels = pixels.shape[:2]
+    channels = features.shape[1]
     dtype = means2d.dtype
+    records = _records(means2d, conics, opacities)
     # Total Σ_k (g·c_k) α_k T_k and the background-side term of S_k.
     total = jnp.sum(g_color * color_fg, axis=-1)
     tail = trans_final * g_trans
@@ -207,52 +245,54 @@ def _composite_bwd(grid, chunk, residuals, cotangents):
         return state[0] < max_last
 
     def body(state):
-        k0, trans, prefix, d_means, d_conics, d_opac, d_feat = state
-        ch = _chunk(k0, chunk, means2d, conics, opacities, pairs, starts, ends, pixels, inside)
+        k0, trans, prefix, grads = state
+        ch = _chunk(k0, chunk, records, pairs, starts, ends, pixels, inside)
         slot = k0 + jnp.arange(chunk, dtype=jnp.int32)
-        keep = ch.valid & (slot[None, None, :] < last[..., None])
+        keep = ch.valid & (slot[None, :, None] < last[:, None, :])
         a = jnp.where(keep, ch.alpha, 0.0)
-        before, _ = _exclusive_cumprod(1.0 - a)
-        t_before = trans[..., None] * before
+        t_before, _ = _running_product(1.0 - a, trans)
         weight = a * t_before  # zero where not kept
         feat = features[ch.gid]  # [T, B, C]
-        g_dot_c = jnp.einsum("tsc,tbc->tsb", g_color, feat)
+        g_dot_c = jnp.einsum("tsc,tbc->tbs", g_color, feat)
         contrib = g_dot_c * weight
-        suffix = (total - prefix)[..., None] - jnp.cumsum(contrib, axis=-1) + tail[..., None]
+        suffix = (total - prefix + tail)[:, None, :] - _running_sum(contrib)
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
         d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
         d_sigma = -d_alpha * a
         dx, dy = ch.dx, ch.dy
-        ca, cb, cc = (ch.conic[:, None, :, i] for i in range(3))
-        pair_d_mean = jnp.stack(
-            [jnp.sum(d_sigma * (ca * dx + cb * dy), axis=1),
-             jnp.sum(d_sigma * (cc * dy + cb * dx), axis=1)], axis=-1)
-        pair_d_conic = jnp.stack(
-            [jnp.sum(d_sigma * 0.5 * dx * dx, axis=1),
-             jnp.sum(d_sigma * dx * dy, axis=1),
-             jnp.sum(d_sigma * 0.5 * dy * dy, axis=1)], axis=-1)
-        pair_d_opac = jnp.sum(d_alpha * ch.gauss, axis=1)
-        pair_d_feat = jnp.einsum("tsb,tsc->tbc", weight, g_color)
-        m = ch.in_range
-        d_means = d_means.at[ch.gid].add(jnp.where(m[..., None], pair_d_mean, 0.0))
-        d_conics = d_conics.at[ch.gid].add(jnp.where(m[..., None], pair_d_conic, 0.0))
-        d_opac = d_opac.at[ch.gid].add(jnp.where(m, pair_d_opac, 0.0))
-        d_feat = d_feat.at[ch.gid].add(jnp.where(m[..., None], pair_d_feat, 0.0))
-        trans = trans * jnp.prod(1.0 - a, axis=-1)
-        prefix = prefix + jnp.sum(contrib, axis=-1)
-        return k0 + chunk, trans, prefix, d_means, d_conics, d_opac, d_feat
+        sx = jnp.sum(d_sigma * dx, axis=-1)
+        sy = jnp.sum(d_sigma * dy, axis=-1)
+        ca, cb, cc = ch.conic[..., 0], ch.conic[..., 1], ch.conic[..., 2]
+        pair = jnp.concatenate(
+            [
+                jnp.stack(
+                    [
+                        ca * sx + cb * sy,  # ∂σ/∂μx = a dx + b dy
+                        cc * sy + cb * sx,  # ∂σ/∂μy = c dy + b dx
+                        0.5 * jnp.sum(d_sigma * dx * dx, axis=-1),
+                        jnp.sum(d_sigma * dx * dy, axis=-1),
+                        0.5 * jnp.sum(d_sigma * dy * dy, axis=-1),
+                        jnp.sum(d_alpha * ch.gauss, axis=-1),
+                    ],
+                    axis=-1,
+                ),
+                jnp.einsum("tbs,tsc->tbc", weight, g_color),
+            ],
+            axis=-1,
+        )
+        grads = grads.at[ch.gid].add(jnp.where(ch.in_range[..., None], pair, 0.0))
+        trans = trans * jnp.prod(1.0 - a, axis=1)
+        prefix = prefix + jnp.sum(contrib, axis=1)
+        return k0 + chunk, trans, prefix, grads
 
     init = (
         jnp.int32(0),
         jnp.ones((num_tiles, num_pixels), dtype),
         jnp.zeros((num_tiles, num_pixels), dtype),
-        jnp.zeros_like(means2d),
-        jnp.zeros_like(conics),
-        jnp.zeros_like(opacities),
-        jnp.zeros_like(features),
+        jnp.zeros((means2d.shape[0], 6 + channels), dtype),
     )
-    _, _, _, d_means, d_conics, d_opac, d_feat = jax.lax.while_loop(cond, body, init)
-    return d_means, d_conics, d_opac, d_feat, None, None, None
+    _, _, _, grads = jax.lax.while_loop(cond, body, init)
+    return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
 
 
 composite_tiles.defvjp(_composite_fwd, _composite_bwd)

@@ -10,8 +10,8 @@ The pipeline sorts once per view and uses only static shapes:
    in depth order with a saturating prefix sum, so when the capacity is
    exceeded the *farthest* pairs are the ones dropped, and the number dropped
    is returned as ``overflow``.
-3. One stable sort of the slots by tile id keeps depth order inside each tile
-   (the slots were generated in depth order), so a single 32-bit key suffices.
+3. One sort of the packed 32-bit key ``tile · G + depth rank`` orders the
+   pairs by tile and front to back inside each tile.
 4. ``tile_starts``/``tile_ends`` delimit every tile's run in the sorted list.
 """
 
@@ -87,6 +87,21 @@ def _saturating_cumsum(counts: jax.Array, cap: int) -> jax.Array:
     return jax.lax.associative_scan(lambda a, b: jnp.minimum(a + b, cap), counts)
 
 
+def _sort_by_tile(tile_id: jax.Array, owner: jax.Array, num_tiles: int, num_gaussians: int):
+    """Sort the slots by tile id, front to back inside a tile.
+
+    ``owner`` is an index into the depth-sorted Gaussians, so ``(tile, owner)``
+    is exactly the wanted order and unique (a Gaussian meets a tile once).
+    When ``(num_tiles + 1) · G`` fits in int32 the pair is packed into one
+    integer key: a single-array sort is ~5x faster on CPU than sorting a key
+    with a payload. Otherwise it falls back to a stable key–payload sort.
+    """
+    if (num_tiles + 1) * max(num_gaussians, 1) < 2**31:
+        packed = jnp.sort(tile_id * num_gaussians + owner)
+        return packed // num_gaussians, packed % num_gaussians
+    return jax.lax.sort((tile_id, owner), num_keys=1, is_stable=True)
+
+
 def intersect_tiles(
     means2d: jax.Array,
     radii: jax.Array,
@@ -118,7 +133,7 @@ def intersect_tiles(
     counts = jnp.where(visible[order], box_width * (box[:, 3] - box[:, 1]), 0)
     counts = jnp.minimum(counts, max_pairs)
     ends = _saturating_cumsum(counts, max_pairs)
-    starts = ends - counts  # exact where < max_pairs
+    starts = jnp.concatenate([jnp.zeros(1, ends.dtype), ends[:-1]])  # exact where < max_pairs
     kept = jnp.clip(max_pairs - starts, 0, counts)
     overflow = jnp.sum(counts - kept)
     num_pairs = ends[-1] if num_gaussians else jnp.int32(0)
@@ -134,8 +149,8 @@ def intersect_tiles(
     tile_y = box[owner, 1] + local // width_o
     tile_id = jnp.where(slot < num_pairs, tile_y * grid.tiles_x + tile_x, grid.num_tiles)
 
-    sorted_tiles, pair_gaussians = jax.lax.sort(
-        (tile_id, owner), num_keys=1, is_stable=True
+    sorted_tiles, pair_gaussians = _sort_by_tile(
+        tile_id, owner, grid.num_tiles, num_gaussians
     )
     tiles = jnp.arange(grid.num_tiles, dtype=jnp.int32)
     tile_starts = jnp.searchsorted(sorted_tiles, tiles, side="left").astype(jnp.int32)
