@@ -68,7 +68,9 @@ def normalize_quats(quats: jax.Array) -> jax.Array:
     Returns:
       [..., 4] wxyz of unit norm.
     """
-    largest = jnp.max(jnp.abs(quats), axis=-1, keepdims=True)
+    # normalize(q / s) = normalize(q) for any s > 0, so holding s constant in
+    # the derivative is exact, and it avoids the 1/s² that underflows at 1e-20.
+    largest = jax.lax.stop_gradient(jnp.max(jnp.abs(quats), axis=-1, keepdims=True))
     ok = (largest > 0) & jnp.isfinite(largest)
     identity = jnp.zeros_like(quats).at[..., 0].set(1.0)
     scaled = jnp.where(ok, quats / jnp.where(ok, largest, 1.0), identity)
