@@ -270,13 +270,6 @@ PROJ_TERMS = {name: 8 for name in SCENES}
 PROJ_TERMS["needles_ratio_1e6"] = 512
 SAFETY = 4.0
 
-_BUG_TINY_QUATS = (
-    "src bug: normalize_quats divides by max|q| inside the differentiated path; the "
-    "VJP of x / y forms y**-2 = 1e40, which overflows float32, so quaternions of norm "
-    "1e-20 get NaN gradients (fix: stop_gradient on the max-abs scale)"
-)
-
-
 # --------------------------------------------------------------------------- helpers
 
 
@@ -417,11 +410,11 @@ def test_scenes_exercise_their_edge_cases():
 
 # --------------------------------------------------------------------------- gradients
 
-_GRAD_CASES = [
-    pytest.param(name, marks=pytest.mark.xfail(strict=True, reason=_BUG_TINY_QUATS))
-    if name == "quats_1e-20" else name
-    for name in SCENES
-]
+# quats_1e-20 guards a fixed bug: normalize_quats used to divide by max|q| inside the
+# differentiated path, whose VJP forms max|q|**-2 = 1e40 (overflow → NaN gradients for
+# norm-1e-20 quaternions); fixed by holding the scale constant (stop_gradient), which is
+# exact because normalize(q / s) does not depend on s.
+_GRAD_CASES = list(SCENES)
 
 
 @pytest.mark.parametrize("name", _GRAD_CASES)
