@@ -100,6 +100,7 @@ def rasterize(
     tile_size: int = 16,
     max_pairs: int | None = None,
     chunk_size: int = 16,
+    means2d_delta: jax.Array | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (DESIGN.md §2).
 
@@ -123,6 +124,9 @@ def rasterize(
         :func:`default_max_pairs`. Exceeding it drops the farthest pairs and is
         reported in ``overflow``.
       chunk_size: static number of Gaussians per tile per compositing step.
+      means2d_delta: [G, 2] or None, added to the projected centres. Pass
+        zeros and differentiate with respect to it to get ∂L/∂μ_2D (the
+        screen-space gradient densification statistics use).
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
@@ -138,11 +142,12 @@ def rasterize(
     )
     isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs)
     order = isect.order
+    means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
     depth = jnp.where(proj.visible, proj.depths, 0.0)
     features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
     out = composite_tiles(
         grid, int(chunk_size),
-        proj.means2d[order], proj.conics[order], proj.opacities[order], features[order],
+        means2d[order], proj.conics[order], proj.opacities[order], features[order],
         isect.pair_gaussians, isect.tile_starts, isect.tile_ends,
     )
     color_fg = _tiles_to_image(out.colors, grid)
@@ -159,7 +164,7 @@ def rasterize(
         alpha=1.0 - trans,
         depth=color_fg[..., channels],
         n_contrib=_tiles_to_image(out.n_contrib, grid),
-        means2d=proj.means2d,
+        means2d=means2d,
         radii=radii,
         visible=proj.visible,
         significance=jax.lax.stop_gradient(significance),

@@ -1,0 +1,529 @@
+"""Load a COLMAP reconstruction (cameras, poses, images, SfM points) into host NumPy arrays.
+
+A scene folder (``data.path``) looks like the Mip-NeRF 360 / 3DGS layout::
+
+    scene/
+      images/            full-resolution images, named as in the model
+      images_2/ ...      optional pre-downscaled copies (used for data.downscale=2, ...)
+      sparse/0/          cameras, images, points3D (.bin or .txt; rigs/frames optional)
+
+(``sparse/`` holding the model files directly is accepted too.)
+
+Conventions: ``viewmats`` are world→camera 4×4 matrices with OpenCV axes (x right, y down, z
+forward), i.e. COLMAP's ``cam_from_world``; ``Ks`` are pinhole intrinsics in pixels for the
+loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in COLMAP. Only
+undistorted cameras (PINHOLE, SIMPLE_PINHOLE) are supported.
+
+Every problem with the user's data raises :class:`SceneError`, whose message names the
+offending file and what to do about it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import pathlib
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SceneError", "SceneData", "load_scene", "SUPPORTED_CAMERA_MODELS"]
+
+SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_MODEL_PARTS = ("cameras", "images", "points3D")
+_IMAGE_EXTENSIONS = (".png", ".PNG", ".jpg", ".JPG", ".jpeg", ".JPEG")
+_UNDISTORT_HINT = (
+    "undistort the images first, e.g. `colmap image_undistorter --image_path <scene>/images "
+    "--input_path <scene>/sparse/0 --output_path <undistorted scene> --output_type COLMAP`, "
+    "and point data.path at the undistorted scene"
+)
+
+
+class SceneError(ValueError):
+    """A problem with the scene data on disk (or its settings); the message says how to fix it."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # arrays: compare/hash by identity
+class SceneData:
+    """A COLMAP scene loaded into host memory.
+
+    Attributes:
+      path: the scene folder (``data.path``).
+      names: image names as stored in the model, sorted.
+      images: [N, H, W, 3] uint8 RGB images at the loaded resolution.
+      viewmats: [N, 4, 4] float32 world→camera matrices (OpenCV axes, COLMAP cam_from_world).
+      Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
+      width, height: the loaded resolution, shared by all images.
+      points: [P, 3] float32 SfM points (sorted by COLMAP point id).
+      point_colors: [P, 3] uint8 colours of those points.
+      train_indices, test_indices: int32 indices into ``names``; test views are every
+        ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
+      extent: 1.1 × the largest distance of a camera centre from the mean camera centre.
+    """
+
+    path: pathlib.Path
+    names: tuple[str, ...]
+    images: np.ndarray
+    viewmats: np.ndarray
+    Ks: np.ndarray
+    width: int
+    height: int
+    points: np.ndarray
+    point_colors: np.ndarray
+    train_indices: np.ndarray
+    test_indices: np.ndarray
+    extent: float
+
+    @property
+    def camera_centers(self) -> np.ndarray:
+        """[N, 3] camera centres in world coordinates (float32): -Rᵀt."""
+        rot = self.viewmats[:, :3, :3].astype(np.float64)
+        trans = self.viewmats[:, :3, 3].astype(np.float64)
+        return (-np.einsum("nji,nj->ni", rot, trans)).astype(np.float32)
+
+    @property
+    def num_images(self) -> int:
+        return len(self.names)
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
+
+
+def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8) -> SceneData:
+    """Load a COLMAP scene folder.
+
+    Args:
+      path: folder with ``images/`` and ``sparse/0/`` (or ``sparse/``) — ``data.path``.
+      downscale: integer factor ``d`` (``data.downscale``). For ``d > 1`` images come from
+        ``images_{d}/`` when that folder exists, else from ``images/`` downscaled with
+        anti-aliasing; intrinsics are divided by ``d``.
+      holdout_every: every ``holdout_every``-th image (index ``i % holdout_every == 0``) is a
+        test view (``data.holdout_every``); 0 holds out none.
+
+    Raises:
+      SceneError: for any problem with the data or these settings.
+    """
+    downscale = _check_int_setting("data.downscale", downscale, minimum=1)
+    holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
+
+    if path is None or str(path) == "":
+        raise SceneError("data.path is empty: set data.path to a COLMAP scene folder "
+                         "containing images/ and sparse/0/")
+    scene = pathlib.Path(path).expanduser()
+    if not scene.exists():
+        raise SceneError(f"scene folder {scene} does not exist: set data.path to a COLMAP scene "
+                         "folder containing images/ and sparse/0/")
+    if not scene.is_dir():
+        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to a COLMAP "
+                         "scene folder containing images/ and sparse/0/")
+
+    model_dir = _find_model_dir(scene)
+    files = _model_files(model_dir)
+    rec = _read_reconstruction(model_dir, files)
+
+    # Registered images (an image without a pose cannot be trained on), sorted by name.
+    entries = []
+    for image_id, image in rec.images.items():
+        if not _has_pose(image):
+            continue
+        entries.append((image.name, image_id, image))
+    entries.sort(key=lambda e: e[0])
+    if not entries:
+        raise SceneError(
+            f"the COLMAP model {files['images']} has no registered images: the reconstruction "
+            "failed or is empty — rerun SfM (e.g. `colmap mapper`) and point data.path at its "
+            "output")
+
+    cameras = {}
+    for _, _, image in entries:
+        cam_id = image.camera_id
+        if cam_id not in cameras:
+            cameras[cam_id] = _camera_intrinsics(rec.cameras[cam_id], cam_id, files["cameras"])
+
+    names, viewmats = [], []
+    for name, _, image in entries:
+        mat = _cam_from_world(image)
+        if mat.shape != (3, 4) or not np.all(np.isfinite(mat)):
+            raise SceneError(
+                f"image {name!r} in {files['images']} has a non-finite pose (NaN/Inf in "
+                "cam_from_world); the reconstruction is broken — rerun SfM / bundle adjustment, "
+                "or delete that image from the model")
+        view = np.eye(4)
+        view[:3, :] = mat
+        names.append(name)
+        viewmats.append(view)
+    viewmats = np.stack(viewmats)
+
+    points, point_colors = _points(rec, files["points3D"])
+
+    # The image folder and the expected loaded size of every image.
+    image_dir, from_prescaled = _image_dir(scene, downscale)
+    expected = {cid: (_scaled(cam["width"], downscale), _scaled(cam["height"], downscale))
+                for cid, cam in cameras.items()}
+    first_cam = entries[0][2].camera_id
+    for name, _, image in entries:
+        cid = image.camera_id
+        if expected[cid] != expected[first_cam]:
+            (w0, h0), (w1, h1) = expected[first_cam], expected[cid]
+            raise SceneError(
+                f"the images in {files['images']} do not share one size with "
+                f"data.downscale={downscale}: {entries[0][0]!r} (camera {first_cam}) loads at "
+                f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
+                "have one resolution — undistort/crop them to a common size (e.g. "
+                "`colmap image_undistorter`) and rerun")
+
+    # Read the images into one preallocated array.
+    images = None
+    for i, (name, _, image) in enumerate(entries):
+        cam = cameras[image.camera_id]
+        img = _load_image(image_dir, name, cam, image.camera_id, downscale, from_prescaled, scene)
+        if images is None:
+            images = np.empty((len(entries),) + img.shape, np.uint8)
+        elif img.shape != images.shape[1:]:
+            h0, w0 = images.shape[1:3]
+            h1, w1 = img.shape[:2]
+            raise SceneError(
+                f"images in {image_dir} differ in size: {names[0]!r} loads at {w0}x{h0} but "
+                f"{name!r} at {w1}x{h1}; all training images must have one resolution — "
+                "resize/crop them to a common size (and their cameras accordingly)")
+        images[i] = img
+    assert images is not None
+    height, width = images.shape[1:3]
+
+    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
+
+    num = len(entries)
+    idx = np.arange(num, dtype=np.int32)
+    if holdout_every > 0:
+        test_mask = idx % holdout_every == 0
+    else:
+        test_mask = np.zeros(num, bool)
+    train_indices, test_indices = idx[~test_mask], idx[test_mask]
+    if train_indices.size == 0:
+        raise SceneError(
+            f"data.holdout_every={holdout_every} holds out all {num} image(s) of {scene}, "
+            "leaving nothing to train on: set data.holdout_every=0 (no test views) or a larger "
+            "value")
+
+    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    extent = 1.1 * float(np.max(np.linalg.norm(centers - centers.mean(0), axis=-1)))
+
+    return SceneData(
+        path=scene,
+        names=tuple(names),
+        images=images,
+        viewmats=viewmats.astype(np.float32),
+        Ks=Ks.astype(np.float32),
+        width=int(width),
+        height=int(height),
+        points=points,
+        point_colors=point_colors,
+        train_indices=train_indices,
+        test_indices=test_indices,
+        extent=extent,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# Model files
+# --------------------------------------------------------------------------------------------
+
+
+def _check_int_setting(name: str, value: Any, *, minimum: int) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise SceneError(f"{name}={value!r} must be an integer >= {minimum}")
+    if value < minimum:
+        raise SceneError(f"{name}={value} must be an integer >= {minimum}")
+    return int(value)
+
+
+def _has_model_file(folder: pathlib.Path, part: str) -> bool:
+    return any((folder / f"{part}{ext}").is_file() for ext in (".bin", ".txt"))
+
+
+def _find_model_dir(scene: pathlib.Path) -> pathlib.Path:
+    sparse = scene / "sparse"
+    if (sparse / "0").is_dir():
+        return sparse / "0"
+    if sparse.is_dir():
+        if any(_has_model_file(sparse, p) for p in _MODEL_PARTS):
+            return sparse
+        subdirs = sorted(p.name for p in sparse.iterdir() if p.is_dir())
+        extra = (f" (it has sub-folders {', '.join(subdirs)}: move the model you want to "
+                 "sparse/0/)") if subdirs else ""
+        raise SceneError(
+            f"no COLMAP model in {sparse}: expected the model files (cameras, images, points3D "
+            f"as .bin or .txt) in {sparse / '0'} or in {sparse} itself{extra}; run COLMAP SfM "
+            "(e.g. `colmap mapper`) or check data.path")
+    raise SceneError(
+        f"no COLMAP model folder in {scene}: expected {sparse / '0'} (or {sparse}) holding "
+        "cameras, images and points3D (.bin or .txt); run COLMAP SfM (e.g. `colmap mapper`) "
+        "or set data.path to the scene folder that contains sparse/")
+
+
+def _model_files(model_dir: pathlib.Path) -> dict[str, pathlib.Path]:
+    """The model file for each part (binary preferred, as COLMAP does); error when missing."""
+    files, missing = {}, []
+    for part in _MODEL_PARTS:
+        for ext in (".bin", ".txt"):
+            if (model_dir / f"{part}{ext}").is_file():
+                files[part] = model_dir / f"{part}{ext}"
+                break
+        else:
+            missing.append(f"{part}.bin/.txt")
+    if missing:
+        raise SceneError(
+            f"incomplete COLMAP model in {model_dir}: missing {', '.join(missing)}; re-export "
+            "the reconstruction (e.g. `colmap model_converter --output_type BIN`) or point "
+            "data.path at a complete scene")
+    return files
+
+
+# Smallest possible record in each binary model file (after its uint64 count), used to spot
+# truncated or corrupt files before pycolmap reads them (it trusts the counts and may try to
+# allocate absurd amounts of memory, or silently return zeros).
+_MIN_BINARY_RECORD = {
+    "cameras": 4 + 4 + 8 + 8,                   # id, model, width, height (+ params)
+    "images": 4 + 7 * 8 + 4 + 1 + 8,            # id, qvec+tvec, camera id, name NUL, num points2D
+    "points3D": 8 + 3 * 8 + 3 + 8 + 8,          # id, xyz, rgb, error, track length
+}
+
+
+def _check_binary_sizes(files: dict[str, pathlib.Path]) -> None:
+    for part, path in files.items():
+        if path.suffix != ".bin":
+            continue
+        size = path.stat().st_size
+        count = None
+        if size >= 8:
+            with open(path, "rb") as f:
+                count = int.from_bytes(f.read(8), "little")
+        if count is None or 8 + count * _MIN_BINARY_RECORD[part] > size:
+            raise SceneError(
+                f"the COLMAP model file {path} is truncated or corrupt ({size} bytes"
+                + (f" for {count} {part} records" if count is not None else "")
+                + "); re-export the reconstruction (e.g. `colmap model_converter "
+                "--output_type BIN`) or rerun SfM")
+
+
+def _read_reconstruction(model_dir: pathlib.Path, files: dict[str, pathlib.Path]):
+    _check_binary_sizes(files)
+    try:
+        import pycolmap
+    except ImportError as e:  # pragma: no cover - pycolmap is a dependency
+        raise SceneError("reading COLMAP scenes needs pycolmap: `pip install pycolmap`") from e
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises ValueError, RuntimeError, MemoryError, ...
+        names = ", ".join(p.name for p in files.values())
+        raise SceneError(
+            f"pycolmap could not read the COLMAP model in {model_dir} ({names}): "
+            f"{type(e).__name__}: {e}. The files are corrupt or truncated, or were written by "
+            "an incompatible COLMAP version — re-export them (e.g. `colmap model_converter`) "
+            "or rerun SfM") from e
+
+
+def _has_pose(image) -> bool:
+    for attr in ("has_pose", "registered"):  # pycolmap >= 3.12 / older
+        value = getattr(image, attr, None)
+        if value is not None:
+            return bool(value() if callable(value) else value)
+    return True
+
+
+def _cam_from_world(image) -> np.ndarray:
+    cfw = image.cam_from_world
+    if callable(cfw):  # a method in pycolmap >= 3.12 (rigs/frames), a property before
+        cfw = cfw()
+    return np.asarray(cfw.matrix(), dtype=np.float64)
+
+
+def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path) -> dict:
+    model = getattr(camera, "model_name", None) or getattr(camera.model, "name", str(camera.model))
+    params = np.asarray(camera.params, dtype=np.float64)
+    if model == "PINHOLE":
+        fx, fy, cx, cy = params[:4]
+    elif model == "SIMPLE_PINHOLE":
+        f, cx, cy = params[:3]
+        fx = fy = f
+    else:
+        raise SceneError(
+            f"camera {camera_id} in {cameras_file} uses the {model} camera model, but only "
+            f"{' and '.join(SUPPORTED_CAMERA_MODELS)} (undistorted) cameras are supported: "
+            + _UNDISTORT_HINT)
+    if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
+        raise SceneError(
+            f"camera {camera_id} in {cameras_file} has invalid intrinsics "
+            f"(fx={fx}, fy={fy}, cx={cx}, cy={cy}); the file may be corrupt — re-export it or "
+            "rerun SfM / undistortion")
+    width, height = int(camera.width), int(camera.height)
+    if width <= 0 or height <= 0:
+        raise SceneError(f"camera {camera_id} in {cameras_file} has an invalid size "
+                         f"{width}x{height}; rerun SfM / undistortion")
+    return dict(fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), width=width,
+                height=height, model=model)
+
+
+def _K(cam: dict, downscale: int) -> np.ndarray:
+    d = float(downscale)
+    return np.array([[cam["fx"] / d, 0.0, cam["cx"] / d],
+                     [0.0, cam["fy"] / d, cam["cy"] / d],
+                     [0.0, 0.0, 1.0]])
+
+
+def _points(rec, points_file: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    ids = sorted(rec.points3D.keys())
+    if not ids:
+        raise SceneError(
+            f"the reconstruction has no points: {points_file} holds 0 3D points, and training "
+            "starts from the SfM point cloud — rerun SfM or point triangulation (e.g. `colmap "
+            "point_triangulator`) so that points3D is filled")
+    pts = rec.points3D
+    xyz = np.array([pts[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([pts[i].color for i in ids]).reshape(-1, 3)
+    keep = np.all(np.isfinite(xyz), axis=-1)
+    if not np.any(keep):
+        raise SceneError(
+            f"all {len(ids)} points in {points_file} are non-finite (NaN/Inf); rerun SfM or "
+            "point triangulation")
+    xyz, rgb = xyz[keep], rgb[keep]
+    return xyz.astype(np.float32), np.clip(rgb, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------------------------
+# Images
+# --------------------------------------------------------------------------------------------
+
+
+def _scaled(size: int, downscale: int) -> int:
+    """Expected loaded size: size / d rounded half up (Mip-NeRF 360's images_d sizes)."""
+    return int(math.floor(size / downscale + 0.5))
+
+
+def _image_dir(scene: pathlib.Path, downscale: int) -> tuple[pathlib.Path, bool]:
+    """(folder to read, True when it already holds images downscaled by `downscale`)."""
+    if downscale > 1:
+        pre = scene / f"images_{downscale}"
+        if pre.is_dir():
+            return pre, True
+    full = scene / "images"
+    if not full.is_dir():
+        extra = ""
+        if downscale > 1:
+            extra = f" (nor {scene / f'images_{downscale}'} for data.downscale={downscale})"
+        raise SceneError(
+            f"no images folder: {full} does not exist{extra}; put the images named in the COLMAP "
+            "model there, or set data.path to the scene folder that contains images/ and "
+            "sparse/0/")
+    return full, False
+
+
+def _find_image_file(folder: pathlib.Path, name: str, allow_other_ext: bool) -> pathlib.Path | None:
+    path = folder / name
+    if path.is_file():
+        return path
+    if allow_other_ext:  # some datasets store images_d as .png next to .JPG originals
+        stem = path.with_suffix("")
+        for ext in _IMAGE_EXTENSIONS:
+            cand = stem.with_suffix(ext)
+            if cand.is_file():
+                return cand
+    return None
+
+
+def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path) -> np.ndarray:
+    img = np.asarray(img)
+    if img.ndim == 2:
+        img = img[..., None]
+    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
+        raise SceneError(f"image {path} has an unsupported shape {img.shape} (expected a single "
+                         "grey, RGB or RGBA picture); re-export it as a PNG or JPEG")
+    if img.shape[-1] in (1, 2):  # grey or grey+alpha
+        img = np.repeat(img[..., :1], 3, axis=-1)
+    else:  # RGB or RGBA
+        img = img[..., :3]
+    if img.dtype == np.uint8:
+        return np.ascontiguousarray(img)
+    if img.dtype == np.bool_:
+        return img.astype(np.uint8) * 255
+    if img.dtype == np.uint16:
+        return np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
+    if np.issubdtype(img.dtype, np.floating):
+        return np.round(np.clip(np.nan_to_num(img.astype(np.float32)), 0, 1) * 255).astype(np.uint8)
+    if np.issubdtype(img.dtype, np.integer):
+        return np.clip(img, 0, 255).astype(np.uint8)
+    raise SceneError(f"image {path} has an unsupported pixel type {img.dtype}; re-export it as "
+                     "an 8-bit PNG or JPEG")
+
+
+def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
+    """Anti-aliased downscale of a uint8 [H, W, 3] image to out_hw (≈ size / factor)."""
+    h, w = img.shape[:2]
+    oh, ow = out_hw
+    if h == oh * factor and w == ow * factor:  # exact box filter
+        out = img.reshape(oh, factor, ow, factor, 3).mean(axis=(1, 3), dtype=np.float32)
+    else:
+        from skimage.transform import resize
+        out = resize(img.astype(np.float32), (oh, ow, 3), order=1, anti_aliasing=True,
+                     preserve_range=True)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, folder: pathlib.Path,
+               scene: pathlib.Path) -> str:
+    ratio = cam["width"] / img_w
+    k = round(ratio)
+    if k >= 1 and abs(ratio - k) * img_w <= 1.0:
+        if from_prescaled and k != downscale:
+            return (f" The images in {folder.name}/ look {k}x smaller than the COLMAP cameras, not "
+                    f"{downscale}x: fix or rename that folder (images_{k}/ is read for "
+                    f"data.downscale={k}), or use data.downscale={k} with the images moved there.")
+        if not from_prescaled and k > 1:
+            return (f" The images in images/ look {k}x smaller than the COLMAP cameras (the "
+                    "loader expects images/ at the model's full resolution): move them to "
+                    f"{scene.name}/images_{k}/ and set data.downscale={k}, or put the "
+                    "full-resolution images in images/.")
+    return (" The images do not match this reconstruction (resized or cropped after SfM, or "
+            "from another scene): use the images COLMAP was run on, or rerun SfM / "
+            "undistortion on these.")
+
+
+def _load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downscale: int,
+                from_prescaled: bool, scene: pathlib.Path) -> np.ndarray:
+    path = _find_image_file(folder, name, allow_other_ext=from_prescaled)
+    if path is None:
+        raise SceneError(
+            f"image {name!r} from the COLMAP model is missing: {folder / name} does not exist; "
+            f"copy it into {folder} or remove the image from the reconstruction (data.path="
+            f"{scene})")
+    try:
+        import imageio.v3 as iio
+        raw = iio.imread(path)
+    except Exception as e:
+        raise SceneError(
+            f"cannot read image {path}: {type(e).__name__}: {e}. The file is corrupt or not an "
+            "image — replace it with a valid copy or remove the image from the reconstruction"
+        ) from e
+    img = _to_rgb_uint8(raw, path)
+    h, w = img.shape[:2]
+
+    # Expected size of the file as read: the camera size, or the camera size / d for images_d.
+    file_scale = downscale if from_prescaled else 1
+    exp_w, exp_h = _scaled(cam["width"], file_scale), _scaled(cam["height"], file_scale)
+    if abs(w - exp_w) > 1 or abs(h - exp_h) > 1:
+        setting = (f"with data.downscale={downscale} " if from_prescaled else "")
+        raise SceneError(
+            f"image {path} is {w}x{h} but its camera {camera_id} ({cam['width']}x{cam['height']}) "
+            f"means it should be {exp_w}x{exp_h} {setting}(±1 px)."
+            + _size_hint(w, cam, from_prescaled, downscale, folder, scene))
+    if not from_prescaled and downscale > 1:
+        # Reduce the image to round(camera size / d) (anti-aliased).
+        out_hw = (_scaled(cam["height"], downscale), _scaled(cam["width"], downscale))
+        img = _downscale(img, downscale, out_hw)
+    return img

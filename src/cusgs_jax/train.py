@@ -1,0 +1,225 @@
+"""One jitted training step: decode → rasterize → loss → masked optax update.
+
+``make_train_step(cfg, ...)`` closes over the static configuration (nothing in
+it is traced) and returns ``step(state, batch) -> (state, metrics)``, jitted
+with the state donated. Shapes: A anchor capacity, N offsets, H×W image.
+
+The Hydra entry point lives in :mod:`cusgs_jax.train_app`; ``python -m
+cusgs_jax.train`` forwards to it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cusgs_jax import losses
+from cusgs_jax.decode import DecoderConfig, Gaussians, decode_gaussians, frustum_mask, init_decoder
+from cusgs_jax.grow_prune import GrowConfig, GrowStats, accumulate_stats
+from cusgs_jax.optim import OptimConfig, make_optimizer
+from cusgs_jax.scaffold import AnchorParams, Anchors, init_anchors
+from cusgs_jax.splat import rasterize
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    voxel_size: float = 0.05
+    n_offsets: int = 10
+    latent_dim: int = 32
+    hidden: int = 32
+    appearance: bool = True
+    appearance_dim: int = 32
+    capacity_factor: float = 2.0
+    frustum_margin: float = 0.15
+
+    def decoder(self) -> DecoderConfig:
+        return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
+                             self.appearance_dim if self.appearance else 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplatConfig:
+    tile_size: int = 8
+    chunk_size: int = 16
+    max_pairs_per_gaussian: float = 6.0
+    antialiased: bool = False
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    l1_weight: float = 0.8
+    ssim_weight: float = 0.2
+    volume_weight: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Everything the step depends on (static)."""
+
+    iterations: int = 30_000
+    seed: int = 0
+    model: ModelConfig = ModelConfig()
+    splat: SplatConfig = SplatConfig()
+    loss: LossConfig = LossConfig()
+    optim: OptimConfig = OptimConfig()
+    grow: GrowConfig = GrowConfig()
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TrainState:
+    """Everything that changes during training (a pytree; checkpointed whole).
+
+    Attributes:
+      params: {"anchor": AnchorParams, "decoder": {...}, "appearance": [V, E]?}.
+      opt_state: optax state.
+      anchors: centres and alive mask.
+      stats: growing statistics.
+      step: [] int32.
+      skipped: [] int32 updates skipped because loss or gradient was not finite.
+    """
+
+    params: dict
+    opt_state: Any
+    anchors: Anchors
+    stats: GrowStats
+    step: jax.Array
+    skipped: jax.Array
+
+
+def init_params(key, cfg: TrainConfig, anchor_params: AnchorParams, num_train_views: int) -> dict:
+    params = {"anchor": anchor_params, "decoder": init_decoder(key, cfg.model.decoder())}
+    if cfg.model.appearance:
+        # Scaffold-GS: nn.Embedding default init N(0, 1).
+        params["appearance"] = jax.random.normal(jax.random.fold_in(key, 1),
+                                                 (num_train_views, cfg.model.appearance_dim))
+    return params
+
+
+def init_train_state(cfg: TrainConfig, points: np.ndarray, num_train_views: int, extent: float):
+    """Fresh state and optimiser from an SfM point cloud.
+
+    Returns:
+      (TrainState, optax transformation).
+    """
+    anchor_params, anchors = init_anchors(points, cfg.model.voxel_size, n_offsets=cfg.model.n_offsets,
+                                          latent_dim=cfg.model.latent_dim,
+                                          capacity_factor=cfg.model.capacity_factor)
+    params = init_params(jax.random.PRNGKey(cfg.seed), cfg, anchor_params, num_train_views)
+    tx = make_optimizer(cfg.optim, params, cfg.iterations, extent)
+    state = TrainState(params=params, opt_state=tx.init(params), anchors=anchors,
+                       stats=GrowStats.zeros(anchors.capacity, cfg.model.n_offsets),
+                       step=jnp.int32(0), skipped=jnp.int32(0))
+    return state, tx
+
+
+def camera_center(viewmat: jax.Array) -> jax.Array:
+    """[3] world position of a world→camera [4,4] matrix."""
+    return -viewmat[:3, :3].T @ viewmat[:3, 3]
+
+
+def decode_view(params: dict, anchors: Anchors, viewmat, K, width: int, height: int, appearance_index,
+                cfg: TrainConfig) -> tuple[Gaussians, jax.Array]:
+    """Frustum-cull the anchors and decode the view's Gaussians.
+
+    Returns:
+      (Gaussians with G = A·N, visible anchors [A] bool).
+    """
+    visible = frustum_mask(anchors.centers, viewmat, K, width, height, margin=cfg.model.frustum_margin)
+    visible = visible & anchors.alive
+    appearance = params["appearance"][appearance_index] if cfg.model.appearance else None
+    gaussians = decode_gaussians(params["decoder"], params["anchor"], anchors, camera_center(viewmat),
+                                 appearance, visible, cfg.model.decoder())
+    return gaussians, visible
+
+
+def render_gaussians(gaussians: Gaussians, viewmat, K, width: int, height: int, cfg: TrainConfig,
+                     means2d_delta=None):
+    """Rasterise decoded Gaussians with the configured splatter settings."""
+    num = gaussians.means.shape[0]
+    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
+                     viewmat, K, width, height, background=jnp.asarray(cfg.splat.background, jnp.float32),
+                     antialiased=cfg.splat.antialiased, tile_size=cfg.splat.tile_size,
+                     chunk_size=cfg.splat.chunk_size,
+                     max_pairs=int(cfg.splat.max_pairs_per_gaussian * num) + 4096,
+                     means2d_delta=means2d_delta)
+
+
+def make_render_fn(cfg: TrainConfig, width: int, height: int):
+    """Jitted ``render(params, anchors, viewmat, K, appearance_index) -> [H, W, 3]`` for evaluation."""
+
+    @jax.jit
+    def render(params, anchors, viewmat, K, appearance_index):
+        gaussians, _ = decode_view(params, anchors, viewmat, K, width, height, appearance_index, cfg)
+        out = render_gaussians(gaussians, viewmat, K, width, height, cfg)
+        return jnp.clip(out.image, 0.0, 1.0), out.overflow
+
+    return render
+
+
+def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
+    """One jitted, state-donating training step.
+
+    The returned ``step(state, batch)`` takes ``batch = {"image": [H, W, 3]
+    float32 in [0, 1], "viewmat": [4, 4], "K": [3, 3], "index": [] int32
+    (training-view index for the appearance embedding)}`` and returns
+    ``(state, metrics)``. A non-finite loss or gradient leaves params and
+    optimiser state untouched and increments ``state.skipped``.
+    """
+    n = cfg.model.n_offsets
+    grow = cfg.grow
+
+    def loss_fn(params, delta, anchors, batch):
+        gaussians, visible = decode_view(params, anchors, batch["viewmat"], batch["K"], width, height,
+                                         batch["index"], cfg)
+        out = render_gaussians(gaussians, batch["viewmat"], batch["K"], width, height, cfg, delta)
+        loss, terms = losses.image_loss(out.image, batch["image"], gaussians.scales, gaussians.active,
+                                        l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
+                                        volume_weight=cfg.loss.volume_weight)
+        return loss, (out, gaussians, visible, terms)
+
+    def step(state: TrainState, batch):
+        capacity = state.anchors.capacity
+        delta = jnp.zeros((capacity * n, 2), jnp.float32)
+        (loss, (out, gaussians, visible, terms)), (grads, grad2d) = jax.value_and_grad(
+            loss_fn, argnums=(0, 1), has_aux=True)(state.params, delta, state.anchors, batch)
+        finite = jnp.isfinite(loss) & jnp.all(jnp.array(
+            [jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
+        updates, new_opt = tx.update(grads, state.opt_state, state.params)
+        # dead anchor slots never move (their Adam moments may still be non-zero)
+        alive = state.anchors.alive
+        updates["anchor"] = jax.tree_util.tree_map(
+            lambda u: jnp.where(alive.reshape((-1,) + (1,) * (u.ndim - 1)), u, 0.0), updates["anchor"])
+        new_params = jax.tree_util.tree_map(lambda p, u: p + u, state.params, updates)
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+        in_window = (state.step >= grow.stats_start) & (state.step < grow.stop)
+        stats = accumulate_stats(
+            state.stats, visible, gaussians.opacities.reshape(capacity, n),
+            (gaussians.active & out.visible).reshape(capacity, n), grad2d.reshape(capacity, n, 2),
+            width, height, in_window & finite)
+        mse = jnp.mean((jnp.clip(out.image, 0, 1) - batch["image"]) ** 2)
+        new_state = TrainState(
+            params=keep(new_params, state.params), opt_state=keep(new_opt, state.opt_state),
+            anchors=state.anchors, stats=stats, step=state.step + 1,
+            skipped=state.skipped + (~finite).astype(jnp.int32))
+        metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
+                       visible_anchors=jnp.sum(visible), overflow=out.overflow,
+                       **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
+        return new_state, metrics
+
+    return jax.jit(step, donate_argnums=0)
+
+
+def main() -> None:  # pragma: no cover - thin forwarder
+    from cusgs_jax.train_app import main as app_main
+
+    app_main()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main()

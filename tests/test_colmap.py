@@ -1,0 +1,372 @@
+"""COLMAP scene loading: tiny reconstructions built with pycolmap in tmp_path."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from cusgs_jax.data.colmap import SceneData, SceneError, load_scene  # noqa: E402
+
+W, H = 32, 24
+PINHOLE = (30.0, 31.0, 16.0, 12.0)
+
+
+def _rotation(axis_angle):
+    """Rodrigues: axis-angle → 3×3 rotation matrix (independent of pycolmap)."""
+    v = np.asarray(axis_angle, np.float64)
+    theta = np.linalg.norm(v)
+    if theta == 0:
+        return np.eye(3)
+    k = v / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+
+
+def make_scene(root, *, n=3, width=W, height=H, cameras=None, text=False, model_dir="sparse/0",
+               num_points=5, write_images=True, seed=0, images_dir="images", image_mode="RGB",
+               nan_pose=False):
+    """Write a tiny COLMAP scene under `root`.
+
+    cameras: list of (model_name, params, width, height); image i uses camera i % len(cameras).
+    Returns a dict with the ground truth (names by image id, R, t, images, points, colours).
+    """
+    rng = np.random.default_rng(seed)
+    cameras = cameras or [("PINHOLE", PINHOLE, width, height)]
+    rec = pycolmap.Reconstruction()
+    for cid, (model, params, cw, ch) in enumerate(cameras, start=1):
+        cam = pycolmap.Camera(camera_id=cid, model=model, width=cw, height=ch, params=list(params))
+        rec.add_camera_with_trivial_rig(cam)
+
+    truth = dict(names={}, R={}, t={}, camera={}, images={})
+    keypoints = rng.uniform(0, min(width, height), (num_points, 2))
+    for iid in range(1, n + 1):
+        name = f"img_{n - iid:02d}.png"  # ids and names in opposite orders
+        rot = _rotation(rng.normal(scale=0.3, size=3))
+        t = rng.normal(size=3) + np.array([0.0, 0.0, 4.0])
+        if nan_pose and iid == 2:
+            t[0] = np.nan
+        cid = (iid - 1) % len(cameras) + 1
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=cid, image_id=iid)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t))
+        truth["names"][iid] = name
+        truth["R"][name], truth["t"][name], truth["camera"][name] = rot, t, cid
+        cw, ch = cameras[cid - 1][2], cameras[cid - 1][3]
+        if image_mode == "L":
+            pixels = rng.integers(0, 256, (ch, cw), dtype=np.uint8)
+        elif image_mode == "RGBA":
+            pixels = rng.integers(0, 256, (ch, cw, 4), dtype=np.uint8)
+        else:
+            pixels = rng.integers(0, 256, (ch, cw, 3), dtype=np.uint8)
+        truth["images"][name] = pixels
+        if write_images:
+            (root / images_dir).mkdir(parents=True, exist_ok=True)
+            iio.imwrite(root / images_dir / name, pixels)
+
+    xyz = rng.normal(size=(num_points, 3))
+    colors = rng.integers(0, 256, (num_points, 3), dtype=np.uint8)
+    for p in range(num_points):
+        track = pycolmap.Track()
+        for iid in range(1, n + 1):
+            track.add_element(iid, p)
+        rec.add_point3D(xyz[p], track, colors[p])
+    truth["points"], truth["colors"] = xyz, colors
+
+    out = root / model_dir
+    out.mkdir(parents=True, exist_ok=True)
+    if text:
+        rec.write_text(str(out))
+    else:
+        rec.write(str(out))
+    return truth
+
+
+def _check_matches_truth(scene: SceneData, truth, *, downscale=1):
+    names = sorted(truth["names"].values())
+    assert scene.names == tuple(names)
+    n = len(names)
+    assert scene.images.shape == (n, scene.height, scene.width, 3)
+    assert scene.images.dtype == np.uint8
+    assert scene.viewmats.shape == (n, 4, 4) and scene.viewmats.dtype == np.float32
+    assert scene.Ks.shape == (n, 3, 3) and scene.Ks.dtype == np.float32
+    rng = np.random.default_rng(1)
+    world = np.concatenate([rng.normal(size=(6, 3)), np.ones((6, 1))], -1)
+    for i, name in enumerate(names):
+        rot, t = truth["R"][name], truth["t"][name]
+        np.testing.assert_allclose(scene.viewmats[i] @ world.T,
+                                   np.concatenate([rot @ world[:, :3].T + t[:, None],
+                                                   np.ones((1, 6))]), atol=1e-5)
+        np.testing.assert_array_equal(scene.viewmats[i, 3], [0, 0, 0, 1])
+    # Points: written in id order = sorted by id.
+    np.testing.assert_allclose(scene.points, truth["points"], atol=1e-6)
+    np.testing.assert_array_equal(scene.point_colors, truth["colors"])
+    assert scene.points.dtype == np.float32 and scene.point_colors.dtype == np.uint8
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])
+def test_load_model(tmp_path, text):
+    truth = make_scene(tmp_path, n=3, text=text)
+    scene = load_scene(tmp_path)
+    _check_matches_truth(scene, truth)
+    assert (scene.width, scene.height) == (W, H)
+    for i, name in enumerate(scene.names):
+        np.testing.assert_array_equal(scene.images[i], truth["images"][name])
+    fx, fy, cx, cy = PINHOLE
+    np.testing.assert_allclose(scene.Ks, np.broadcast_to([[fx, 0, cx], [0, fy, cy], [0, 0, 1]],
+                                                         (3, 3, 3)))
+    # Extent by hand: camera centres C = -Rᵀt.
+    centers = np.stack([-truth["R"][n].T @ truth["t"][n] for n in scene.names])
+    np.testing.assert_allclose(scene.camera_centers, centers, atol=1e-5)
+    expect = 1.1 * max(np.linalg.norm(c - centers.mean(0)) for c in centers)
+    assert scene.extent == pytest.approx(expect, rel=1e-5)
+    # 3 images, every 8th held out: test = [0].
+    np.testing.assert_array_equal(scene.test_indices, [0])
+    np.testing.assert_array_equal(scene.train_indices, [1, 2])
+    assert scene.path == tmp_path
+
+
+def test_model_without_rig_and_frame_files_in_sparse(tmp_path):
+    """COLMAP 3.x layout: no rigs/frames files, model directly in sparse/."""
+    truth = make_scene(tmp_path, model_dir="sparse")
+    for f in ("rigs.bin", "frames.bin"):
+        (tmp_path / "sparse" / f).unlink()
+    scene = load_scene(tmp_path)
+    _check_matches_truth(scene, truth)
+
+
+def test_holdout_split(tmp_path):
+    make_scene(tmp_path, n=9, num_points=3)
+    scene = load_scene(tmp_path)
+    np.testing.assert_array_equal(scene.test_indices, [0, 8])
+    np.testing.assert_array_equal(scene.train_indices, np.arange(1, 8))
+    assert scene.test_indices.dtype == np.int32 and scene.train_indices.dtype == np.int32
+    scene = load_scene(tmp_path, holdout_every=3)
+    np.testing.assert_array_equal(scene.test_indices, [0, 3, 6])
+    scene = load_scene(tmp_path, holdout_every=0)
+    assert scene.test_indices.size == 0
+    np.testing.assert_array_equal(scene.train_indices, np.arange(9))
+    with pytest.raises(SceneError, match="data.holdout_every"):
+        load_scene(tmp_path, holdout_every=1)
+    with pytest.raises(SceneError, match="data.holdout_every"):
+        load_scene(tmp_path, holdout_every=-1)
+
+
+def test_simple_pinhole_and_per_image_cameras(tmp_path):
+    cams = [("SIMPLE_PINHOLE", (28.0, 15.5, 12.5), W, H), ("PINHOLE", PINHOLE, W, H)]
+    truth = make_scene(tmp_path, n=4, cameras=cams)
+    scene = load_scene(tmp_path)
+    _check_matches_truth(scene, truth)
+    for i, name in enumerate(scene.names):
+        if truth["camera"][name] == 1:
+            expect = [[28.0, 0, 15.5], [0, 28.0, 12.5], [0, 0, 1]]
+        else:
+            expect = [[30.0, 0, 16.0], [0, 31.0, 12.0], [0, 0, 1]]
+        np.testing.assert_allclose(scene.Ks[i], expect)
+
+
+@pytest.mark.parametrize("model,params", [
+    ("OPENCV", (30.0, 31.0, 16.0, 12.0, 0.01, 0.0, 0.0, 0.0)),
+    ("RADIAL", (30.0, 16.0, 12.0, 0.01, 0.0)),
+])
+def test_distorted_camera_rejected(tmp_path, model, params):
+    make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), (model, params, W, H)])
+    with pytest.raises(SceneError, match=rf"camera 2 .*cameras\.bin.*{model}.*undistort") as e:
+        load_scene(tmp_path)
+    assert "image_undistorter" in str(e.value)
+
+
+def test_grey_and_rgba_images(tmp_path):
+    truth = make_scene(tmp_path, image_mode="L")
+    scene = load_scene(tmp_path)
+    for i, name in enumerate(scene.names):
+        np.testing.assert_array_equal(scene.images[i], np.repeat(truth["images"][name][..., None],
+                                                                 3, -1))
+    shutil.rmtree(tmp_path / "images")
+    truth = make_scene(tmp_path, image_mode="RGBA")
+    scene = load_scene(tmp_path)
+    for i, name in enumerate(scene.names):
+        np.testing.assert_array_equal(scene.images[i], truth["images"][name][..., :3])
+
+
+def test_downscale_from_images_folder(tmp_path):
+    truth = make_scene(tmp_path)
+    scene = load_scene(tmp_path, downscale=2)
+    assert (scene.width, scene.height) == (W // 2, H // 2)
+    assert scene.images.shape == (3, H // 2, W // 2, 3)
+    fx, fy, cx, cy = PINHOLE
+    np.testing.assert_allclose(scene.Ks[0], [[fx / 2, 0, cx / 2], [0, fy / 2, cy / 2], [0, 0, 1]])
+    for i, name in enumerate(scene.names):  # 2×2 box average
+        full = truth["images"][name].astype(np.float64)
+        box = full.reshape(H // 2, 2, W // 2, 2, 3).mean(axis=(1, 3))
+        assert np.max(np.abs(scene.images[i] - box)) <= 0.5 + 1e-9
+    _check_matches_truth(scene, truth)  # poses unchanged
+
+
+def test_downscale_odd_size_rounds(tmp_path):
+    """33×25 camera with downscale 2 → round(16.5)=17 × round(12.5)=13, anti-aliased."""
+    make_scene(tmp_path, cameras=[("PINHOLE", (30.0, 30.0, 16.5, 12.5), 33, 25)])
+    scene = load_scene(tmp_path, downscale=2)
+    assert (scene.width, scene.height) == (17, 13)
+    np.testing.assert_allclose(scene.Ks[0], [[15, 0, 8.25], [0, 15, 6.25], [0, 0, 1]])
+
+
+def test_downscale_from_prescaled_folder(tmp_path):
+    truth = make_scene(tmp_path)
+    (tmp_path / "images_2").mkdir()
+    small = {}
+    rng = np.random.default_rng(5)
+    for name in truth["names"].values():
+        small[name] = rng.integers(0, 256, (H // 2, W // 2, 3), dtype=np.uint8)
+        iio.imwrite(tmp_path / "images_2" / name, small[name])
+    scene = load_scene(tmp_path, downscale=2)
+    for i, name in enumerate(scene.names):
+        np.testing.assert_array_equal(scene.images[i], small[name])
+    fx, fy, cx, cy = PINHOLE
+    np.testing.assert_allclose(scene.Ks[0], [[fx / 2, 0, cx / 2], [0, fy / 2, cy / 2], [0, 0, 1]])
+    # Prescaled folder alone is enough (images/ not needed).
+    shutil.rmtree(tmp_path / "images")
+    assert load_scene(tmp_path, downscale=2).images.shape == (3, H // 2, W // 2, 3)
+    # images_2 with ±1 px (floor instead of round) is accepted.
+    shutil.rmtree(tmp_path / "images_2")
+    make_scene(tmp_path / "odd", cameras=[("PINHOLE", PINHOLE, 33, 25)], images_dir="images_2",
+               write_images=False)
+    (tmp_path / "odd" / "images_2").mkdir()
+    for name in ("img_00.png", "img_01.png", "img_02.png"):
+        iio.imwrite(tmp_path / "odd" / "images_2" / name, np.zeros((12, 16, 3), np.uint8))
+    assert load_scene(tmp_path / "odd", downscale=2).images.shape == (3, 12, 16, 3)
+
+
+def test_prescaled_folder_with_wrong_factor(tmp_path):
+    truth = make_scene(tmp_path)
+    (tmp_path / "images_2").mkdir()
+    for name in truth["names"].values():  # actually 4× smaller
+        iio.imwrite(tmp_path / "images_2" / name, np.zeros((H // 4, W // 4, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"images_2.*img_00\.png is 8x6.*16x12.*data\.downscale=4"):
+        load_scene(tmp_path, downscale=2)
+
+
+def test_images_smaller_than_camera_suggest_downscale(tmp_path):
+    truth = make_scene(tmp_path, write_images=False)
+    (tmp_path / "images").mkdir()
+    for name in truth["names"].values():
+        iio.imwrite(tmp_path / "images" / name, np.zeros((H // 2, W // 2, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"img_00\.png is 16x12.*32x24.*images_2.*data\.downscale=2"):
+        load_scene(tmp_path)
+
+
+def test_image_size_disagrees_with_camera(tmp_path):
+    make_scene(tmp_path)
+    iio.imwrite(tmp_path / "images" / "img_01.png", np.zeros((20, 30, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"img_01\.png is 30x20 .*camera 1 \(32x24\).*32x24"):
+        load_scene(tmp_path)
+
+
+def test_cameras_of_different_sizes(tmp_path):
+    make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), ("PINHOLE", PINHOLE, 40, 30)])
+    with pytest.raises(SceneError, match=r"images\.bin.*32x24.*40x30"):
+        load_scene(tmp_path)
+
+
+# ------------------------------------------------------------------------------------------
+# Errors
+# ------------------------------------------------------------------------------------------
+
+
+def test_error_path_missing(tmp_path):
+    with pytest.raises(SceneError, match=r"nope.*does not exist.*data\.path"):
+        load_scene(tmp_path / "nope")
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(SceneError, match=r"file.*not a folder"):
+        load_scene(tmp_path / "file")
+
+
+def test_error_images_folder_missing(tmp_path):
+    make_scene(tmp_path, write_images=False)
+    with pytest.raises(SceneError, match=re.escape(str(tmp_path / "images")) + ".*does not exist"):
+        load_scene(tmp_path)
+    with pytest.raises(SceneError, match=r"images_2.*data\.downscale=2"):
+        load_scene(tmp_path, downscale=2)
+
+
+def test_error_model_folder_missing(tmp_path):
+    (tmp_path / "images").mkdir()
+    with pytest.raises(SceneError, match=r"no COLMAP model folder.*sparse"):
+        load_scene(tmp_path)
+    (tmp_path / "sparse" / "1").mkdir(parents=True)
+    with pytest.raises(SceneError, match=r"no COLMAP model in .*sparse.*sub-folders 1"):
+        load_scene(tmp_path)
+
+
+@pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
+def test_error_model_file_missing(tmp_path, part):
+    make_scene(tmp_path)
+    (tmp_path / "sparse" / "0" / f"{part}.bin").unlink()
+    with pytest.raises(SceneError, match=rf"incomplete COLMAP model in .*sparse.0.*{part}\.bin/\.txt"):
+        load_scene(tmp_path)
+
+
+def test_error_model_unparsable(tmp_path):
+    make_scene(tmp_path)
+    model = tmp_path / "sparse" / "0"
+    (model / "cameras.bin").write_bytes(b"\x01\x00")
+    with pytest.raises(SceneError, match=r"cameras\.bin is truncated or corrupt"):
+        load_scene(tmp_path)
+    make_scene(tmp_path, write_images=False)
+    data = (model / "images.bin").read_bytes()
+    (model / "images.bin").write_bytes(data[:40])  # count intact, records cut off
+    with pytest.raises(SceneError, match=r"images\.bin is truncated or corrupt"):
+        load_scene(tmp_path)
+    (model / "images.bin").write_bytes(data[:8] + b"\xff" * (len(data) - 8))  # garbage records
+    with pytest.raises(SceneError, match=r"sparse.0"):
+        load_scene(tmp_path)
+    shutil.rmtree(tmp_path / "sparse")
+    make_scene(tmp_path, text=True, write_images=False)
+    (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 NOT_A_MODEL 32 24 1 2 3\n")
+    with pytest.raises(SceneError, match=r"pycolmap could not read .*cameras\.txt"):
+        load_scene(tmp_path)
+
+
+def test_error_image_missing_on_disk(tmp_path):
+    make_scene(tmp_path)
+    (tmp_path / "images" / "img_01.png").unlink()
+    with pytest.raises(SceneError, match=r"'img_01\.png'.*missing.*images.img_01\.png"):
+        load_scene(tmp_path)
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its legacy plugins
+def test_error_image_corrupt(tmp_path):
+    make_scene(tmp_path)
+    (tmp_path / "images" / "img_02.png").write_bytes(b"\x89PNG not really")
+    with pytest.raises(SceneError, match=r"cannot read image .*img_02\.png.*corrupt"):
+        load_scene(tmp_path)
+
+
+def test_error_no_points(tmp_path):
+    make_scene(tmp_path, num_points=0)
+    with pytest.raises(SceneError, match=r"no points.*points3D\.bin.*triangulat"):
+        load_scene(tmp_path)
+
+
+def test_error_non_finite_pose(tmp_path):
+    make_scene(tmp_path, nan_pose=True)  # image id 2 = img_01.png
+    with pytest.raises(SceneError, match=r"'img_01\.png'.*images\.bin.*non-finite"):
+        load_scene(tmp_path)
+
+
+def test_error_zero_images(tmp_path):
+    make_scene(tmp_path, n=0, num_points=0)
+    with pytest.raises(SceneError, match=r"images\.bin.*no registered images"):
+        load_scene(tmp_path)
+
+
+def test_error_bad_downscale(tmp_path):
+    make_scene(tmp_path)
+    with pytest.raises(SceneError, match=r"data\.downscale"):
+        load_scene(tmp_path, downscale=0)
+    with pytest.raises(SceneError, match=r"data\.downscale"):
+        load_scene(tmp_path, downscale=1.5)
