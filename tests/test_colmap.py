@@ -370,3 +370,44 @@ def test_error_bad_downscale(tmp_path):
         load_scene(tmp_path, downscale=0)
     with pytest.raises(SceneError, match=r"data\.downscale"):
         load_scene(tmp_path, downscale=1.5)
+
+
+def test_multi_camera_rig(tmp_path):
+    """pycolmap >= 3.12 rigs: an image's pose is sensor_from_rig ∘ rig_from_world."""
+    rec = pycolmap.Reconstruction()
+    cams = [pycolmap.Camera(camera_id=c, model="PINHOLE", width=W, height=H, params=list(PINHOLE))
+            for c in (1, 2)]
+    for cam in cams:
+        rec.add_camera(cam)
+    rig = pycolmap.Rig(rig_id=1)
+    rig.add_ref_sensor(cams[0].sensor_id)
+    r_s, t_s = _rotation([0, 0.2, 0]), np.array([0.5, 0.0, 0.0])
+    rig.add_sensor(cams[1].sensor_id, pycolmap.Rigid3d(pycolmap.Rotation3d(r_s), t_s))
+    rec.add_rig(rig)
+    r_w, t_w = _rotation([0.1, 0, 0.3]), np.array([0.0, 1.0, 4.0])
+    frame = pycolmap.Frame(frame_id=1, rig_id=1)
+    frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(r_w), t_w)
+    images = [pycolmap.Image(name=f"cam{c}.png", keypoints=np.array([[3.0, 4.0]]), camera_id=c,
+                             image_id=c) for c in (1, 2)]
+    for image in images:
+        image.frame_id = 1
+        frame.add_data_id(image.data_id)
+    rec.add_frame(frame)
+    for image in images:
+        rec.add_image(image)
+    rec.register_frame(1)
+    track = pycolmap.Track()
+    track.add_element(1, 0)
+    track.add_element(2, 0)
+    rec.add_point3D(np.array([0.1, 0.2, 0.3]), track, np.array([1, 2, 3], np.uint8))
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(tmp_path / "sparse" / "0"))
+    (tmp_path / "images").mkdir()
+    for c in (1, 2):
+        iio.imwrite(tmp_path / "images" / f"cam{c}.png", np.zeros((H, W, 3), np.uint8))
+    scene = load_scene(tmp_path)
+    assert scene.names == ("cam1.png", "cam2.png")
+    np.testing.assert_allclose(scene.viewmats[0, :3, :3], r_w, atol=1e-6)
+    np.testing.assert_allclose(scene.viewmats[0, :3, 3], t_w, atol=1e-6)
+    np.testing.assert_allclose(scene.viewmats[1, :3, :3], r_s @ r_w, atol=1e-6)
+    np.testing.assert_allclose(scene.viewmats[1, :3, 3], r_s @ t_w + t_s, atol=1e-6)

@@ -15,6 +15,7 @@ from cusgs_jax.data.colmap import SceneError
 def main(cfg: DictConfig) -> float:
     from cusgs_jax.runner import run
 
+    logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
     output_dir = HydraConfig.get().runtime.output_dir
     try:
         result = run(OmegaConf.to_container(cfg, resolve=True), output_dir)

@@ -482,8 +482,9 @@ def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, fold
     if k >= 1 and abs(ratio - k) * img_w <= 1.0:
         if from_prescaled and k != downscale:
             return (f" The images in {folder.name}/ look {k}x smaller than the COLMAP cameras, not "
-                    f"{downscale}x: fix or rename that folder (images_{k}/ is read for "
-                    f"data.downscale={k}), or use data.downscale={k} with the images moved there.")
+                    f"{downscale}x: rename the folder to images_{k}/ and set data.downscale={k}, "
+                    f"or replace its contents with {downscale}x-downscaled images (or delete it "
+                    "to have images/ downscaled on the fly).")
         if not from_prescaled and k > 1:
             return (f" The images in images/ look {k}x smaller than the COLMAP cameras (the "
                     "loader expects images/ at the model's full resolution): move them to "
