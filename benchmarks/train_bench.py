@@ -1,0 +1,74 @@
+"""Train-step speed on the demo scene at 1×, 2× and 4× its pixels; prints JSON.
+
+For each resolution: compile time of the jitted step and the median step time
+over ``--steps`` steps (after compilation), with the anchor count used.
+
+    python benchmarks/train_bench.py [--steps 20] [--views 12]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.train import ModelConfig, TrainConfig, init_train_state, make_train_step
+
+
+def bench(width: int, height: int, steps: int, views: int, voxel_size: float) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = load_scene(generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width,
+                                               height=height), holdout_every=0)
+    cfg = TrainConfig(iterations=30_000, model=ModelConfig(voxel_size=voxel_size))
+    state, tx = init_train_state(cfg, scene.points, len(scene.names), scene.extent)
+    step = make_train_step(cfg, tx, width, height)
+    images = jnp.asarray(scene.images.astype(np.float32) / 255.0)
+
+    def batch(i):
+        v = i % len(scene.names)
+        return dict(image=images[v], viewmat=jnp.asarray(scene.viewmats[v]), K=jnp.asarray(scene.Ks[v]),
+                    index=jnp.int32(v))
+
+    start = time.perf_counter()
+    state, metrics = step(state, batch(0))
+    jax.block_until_ready(metrics)
+    compile_s = time.perf_counter() - start
+    times = []
+    for i in range(1, steps + 1):
+        start = time.perf_counter()
+        state, metrics = step(state, batch(i))
+        jax.block_until_ready(metrics)
+        times.append(time.perf_counter() - start)
+    return dict(width=width, height=height, pixels=width * height, anchors=int(np.sum(state.anchors.alive)),
+                capacity=state.anchors.capacity, compile_s=compile_s, median_step_s=float(np.median(times)),
+                steps=steps)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--views", type=int, default=12)
+    parser.add_argument("--voxel-size", type=float, default=0.04)
+    args = parser.parse_args(argv)
+    rows = []
+    for factor in (1, 2, 4):
+        scale = math.sqrt(factor)
+        width, height = int(round(160 * scale / 2) * 2), int(round(120 * scale / 2) * 2)
+        rows.append(dict(pixel_factor=factor, **bench(width, height, args.steps, args.views, args.voxel_size)))
+        print(json.dumps(rows[-1]), flush=True, file=__import__("sys").stderr)
+    print(json.dumps(dict(benchmark="train_step", jax=jax.__version__, backend=jax.default_backend(),
+                          cpu_count=os.cpu_count(), machine=platform.machine(), results=rows), indent=1))
+
+
+if __name__ == "__main__":
+    main()
