@@ -175,6 +175,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
         batch = dict(image=images[view], viewmat=viewmats[view], K=Ks[view], index=jnp.int32(view))
         with clock:
             state, metrics = step_fn(state, batch)
+            jax.block_until_ready(metrics)  # charge the step's real compute time to the clock
             if grow.start <= step + 1 <= grow.stop and (step + 1) % grow.interval == 0:
                 metrics = jax.device_get(metrics)
                 old_capacity = state.anchors.capacity
@@ -194,9 +195,14 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
             row = dict(step=step + 1, wall_s=round(clock.total, 3), loss=float(metrics["loss"]),
                        train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
                        visible_anchors=int(metrics["visible_anchors"]), skipped=int(state.skipped),
+                       visible_overflow=int(metrics["visible_overflow"]),
                        overflow=int(metrics["overflow"]),
                        step_s=round((now - last_log) / log_every, 4))
             last_log = now
+            if row["visible_overflow"] or row["overflow"]:
+                log.warning("step %d: %d visible anchors did not fit model.visible_fraction and %d tile pairs "
+                            "overflowed splat.max_pairs_per_gaussian; raise them if this persists",
+                            step + 1, row["visible_overflow"], row["overflow"])
             metrics_file.write(json.dumps(row) + "\n")
             metrics_file.flush()
             bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['train_psnr']:.2f}",

@@ -35,6 +35,11 @@ class ModelConfig:
     appearance_dim: int = 32
     capacity_factor: float = 2.0
     frustum_margin: float = 0.15
+    # Anchors in the view frustum are gathered into ceil(visible_fraction · A)
+    # slots before decoding, so culled anchors cost nothing; more visible
+    # anchors than that are dropped for the step and counted in
+    # ``visible_overflow``. 1.0 decodes every slot (never drops).
+    visible_fraction: float = 0.6
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
@@ -123,19 +128,38 @@ def camera_center(viewmat: jax.Array) -> jax.Array:
     return -viewmat[:3, :3].T @ viewmat[:3, 3]
 
 
-def decode_view(params: dict, anchors: Anchors, viewmat, K, width: int, height: int, appearance_index,
-                cfg: TrainConfig) -> tuple[Gaussians, jax.Array]:
-    """Frustum-cull the anchors and decode the view's Gaussians.
+def visible_slots(anchors: Anchors, viewmat, K, width: int, height: int, cfg: TrainConfig):
+    """Slots of the anchors to decode for a view, compacted to a static count.
 
     Returns:
-      (Gaussians with G = A·N, visible anchors [A] bool).
+      (slots [V] int32 indices into the anchor arrays, valid [V] bool,
+      overflow [] int32 visible anchors that did not fit), V = ceil(visible_fraction · A).
     """
+    capacity = anchors.capacity
     visible = frustum_mask(anchors.centers, viewmat, K, width, height, margin=cfg.model.frustum_margin)
     visible = visible & anchors.alive
+    count = max(1, min(capacity, int(-(-cfg.model.visible_fraction * capacity // 1))))
+    if count >= capacity:
+        return jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0)
+    (slots,) = jnp.nonzero(visible, size=count, fill_value=0)
+    valid = jnp.arange(count) < jnp.sum(visible)
+    return slots.astype(jnp.int32), valid, jnp.maximum(jnp.sum(visible) - count, 0).astype(jnp.int32)
+
+
+def decode_view(params: dict, anchors: Anchors, viewmat, K, width: int, height: int, appearance_index,
+                cfg: TrainConfig):
+    """Frustum-cull the anchors, gather the visible ones and decode the view's Gaussians.
+
+    Returns:
+      (Gaussians with G = V·N, slots [V] int32, valid [V] bool, overflow []).
+    """
+    slots, valid, overflow = visible_slots(anchors, viewmat, K, width, height, cfg)
+    anchor_params = jax.tree_util.tree_map(lambda x: x[slots], params["anchor"])
+    subset = Anchors(anchors.centers[slots], anchors.alive[slots] & valid)
     appearance = params["appearance"][appearance_index] if cfg.model.appearance else None
-    gaussians = decode_gaussians(params["decoder"], params["anchor"], anchors, camera_center(viewmat),
-                                 appearance, visible, cfg.model.decoder())
-    return gaussians, visible
+    gaussians = decode_gaussians(params["decoder"], anchor_params, subset, camera_center(viewmat),
+                                 appearance, valid, cfg.model.decoder())
+    return gaussians, slots, valid, overflow
 
 
 def render_gaussians(gaussians: Gaussians, viewmat, K, width: int, height: int, cfg: TrainConfig,
@@ -155,7 +179,7 @@ def make_render_fn(cfg: TrainConfig, width: int, height: int):
 
     @jax.jit
     def render(params, anchors, viewmat, K, appearance_index):
-        gaussians, _ = decode_view(params, anchors, viewmat, K, width, height, appearance_index, cfg)
+        gaussians, *_ = decode_view(params, anchors, viewmat, K, width, height, appearance_index, cfg)
         out = render_gaussians(gaussians, viewmat, K, width, height, cfg)
         return jnp.clip(out.image, 0.0, 1.0), out.overflow
 
@@ -175,18 +199,19 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
     grow = cfg.grow
 
     def loss_fn(params, delta, anchors, batch):
-        gaussians, visible = decode_view(params, anchors, batch["viewmat"], batch["K"], width, height,
-                                         batch["index"], cfg)
+        gaussians, slots, valid, overflow = decode_view(params, anchors, batch["viewmat"], batch["K"], width,
+                                                        height, batch["index"], cfg)
         out = render_gaussians(gaussians, batch["viewmat"], batch["K"], width, height, cfg, delta)
         loss, terms = losses.image_loss(out.image, batch["image"], gaussians.scales, gaussians.active,
                                         l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
                                         volume_weight=cfg.loss.volume_weight)
-        return loss, (out, gaussians, visible, terms)
+        return loss, (out, gaussians, slots, valid, overflow, terms)
 
     def step(state: TrainState, batch):
         capacity = state.anchors.capacity
-        delta = jnp.zeros((capacity * n, 2), jnp.float32)
-        (loss, (out, gaussians, visible, terms)), (grads, grad2d) = jax.value_and_grad(
+        num_slots = visible_slots(state.anchors, batch["viewmat"], batch["K"], width, height, cfg)[0].shape[0]
+        delta = jnp.zeros((num_slots * n, 2), jnp.float32)
+        (loss, (out, gaussians, slots, valid, vis_overflow, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(state.params, delta, state.anchors, batch)
         finite = jnp.isfinite(loss) & jnp.all(jnp.array(
             [jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
@@ -198,17 +223,22 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
         new_params = jax.tree_util.tree_map(lambda p, u: p + u, state.params, updates)
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
         in_window = (state.step >= grow.stats_start) & (state.step < grow.stop)
+        # scatter the compacted per-view quantities back to anchor slots
+        def to_slots(x, fill=0):
+            full = jnp.full((capacity,) + x.shape[1:], fill, x.dtype)
+            return full.at[jnp.where(valid, slots, capacity)].set(x, mode="drop")
+
         stats = accumulate_stats(
-            state.stats, visible, gaussians.opacities.reshape(capacity, n),
-            (gaussians.active & out.visible).reshape(capacity, n), grad2d.reshape(capacity, n, 2),
-            width, height, in_window & finite)
+            state.stats, to_slots(valid, False), to_slots(gaussians.opacities.reshape(-1, n)),
+            to_slots((gaussians.active & out.visible).reshape(-1, n), False),
+            to_slots(grad2d.reshape(-1, n, 2)), width, height, in_window & finite)
         mse = jnp.mean((jnp.clip(out.image, 0, 1) - batch["image"]) ** 2)
         new_state = TrainState(
             params=keep(new_params, state.params), opt_state=keep(new_opt, state.opt_state),
             anchors=state.anchors, stats=stats, step=state.step + 1,
             skipped=state.skipped + (~finite).astype(jnp.int32))
         metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
-                       visible_anchors=jnp.sum(visible), overflow=out.overflow,
+                       visible_anchors=jnp.sum(valid), visible_overflow=vis_overflow, overflow=out.overflow,
                        **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
         return new_state, metrics
 
