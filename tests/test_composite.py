@@ -41,7 +41,7 @@ def test_custom_vjp_matches_dense_autodiff(x64):
     wt = jnp.asarray(rng.normal(size=(grid.num_tiles, 64)))
 
     def ours(m, c, o, f):
-        out = composite_tiles(grid, 8, m, c, o, f, pairs, starts, ends)
+        out = composite_tiles(grid, 8, 2, m, c, o, f, pairs, starts, ends)
         return jnp.sum(out.colors * wc) + jnp.sum(out.transmittance * wt)
 
     def to_tiles(img):

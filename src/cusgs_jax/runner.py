@@ -25,11 +25,11 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.checkpoint import Checkpointer
-from cusgs_jax.evaluate import count_parameters, evaluate_views, nearest_train_view
+from cusgs_jax.evaluate import count_parameters, evaluate_views
 from cusgs_jax.grow_prune import GrowConfig, adjust_anchors
 from cusgs_jax.optim import OptimConfig, make_optimizer
 from cusgs_jax.report import plot_error_vs_time
-from cusgs_jax.scaffold import AnchorParams, Anchors, grow_capacity
+from cusgs_jax.scaffold import grow_capacity
 from cusgs_jax.train import (LossConfig, ModelConfig, SplatConfig, TrainConfig, TrainState, init_train_state,
                              make_render_fn, make_train_step)
 
@@ -238,4 +238,4 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     return result
 
 
-__all__ = ["run", "train_config", "load_data", "view_order", "nearest_train_view", "AnchorParams", "Anchors"]
+__all__ = ["run", "train_config", "load_data", "view_order"]

@@ -50,7 +50,7 @@ class ModelConfig:
 class SplatConfig:
     tile_size: int = 8
     chunk_size: int = 16
-    max_pairs_per_gaussian: float = 6.0
+    max_pairs_per_gaussian: float = 3.0
     antialiased: bool = False
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 

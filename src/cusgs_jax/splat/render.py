@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.splat.composite import composite_tiles
+from cusgs_jax.splat.composite import composite_tiles, default_lanes
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
 
@@ -78,7 +78,7 @@ def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
     jax.jit,
     static_argnames=(
         "width", "height", "near", "far", "antialiased", "eps2d", "tile_size",
-        "max_pairs", "chunk_size",
+        "max_pairs", "chunk_size", "lanes",
     ),
 )
 def rasterize(
@@ -101,6 +101,7 @@ def rasterize(
     max_pairs: int | None = None,
     chunk_size: int = 16,
     means2d_delta: jax.Array | None = None,
+    lanes: int | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (DESIGN.md §2).
 
@@ -127,6 +128,9 @@ def rasterize(
       means2d_delta: [G, 2] or None, added to the projected centres. Pass
         zeros and differentiate with respect to it to get ∂L/∂μ_2D (the
         screen-space gradient densification statistics use).
+      lanes: static number of tiles composited side by side; a lane that
+        finishes its tile (list exhausted or every pixel terminated) takes the
+        next one. ``None`` uses :func:`~cusgs_jax.splat.composite.default_lanes`.
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
@@ -145,8 +149,9 @@ def rasterize(
     means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
     depth = jnp.where(proj.visible, proj.depths, 0.0)
     features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
+    lanes = default_lanes(grid.num_tiles) if lanes is None else int(lanes)
     out = composite_tiles(
-        grid, int(chunk_size),
+        grid, int(chunk_size), lanes,
         means2d[order], proj.conics[order], proj.opacities[order], features[order],
         isect.pair_gaussians, isect.tile_starts, isect.tile_ends,
     )
