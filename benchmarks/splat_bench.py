@@ -78,14 +78,18 @@ def run(gaussians, sizes, tile_sizes, chunk_sizes, naive, repeats):
             scene = random_scene(num, size, size)
             args = [jnp.asarray(scene[k]) for k in KEYS]
             for tile_size in tile_sizes:
+                # Size the pair capacity to the scene, as a user would after one
+                # render (jax-md style): 1.25x the pairs found with a generous capacity.
+                probe = rasterize(*args, size, size, tile_size=tile_size, max_pairs=40 * num)
+                max_pairs = int(1.25 * int(probe.num_pairs)) + 1024
                 for chunk in chunk_sizes:
-                    def render(*a, ts=tile_size, ch=chunk):
-                        return rasterize(*a, size, size, tile_size=ts, chunk_size=ch).image
+                    def render(*a, ts=tile_size, ch=chunk, mp=max_pairs):
+                        return rasterize(*a, size, size, tile_size=ts, chunk_size=ch, max_pairs=mp).image
 
                     row = dict(renderer="cusgs_jax", gaussians=num, width=size, height=size,
-                               tile_size=tile_size, chunk_size=chunk)
+                               tile_size=tile_size, chunk_size=chunk, max_pairs=max_pairs)
                     row.update(measure(render, scene, repeats))
-                    out = rasterize(*args, size, size, tile_size=tile_size, chunk_size=chunk)
+                    out = rasterize(*args, size, size, tile_size=tile_size, chunk_size=chunk, max_pairs=max_pairs)
                     composited = int(jnp.sum(out.n_contrib))
                     row.update(
                         tile_pairs=int(out.num_pairs), overflow=int(out.overflow),
