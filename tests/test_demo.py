@@ -11,7 +11,7 @@ import pycolmap
 import pytest
 
 from cusgs_jax.data import demo
-from cusgs_jax.data.demo import demo_scene_path, generate_demo_scene, main
+from cusgs_jax.data.demo import FORMAT_VERSION, demo_scene_path, generate_demo_scene, main
 
 TINY = dict(num_views=6, width=40, height=30)
 # 6 views spaced 60 degrees apart see little of the room twice at 40x30, so sample more
@@ -161,13 +161,13 @@ def test_demo_scene_path_caches(tmp_path, monkeypatch):
     cache = tmp_path / "cache"
     cache.mkdir()
     # Leftovers of an interrupted generation must not get in the way.
-    stale = cache / ".demo-s0-v6-40x30.tmp-interrupted"
+    stale = cache / f".demo{FORMAT_VERSION}-s0-v6-40x30.tmp-interrupted"
     (stale / "images").mkdir(parents=True)
     (stale / "images" / "view_000.png").write_bytes(b"partial")
     path = demo_scene_path(cache, seed=0, **TINY)
-    assert path == cache / "demo-s0-v6-40x30"
+    assert path == cache / f"demo{FORMAT_VERSION}-s0-v6-40x30"
     assert _read(path).num_images() == 6
-    assert not any(p.name.startswith(".demo-s0-v6-40x30.tmp-") and p != stale
+    assert not any(p.name.startswith(f".demo{FORMAT_VERSION}-s0-v6-40x30.tmp-") and p != stale
                    for p in cache.iterdir())  # our own temporary folder is gone
     mtime = (path / "scene.json").stat().st_mtime_ns
 
@@ -183,7 +183,7 @@ def test_demo_scene_path_caches(tmp_path, monkeypatch):
 
 def test_demo_scene_path_replaces_incomplete_folder(tmp_path):
     cache = tmp_path / "cache"
-    broken = cache / "demo-s3-v6-40x30"
+    broken = cache / f"demo{FORMAT_VERSION}-s3-v6-40x30"
     (broken / "images").mkdir(parents=True)  # no scene.json: not a finished scene
     path = demo_scene_path(cache, seed=3, **TINY)
     assert path == broken and (path / "scene.json").is_file()

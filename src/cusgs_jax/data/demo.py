@@ -45,7 +45,7 @@ import numpy as np
 
 __all__ = ["generate_demo_scene", "demo_scene_path", "main"]
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 3  # 2: SfM points sampled from observed pixels; 3: cameras never see the ceiling
 FOCAL_FACTOR = 0.8  # fx = fy = FOCAL_FACTOR * width (horizontal FOV ~64 deg)
 _TEXTURE_MAX_SIDE = 768
 _EPS = 1e-9
@@ -369,7 +369,10 @@ def _make_cameras(scene, num_views, seed):
         a = 2 * np.pi * k / num_views
         ang = a + phase[0] + rng.normal(0, 0.25 * np.pi / num_views)
         radius = 2.05 + 0.25 * np.sin(2 * a + phase[1]) + rng.uniform(-0.03, 0.03)
-        height = 1.5 + 0.35 * np.sin(3 * a + phase[2]) + rng.uniform(-0.05, 0.05)
+        # 1.4–1.9: always looking down enough that no view sees the ceiling,
+        # which no other view would cover (a held-out view would then be
+        # judged on unobserved content)
+        height = 1.65 + 0.25 * np.sin(3 * a + phase[2]) + rng.uniform(-0.05, 0.05)
         centre = np.array([radius * np.cos(ang), radius * np.sin(ang), height])
         inside = np.all((centre > scene.box_lo[1:] - 0.05) & (centre < scene.box_hi[1:] + 0.05),
                         axis=1)
@@ -381,16 +384,33 @@ def _make_cameras(scene, num_views, seed):
     return poses
 
 
-def _sample_points(scene, visible_faces, num_points, seed):
-    """Uniform, area-weighted samples on the visible faces: (xyz [N, 3], face [N])."""
+def _sample_points(poses, K, depths, face_maps, num_points, seed):
+    """Surface points where the cameras look, like an SfM point cloud.
+
+    Draws ``num_points`` (view, pixel) pairs uniformly among the pixels that
+    show a surface and back-projects each pixel centre with its depth, so every
+    surface gets points in proportion to how much it is seen (a surface seen
+    only at image edges still gets some), and every point lies exactly on the
+    face it came from.
+
+    Returns:
+      (xyz [N, 3], face [N]).
+    """
     rng = np.random.default_rng([seed, 1])
-    faces = np.flatnonzero(visible_faces)
-    p = scene.face_area[faces] / scene.face_area[faces].sum()
-    face = faces[rng.choice(len(faces), size=num_points, p=p)]
-    uv = rng.uniform(0.0, 1.0, (num_points, 2))
-    xyz = (scene.face_origin[face] + uv[:, :1] * scene.face_e1[face]
-           + uv[:, 1:] * scene.face_e2[face])
-    return xyz, face
+    fx, fy, cx, cy = K
+    faces = np.stack(face_maps)  # [V, H, W]
+    candidates = np.flatnonzero(faces.reshape(-1) >= 0)
+    pick = rng.choice(candidates, size=min(num_points, len(candidates)), replace=False)
+    view, rest = np.divmod(pick, faces.shape[1] * faces.shape[2])
+    row, col = np.divmod(rest, faces.shape[2])
+    z = np.stack(depths)[view, row, col].astype(np.float64)
+    cam = np.stack([(col + 0.5 - cx) / fx * z, (row + 0.5 - cy) / fy * z, z], axis=-1)
+    xyz = np.empty_like(cam)
+    for v in np.unique(view):
+        R, t = poses[v]
+        sel = view == v
+        xyz[sel] = (cam[sel] - t) @ R  # R^T (p_c - t)
+    return xyz, faces[view, row, col]
 
 
 def _observe(scene, xyz, face, poses, K, width, height, depths, face_maps):
@@ -509,7 +529,6 @@ def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120,
         (out / sub).mkdir(parents=True, exist_ok=True)
 
     depths, face_maps = [], []
-    seen_faces = np.zeros(scene.face_obj.shape[0], bool)
     for v, (R, t) in enumerate(poses):
         image, depth, obj, faces = _render_view(scene, R, t, width, height, K)
         stem = names[v][:-4]
@@ -520,9 +539,8 @@ def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120,
         np.save(out / "object_ids" / f"{stem}.npy", obj)
         depths.append(depth)
         face_maps.append(faces)
-        seen_faces[faces[faces >= 0]] = True
 
-    xyz, face = _sample_points(scene, seen_faces, num_points, seed)
+    xyz, face = _sample_points(poses, K, depths, face_maps, num_points, seed)
     visible, xy = _observe(scene, xyz, face, poses, K, width, height, depths, face_maps)
     keep = visible.sum(axis=0) >= 2
     xyz, face, visible, xy = xyz[keep], face[keep], visible[:, keep], xy[:, keep]
@@ -554,12 +572,12 @@ def demo_scene_path(cache_dir=None, *, seed=0, num_views=30, width=160, height=1
     """Folder of the demo scene for these parameters, generating it on first use.
 
     The scene lives in ``cache_dir`` (default ``$CUSGS_CACHE_DIR`` or ``~/.cache/cusgs_jax``)
-    under ``demo-s{seed}-v{num_views}-{width}x{height}``. It is generated into a temporary
+    under ``demo{FORMAT_VERSION}-s{seed}-v{num_views}-{width}x{height}``. It is generated into a temporary
     sibling folder and renamed into place, so an interrupted generation never leaves a partial
     scene behind; an existing complete folder is reused as is.
     """
     root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
-    name = f"demo-s{seed}-v{num_views}-{width}x{height}"
+    name = f"demo{FORMAT_VERSION}-s{seed}-v{num_views}-{width}x{height}"
     final = root / name
     if (final / "scene.json").is_file():
         return final
