@@ -1,0 +1,1 @@
+"""Per-model feature memory: PSC banks (:mod:`.psc`) and memory attention (:mod:`.attention`)."""
