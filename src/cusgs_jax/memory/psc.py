@@ -16,8 +16,8 @@ where each dot product is the correctly rounded float64 value of the exact sum
 (products of float32 numbers are exact in float64; ``math.fsum`` sums them
 exactly), followed by three correctly rounded float64 operations. It is a pure
 function of the two rows -- independent of summation order, BLAS, backend and
-chunking -- and bitwise-identical rows (or rows that differ by a power-of-two
-factor) have a cosine of exactly 1.0.
+chunking -- and equal rows (or rows that differ by a power-of-two factor) have a
+cosine of exactly 1.0.
 
 Why not "float32 cosines from a matmul" for the decision: two float32 dot
 products of the same vectors computed in a different order (NumPy vs XLA, CPU
@@ -34,12 +34,11 @@ a float32 cosine below ``gamma - tol`` proves "below", one at or above
 
 ``gamma`` semantics. Ties (cosine exactly ``gamma``) are rejected. With
 ``gamma = 1.0`` (M3's setting for SEEM and LLaMA3) only rows with exactly the same
-direction as a kept entry are rejected -- bitwise repeats and power-of-two
-multiples, whose cosine is exactly 1.0 -- and every other non-zero row is kept,
+direction as a kept entry are rejected -- repeats and power-of-two multiples,
+whose cosine is exactly 1.0 -- and every other non-zero row is kept,
 i.e. "keep all distinct". A row scaled by a factor like 3 is not exactly parallel
 after float32 rounding; its cosine may round to 1.0 (rejected) or fall just below
-(kept). ``gamma > 1`` keeps every non-zero row; ``gamma <= -1`` keeps only the
-first.
+(kept). ``gamma > 1`` keeps every non-zero row.
 
 Cost. Rows are processed in chunks of ``chunk``: (1) each chunk row's maximum
 float32 cosine to the bank, by a jitted loop over bank blocks (memory
@@ -48,7 +47,10 @@ matrix and a short sequential pass (a candidate depends only on earlier kept
 candidates of the chunk, and rows with no near-or-above-threshold earlier
 candidate are kept without looking). The bank lives in preallocated host and
 device buffers whose capacity doubles outside jit, so appending is amortised
-O(1) per row and jit recompiles only on growth (log2 many times).
+O(1) per row; the screening kernel compiles once per (capacity, power-of-two block)
+pair, i.e. O(log S) times. Near-threshold pairs are decided exactly in vectorised
+batches (``math.fsum`` per pair); only data with very many near-parallel but not
+equal rows at ``gamma = 1.0`` spends noticeable time there.
 """
 
 from __future__ import annotations
@@ -128,10 +130,11 @@ def exact_cosine(a: np.ndarray, b: np.ndarray) -> float:
     """The PSC decision cosine of two non-zero float32 rows ``a, b`` [D] (a Python float).
 
     ``<a,b> / sqrt(<a,a> <b,b>)`` with every dot product the correctly rounded float64
-    value of the exact sum, so the result depends on nothing but the two rows.
-    Bitwise-equal rows give exactly 1.0 (short-cut here; the formula gives the same,
-    since ``sqrt(x*x) == x`` in binary floating point without over/underflow, and the
-    float32 range cannot over/underflow float64 here).
+    value of the exact sum, then correctly rounded float64 multiply, sqrt and divide, so
+    the result depends on nothing but the two rows. Equal rows (elementwise ``==``, so
+    ``-0.0 == 0.0``) give exactly 1.0: short-cut here, and the formula agrees, since
+    ``sqrt(x*x) == x`` in binary floating point without over/underflow (which the float32
+    range cannot cause in float64); rows differing by a power-of-two factor give 1.0 too.
     """
     return _exact_cos(np.asarray(a, np.float32), np.asarray(b, np.float32))
 
@@ -171,18 +174,21 @@ def _cached_sq(rows: np.ndarray, cache: np.ndarray, idx: np.ndarray) -> np.ndarr
     return cache[idx]
 
 
-def _pairs_at_least(a, a_sq, b, b_sq, gamma) -> np.ndarray:
-    """[k] bool: ``_exact_cos(a_k, b_k) >= gamma`` for float32 rows a, b [k, D], bit for bit.
+def _pairs_at_least(a_rows, a_sq, ai, b_rows, b_sq, bj, gamma) -> np.ndarray:
+    """[k] bool: ``_exact_cos(a_rows[ai[k]], b_rows[bj[k]]) >= gamma``, bit for bit.
 
-    a_sq, b_sq [k]: the rows' exact squared norms. NumPy's float64 multiply, sqrt and
-    divide are IEEE correctly rounded like ``math``'s, so the cosines equal _exact_cos's.
+    a_rows, b_rows: float32 [*, D]; ai, bj [k] row indices; a_sq, b_sq: NaN-initialised
+    caches of the rows' exact squared norms (filled only where needed). NumPy's float64
+    multiply, sqrt and divide are IEEE correctly rounded like ``math``'s, so the cosines
+    equal _exact_cos's.
     """
+    a, b = a_rows[ai], b_rows[bj]
     equal = np.all(a == b, axis=1)
     hit = equal & (1.0 >= gamma)  # _exact_cos returns exactly 1.0 for value-equal rows
     rest = np.flatnonzero(~equal)
     if rest.size:
-        cos = _exact_dots(a[rest], b[rest]) / np.sqrt(a_sq[rest] * b_sq[rest])
-        hit[rest] = cos >= gamma
+        norms = _cached_sq(a_rows, a_sq, ai[rest]) * _cached_sq(b_rows, b_sq, bj[rest])
+        hit[rest] = _exact_dots(a[rest], b[rest]) / np.sqrt(norms) >= gamma
     return hit
 
 
@@ -216,7 +222,8 @@ def _as_rows(features) -> np.ndarray:
 
 def _rows_f32(x: np.ndarray) -> np.ndarray:
     """Rows cast to float32; non-finite values (including float32 overflow) raise."""
-    x32 = np.ascontiguousarray(x, dtype=np.float32)
+    with np.errstate(over="ignore"):  # overflow to inf is reported below
+        x32 = np.ascontiguousarray(x, dtype=np.float32)
     if not np.all(np.isfinite(x32)):
         raise ValueError("features contain non-finite values (after the cast to float32)")
     return x32
@@ -382,8 +389,7 @@ def _rejected_by_bank(bank: _Bank, rows, units, gamma, lo, hi) -> np.ndarray:
         pi, pj = np.nonzero((sims >= lo) & ~decided[:, None])
         if pi.size:
             ri = sel[pi]
-            hit = _pairs_at_least(rows[ri], _cached_sq(rows, row_sq, ri), bank.rows[pj],
-                                  _cached_sq(bank.rows, bank.sq, pj), gamma)
+            hit = _pairs_at_least(rows, row_sq, ri, bank.rows, bank.sq, pj, gamma)
             decided[pi[hit]] = True
         rejected[sel] = decided
     return rejected
@@ -406,9 +412,7 @@ def _greedy_within(rows, units, gamma, lo, hi) -> np.ndarray:
         elif np.any(gram[i, js] >= hi):
             kept[i] = False
         else:
-            ii = np.full(js.size, i)
-            kept[i] = not np.any(_pairs_at_least(rows[ii], _cached_sq(rows, sq, ii), rows[js],
-                                                 _cached_sq(rows, sq, js), gamma))
+            kept[i] = not np.any(_pairs_at_least(rows, sq, np.full(js.size, i), rows, sq, js, gamma))
     return kept
 
 
