@@ -23,6 +23,7 @@ class OptimConfig:
     mlp_cov: tuple[float, float] = (0.004, 0.004)
     mlp_color: tuple[float, float] = (0.008, 0.00005)
     appearance: tuple[float, float] = (0.05, 0.0005)
+    features: tuple[float, float] = (0.0005, 0.0005)  # query heads and memory heads (M3 f_emb)
     eps: float = 1e-15
 
 
@@ -47,6 +48,8 @@ GROUP_OF_PATH = {
     ("decoder", "cov"): "mlp_cov",
     ("decoder", "color"): "mlp_color",
     ("appearance",): "appearance",
+    ("queries",): "features",
+    ("memory",): "features",
 }
 
 

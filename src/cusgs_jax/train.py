@@ -19,7 +19,10 @@ import numpy as np
 
 from cusgs_jax import losses
 from cusgs_jax.decode import DecoderConfig, Gaussians, decode_gaussians, frustum_mask, init_decoder
+from cusgs_jax.feature_field import (FeatureConfig, decode_queries, feature_loss, init_memory_heads,
+                                     init_query_heads, retrieve)
 from cusgs_jax.grow_prune import GrowConfig, GrowStats, accumulate_stats
+from cusgs_jax.memory.attention import attend, precompute_keys
 from cusgs_jax.optim import OptimConfig, make_optimizer
 from cusgs_jax.scaffold import AnchorParams, Anchors, init_anchors
 from cusgs_jax.splat import rasterize
@@ -73,6 +76,7 @@ class TrainConfig:
     loss: LossConfig = LossConfig()
     optim: OptimConfig = OptimConfig()
     grow: GrowConfig = GrowConfig()
+    features: FeatureConfig = FeatureConfig()
 
 
 @jax.tree_util.register_dataclass
@@ -97,25 +101,38 @@ class TrainState:
     skipped: jax.Array
 
 
-def init_params(key, cfg: TrainConfig, anchor_params: AnchorParams, num_train_views: int) -> dict:
+def init_params(key, cfg: TrainConfig, anchor_params: AnchorParams, num_train_views: int,
+                banks: dict | None = None) -> dict:
+    """Parameter tree; the feature heads exist only when feature models are configured."""
     params = {"anchor": anchor_params, "decoder": init_decoder(key, cfg.model.decoder())}
     if cfg.model.appearance:
         # Scaffold-GS: nn.Embedding default init N(0, 1).
         params["appearance"] = jax.random.normal(jax.random.fold_in(key, 1),
                                                  (num_train_views, cfg.model.appearance_dim))
+    if cfg.features.enabled:
+        if banks is None or set(banks) != {m.name for m in cfg.features.models}:
+            raise ValueError("feature models are configured: pass one PSC bank per model")
+        params["queries"] = init_query_heads(
+            jax.random.fold_in(key, 2), cfg.features, cfg.model.latent_dim,
+            cfg.model.appearance_dim if cfg.model.appearance else 0, cfg.model.n_offsets,
+            anchor_params.offsets.shape[0])
+        params["memory"] = init_memory_heads(jax.random.fold_in(key, 3), cfg.features, banks)
     return params
 
 
-def init_train_state(cfg: TrainConfig, points: np.ndarray, num_train_views: int, extent: float):
+def init_train_state(cfg: TrainConfig, points: np.ndarray, num_train_views: int, extent: float,
+                     banks: dict | None = None):
     """Fresh state and optimiser from an SfM point cloud.
 
+    Args:
+      banks: {model: [S, D] PSC entries} when feature models are configured.
     Returns:
       (TrainState, optax transformation).
     """
     anchor_params, anchors = init_anchors(points, cfg.model.voxel_size, n_offsets=cfg.model.n_offsets,
                                           latent_dim=cfg.model.latent_dim,
                                           capacity_factor=cfg.model.capacity_factor)
-    params = init_params(jax.random.PRNGKey(cfg.seed), cfg, anchor_params, num_train_views)
+    params = init_params(jax.random.PRNGKey(cfg.seed), cfg, anchor_params, num_train_views, banks)
     tx = make_optimizer(cfg.optim, params, cfg.iterations, extent)
     state = TrainState(params=params, opt_state=tx.init(params), anchors=anchors,
                        stats=GrowStats.zeros(anchors.capacity, cfg.model.n_offsets),
@@ -162,12 +179,31 @@ def decode_view(params: dict, anchors: Anchors, viewmat, K, width: int, height: 
     return gaussians, slots, valid, overflow
 
 
+def view_queries(params: dict, anchors: Anchors, slots, viewmat, appearance_index, cfg: TrainConfig):
+    """[V·N, Q] per-Gaussian feature queries of the decoded (gathered) anchors."""
+    centers = anchors.centers[slots]
+    direction = centers - camera_center(viewmat)
+    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+    appearance = params["appearance"][appearance_index] if cfg.model.appearance else None
+    return decode_queries(params["queries"], params["anchor"].latent[slots], direction, appearance,
+                          params["anchor"].offsets[slots], slots, cfg.features)
+
+
 def render_gaussians(gaussians: Gaussians, viewmat, K, width: int, height: int, cfg: TrainConfig,
-                     means2d_delta=None):
-    """Rasterise decoded Gaussians with the configured splatter settings."""
+                     means2d_delta=None, extra_channels=None):
+    """Rasterise decoded Gaussians with the configured splatter settings.
+
+    Args:
+      extra_channels: [G, Q] or None, composited in the same pass after RGB
+        (background 0), e.g. the feature queries.
+    """
     num = gaussians.means.shape[0]
-    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
-                     viewmat, K, width, height, background=jnp.asarray(cfg.splat.background, jnp.float32),
+    colors, background = gaussians.colors, jnp.asarray(cfg.splat.background, jnp.float32)
+    if extra_channels is not None:
+        colors = jnp.concatenate([colors, extra_channels], axis=-1)
+        background = jnp.concatenate([background, jnp.zeros(extra_channels.shape[-1], jnp.float32)])
+    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, colors,
+                     viewmat, K, width, height, background=background,
                      antialiased=cfg.splat.antialiased, tile_size=cfg.splat.tile_size,
                      chunk_size=cfg.splat.chunk_size,
                      max_pairs=int(cfg.splat.max_pairs_per_gaussian * num) + 4096,
@@ -186,6 +222,20 @@ def make_render_fn(cfg: TrainConfig, width: int, height: int):
     return render
 
 
+def make_feature_render_fn(cfg: TrainConfig, width: int, height: int):
+    """Jitted ``render(params, anchors, viewmat, K, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``."""
+
+    @jax.jit
+    def render(params, anchors, viewmat, K, appearance_index, banks):
+        gaussians, slots, _, _ = decode_view(params, anchors, viewmat, K, width, height, appearance_index, cfg)
+        queries = view_queries(params, anchors, slots, viewmat, appearance_index, cfg)
+        out = render_gaussians(gaussians, viewmat, K, width, height, cfg, extra_channels=queries)
+        features = retrieve(params["memory"], banks, out.image[..., 3:], cfg.features)
+        return jnp.clip(out.image[..., :3], 0.0, 1.0), features
+
+    return render
+
+
 def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
     """One jitted, state-donating training step.
 
@@ -198,21 +248,53 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
     n = cfg.model.n_offsets
     grow = cfg.grow
 
-    def loss_fn(params, delta, anchors, batch):
+    features = cfg.features
+
+    def loss_fn(params, delta, anchors, batch, key):
         gaussians, slots, valid, overflow = decode_view(params, anchors, batch["viewmat"], batch["K"], width,
                                                         height, batch["index"], cfg)
-        out = render_gaussians(gaussians, batch["viewmat"], batch["K"], width, height, cfg, delta)
-        loss, terms = losses.image_loss(out.image, batch["image"], gaussians.scales, gaussians.active,
+        queries = None
+        if features.enabled:  # static: a scene without feature models traces none of this
+            queries = view_queries(params, anchors, slots, batch["viewmat"], batch["index"], cfg)
+        out = render_gaussians(gaussians, batch["viewmat"], batch["K"], width, height, cfg, delta, queries)
+        rgb = out.image[..., :3]
+        loss, terms = losses.image_loss(rgb, batch["image"], gaussians.scales, gaussians.active,
                                         l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
                                         volume_weight=cfg.loss.volume_weight)
+        if features.enabled:
+            feature_total = 0.0
+            for model_index, (name, channels) in enumerate(features.slices()):
+                target = batch["features"][name]  # [h, w, D] at the feature-map resolution
+                fh, fw = target.shape[:2]
+                count = fh * fw if features.sample_pixels <= 0 else min(features.sample_pixels, fh * fw)
+                if count < fh * fw:
+                    pick = jax.random.choice(jax.random.fold_in(key, model_index), fh * fw, (count,),
+                                             replace=False)
+                else:
+                    pick = jnp.arange(fh * fw)
+                row, col = pick // fw, pick % fw
+                # the image pixel whose centre is nearest to the feature pixel's centre
+                img_row = jnp.minimum(((row + 0.5) * height / fh).astype(jnp.int32), height - 1)
+                img_col = jnp.minimum(((col + 0.5) * width / fw).astype(jnp.int32), width - 1)
+                q = out.image[img_row, img_col, 3:][:, channels]
+                head, bank = params["memory"][name], batch["banks"][name]
+                predicted = attend(head, q, precompute_keys(head, bank), bank)  # keys once per step
+                t = target.reshape(-1, target.shape[-1])[pick].astype(jnp.float32)
+                f_loss, f_terms = feature_loss(predicted, t, jnp.any(t != 0, axis=-1))
+                feature_total = feature_total + f_loss
+                terms[f"feat_{name}_l2"] = f_terms["l2"]
+                terms[f"feat_{name}_cos"] = f_terms["cos"]
+            loss = loss + features.weight * feature_total
+            terms["feature"] = feature_total
         return loss, (out, gaussians, slots, valid, overflow, terms)
 
     def step(state: TrainState, batch):
         capacity = state.anchors.capacity
         num_slots = visible_slots(state.anchors, batch["viewmat"], batch["K"], width, height, cfg)[0].shape[0]
         delta = jnp.zeros((num_slots * n, 2), jnp.float32)
+        key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state.step)
         (loss, (out, gaussians, slots, valid, vis_overflow, terms)), (grads, grad2d) = jax.value_and_grad(
-            loss_fn, argnums=(0, 1), has_aux=True)(state.params, delta, state.anchors, batch)
+            loss_fn, argnums=(0, 1), has_aux=True)(state.params, delta, state.anchors, batch, key)
         finite = jnp.isfinite(loss) & jnp.all(jnp.array(
             [jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
         updates, new_opt = tx.update(grads, state.opt_state, state.params)
@@ -232,7 +314,7 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
             state.stats, to_slots(valid, False), to_slots(gaussians.opacities.reshape(-1, n)),
             to_slots((gaussians.active & out.visible).reshape(-1, n), False),
             to_slots(grad2d.reshape(-1, n, 2)), width, height, in_window & finite)
-        mse = jnp.mean((jnp.clip(out.image, 0, 1) - batch["image"]) ** 2)
+        mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
         new_state = TrainState(
             params=keep(new_params, state.params), opt_state=keep(new_opt, state.opt_state),
             anchors=state.anchors, stats=stats, step=state.step + 1,
