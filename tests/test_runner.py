@@ -98,3 +98,19 @@ def test_hydra_app_runs_and_reports_bad_paths(tiny_scene, tmp_path):
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 2
     assert str(missing) in done.stderr + done.stdout
+
+
+def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path):
+    result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
+                      "eval.every=20"), tmp_path)
+    feats = result["features"]
+    assert set(feats["models"]) == {"daisy", "semantic"}
+    for row in feats["models"].values():
+        assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
+    assert {"rendered", "ground_truth"} <= set(feats["retrieval"])
+    assert (tmp_path / "features.md").read_text().count("|") > 10
+    assert len(list((tmp_path / "features").glob("*.png"))) == 4  # 2 models × 2 held-out views
+    params = json.loads((tmp_path / "eval.json").read_text())["params"]
+    assert params["query_heads"] > 0 and params["memory_banks"] > 0 and params["adapters"] > 0
+    rows = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert np.isfinite(rows[-1]["feature_loss"])

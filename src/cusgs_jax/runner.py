@@ -25,13 +25,14 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.checkpoint import Checkpointer
+from cusgs_jax.feature_field import FeatureConfig, FeatureModelConfig
 from cusgs_jax.evaluate import count_parameters, evaluate_views
 from cusgs_jax.grow_prune import GrowConfig, adjust_anchors
 from cusgs_jax.optim import OptimConfig, make_optimizer
 from cusgs_jax.report import plot_error_vs_time
 from cusgs_jax.scaffold import grow_capacity
 from cusgs_jax.train import (LossConfig, ModelConfig, SplatConfig, TrainConfig, TrainState, init_train_state,
-                             make_render_fn, make_train_step)
+                             make_feature_render_fn, make_render_fn, make_train_step)
 
 log = logging.getLogger("cusgs_jax")
 
@@ -50,9 +51,16 @@ def _build(cls, values: dict | None):
     return cls(**kwargs)
 
 
+def feature_config(values: dict | None) -> FeatureConfig:
+    values = dict(values or {})
+    models = tuple(_build(FeatureModelConfig, m) for m in values.pop("models", None) or ())
+    return dataclasses.replace(_build(FeatureConfig, values), models=models)
+
+
 def train_config(cfg: dict) -> TrainConfig:
     """Static :class:`TrainConfig` from the composed config dict."""
     return TrainConfig(
+        features=feature_config(cfg.get("features")),
         iterations=int(cfg["train"]["iterations"]), seed=int(cfg["train"]["seed"]),
         model=_build(ModelConfig, cfg.get("model")), splat=_build(SplatConfig, cfg.get("splat")),
         loss=_build(LossConfig, cfg.get("loss")), optim=_build(OptimConfig, cfg.get("optim")),
@@ -77,6 +85,44 @@ def load_data(cfg: dict):
                       holdout_every=int(data.get("holdout_every", 8)))
 
 
+BUILT_IN_EXTRACTORS = ("daisy", "hog", "gabor", "semantic")
+
+
+def load_feature_targets(fcfg: FeatureConfig, scene, seed: int, auto_extract: bool):
+    """Feature maps of every configured model and their PSC banks.
+
+    Missing built-in features are extracted first when ``auto_extract`` (the
+    demo scene's default). The PSC scan sees a seeded random subset of the
+    training pixels (``psc_rows``) in random order, so the ``max_bank_entries``
+    cap samples the whole scene rather than its first views.
+
+    Returns:
+      (maps {model: FeatureSet}, banks {model: [S, D] float32 numpy}).
+    """
+    from cusgs_jax.data.features import feature_dir, load_features
+    from cusgs_jax.memory import psc
+
+    maps, banks = {}, {}
+    for index, model in enumerate(fcfg.models):
+        if auto_extract and model.name in BUILT_IN_EXTRACTORS and not (
+                feature_dir(scene.path, model.name) / "meta.json").is_file():
+            from cusgs_jax.extract import extract
+
+            log.info("extracting %s features for %s", model.name, scene.path)
+            extract(scene.path, model.name, progress=False)
+        fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
+        rows = fs.maps[scene.train_indices].reshape(-1, fs.dim)
+        rows = rows[np.any(rows != 0, axis=-1)]
+        rng = np.random.default_rng([seed, 7, index])
+        rows = rows[rng.permutation(len(rows))[: fcfg.psc_rows]]
+        bank = psc.build(rows, model.gamma, max_entries=fcfg.max_bank_entries)
+        if bank.count == 0:
+            raise ValueError(f"feature model {model.name!r}: no non-zero training targets to build a memory from")
+        log.info("PSC %s: %d entries from %d pixels (gamma %.2f)", model.name, bank.count, len(rows), model.gamma)
+        maps[model.name], banks[model.name] = fs, np.asarray(bank.entries, np.float32)
+    return maps, banks
+
+
 def view_order(seed: int, num_train: int, step: int) -> int:
     """Training view (position in the train list) used at ``step``.
 
@@ -87,9 +133,9 @@ def view_order(seed: int, num_train: int, step: int) -> int:
     return int(np.random.default_rng([seed, epoch]).permutation(num_train)[position])
 
 
-def _template_state(tcfg: TrainConfig, scene, capacity: int):
+def _template_state(tcfg: TrainConfig, scene, capacity: int, banks=None):
     """A state of the right structure and shapes for restoring a checkpoint."""
-    state, _ = init_train_state(tcfg, scene.points, len(scene.train_indices), scene.extent)
+    state, _ = init_train_state(tcfg, scene.points, len(scene.train_indices), scene.extent, banks)
     if state.anchors.capacity != capacity:
         old = state.anchors.capacity
         if capacity > old:
@@ -132,13 +178,20 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     viewmats = jnp.asarray(scene.viewmats[train_idx])
     Ks = jnp.asarray(scene.Ks[train_idx])
 
-    state, tx = init_train_state(tcfg, scene.points, len(train_idx), scene.extent)
+    fcfg = tcfg.features
+    feature_sets, banks, targets = {}, None, {}
+    if fcfg.enabled:
+        feature_sets, banks = load_feature_targets(fcfg, scene, tcfg.seed,
+                                                   fcfg.auto_extract)
+        targets = {name: jnp.asarray(fs.maps[train_idx].astype(np.float16)) for name, fs in feature_sets.items()}
+        banks = {name: jnp.asarray(b) for name, b in banks.items()}
+    state, tx = init_train_state(tcfg, scene.points, len(train_idx), scene.extent, banks)
     ckpt = Checkpointer(train_cfg.get("checkpoint_dir") or out / "checkpoints")
     clock = _Clock()
     curve: list[dict] = []
     if train_cfg.get("resume") and ckpt.latest_step() is not None:
         meta = ckpt.metadata()
-        state, meta = ckpt.restore(_template_state(tcfg, scene, int(meta["capacity"])))
+        state, meta = ckpt.restore(_template_state(tcfg, scene, int(meta["capacity"]), banks))
         tx = make_optimizer(tcfg.optim, state.params, tcfg.iterations, scene.extent)
         clock = _Clock(float(meta["wall_s"]))
         curve = list(meta["curve"])
@@ -173,6 +226,9 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     for step in bar:
         view = view_order(tcfg.seed, len(train_idx), step)
         batch = dict(image=images[view], viewmat=viewmats[view], K=Ks[view], index=jnp.int32(view))
+        if fcfg.enabled:
+            batch["features"] = {name: t[view] for name, t in targets.items()}
+            batch["banks"] = banks
         with clock:
             state, metrics = step_fn(state, batch)
             jax.block_until_ready(metrics)  # charge the step's real compute time to the clock
@@ -193,6 +249,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
             metrics = jax.device_get(metrics)
             now = time.perf_counter()
             row = dict(step=step + 1, wall_s=round(clock.total, 3), loss=float(metrics["loss"]),
+                       **({"feature_loss": float(metrics["loss_feature"])} if fcfg.enabled else {}),
                        train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
                        visible_anchors=int(metrics["visible_anchors"]), skipped=int(state.skipped),
                        visible_overflow=int(metrics["visible_overflow"]),
@@ -220,7 +277,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     final = evaluate_views(render, state.params, state.anchors, scene, test_idx,
                            out_dir=out / "renders" if eval_cfg.get("save_renders", True) else None,
                            time_renders=True)
-    size = count_parameters(state.params, np.asarray(state.anchors.alive))
+    size = count_parameters(state.params, np.asarray(state.anchors.alive), banks)
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], per_view=final["per_view"],
         params=size, alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
@@ -229,6 +286,13 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
         iterations=iterations, width=width, height=height, held_out_views=len(test_idx),
         curve=curve,
     )
+    if fcfg.enabled:
+        from cusgs_jax.evaluate import evaluate_features
+
+        result["features"] = evaluate_features(
+            make_feature_render_fn(tcfg, width, height), state.params, state.anchors, scene, test_idx, banks,
+            feature_sets, out_dir=out / "features" if eval_cfg.get("save_renders", True) else None)
+        (out / "features.md").write_text(result["features"]["markdown"])
     (out / "eval.json").write_text(json.dumps(result, indent=1))
     plot_error_vs_time(curve, out / "error_vs_time.png",
                        title=f"held-out PSNR vs time ({pathlib.Path(str(scene.path)).name})")
