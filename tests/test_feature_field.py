@@ -101,3 +101,21 @@ def test_feature_training_step_runs_and_learns():
     assert bool(metrics["finite"]) and np.isfinite(float(metrics["loss_feature"]))
     assert float(metrics["loss_feature"]) < first
     assert step._cache_size() == 1
+
+
+def test_per_gaussian_query_ablation_trains():
+    cfg = _cfg(granularity="per_gaussian")
+    state, tx = init_train_state(cfg, _points(), 1, 2.0, banks=_banks())
+    assert state.params["queries"]["table"].shape[:2] == state.params["anchor"].offsets.shape[:2]
+    step = make_train_step(cfg, tx, W, H)
+    before = np.asarray(state.params["queries"]["table"]).copy()
+    for _ in range(3):
+        state, metrics = step(state, _batch())
+    assert bool(metrics["finite"])
+    assert not np.array_equal(before, np.asarray(state.params["queries"]["table"]))
+
+
+def test_m3_query_split_when_dims_are_not_given():
+    cfg = FeatureConfig(models=tuple(FeatureModelConfig(n) for n in ("clip", "siglip", "dinov2", "seem",
+                                                                     "llama3", "llamav")))
+    assert cfg.query_dim == 160 and [m.query_dim for m in cfg.models] == [16, 32, 32, 16, 32, 32]

@@ -24,12 +24,16 @@ from cusgs_jax.decode import apply_mlp, init_mlp
 from cusgs_jax.memory.attention import attend, init_memory_head, precompute_keys
 
 
+# M3's split of its 160 query channels when all six models are present.
+M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
+
+
 @dataclasses.dataclass(frozen=True)
 class FeatureModelConfig:
-    """One foundation model's slice of the field."""
+    """One foundation model's slice of the field (``query_dim`` 0 = M3's split, else 16)."""
 
     name: str
-    query_dim: int = 16
+    query_dim: int = 0
     gamma: float = 0.8  # PSC cosine threshold
     adapter: str = "affine"
 
@@ -46,6 +50,11 @@ class FeatureConfig:
     max_bank_entries: int = 1024  # PSC cap per model (rows are scanned in a seeded random order)
     psc_rows: int = 200_000  # training pixels (seeded random subset) the PSC scan looks at
     auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic)
+
+    def __post_init__(self):
+        models = tuple(m if m.query_dim > 0 else dataclasses.replace(m, query_dim=M3_QUERY_DIMS.get(m.name, 16))
+                       for m in self.models)
+        object.__setattr__(self, "models", models)
 
     @property
     def enabled(self) -> bool:

@@ -51,16 +51,27 @@ def _build(cls, values: dict | None):
     return cls(**kwargs)
 
 
-def feature_config(values: dict | None) -> FeatureConfig:
+DEMO_FEATURE_MODELS = ({"name": "daisy", "query_dim": 16, "gamma": 0.8},
+                       {"name": "semantic", "query_dim": 16, "gamma": 1.0})
+
+
+def feature_config(values: dict | None, granularity: str = "per_anchor", demo: bool = False) -> FeatureConfig:
+    """FeatureConfig from ``features.*``; ``models: auto`` means the demo's two models on the
+    built-in demo scene and none on a user's scene."""
     values = dict(values or {})
-    models = tuple(_build(FeatureModelConfig, m) for m in values.pop("models", None) or ())
-    return dataclasses.replace(_build(FeatureConfig, values), models=models)
+    models = values.pop("models", None) or ()
+    if models == "auto":
+        models = DEMO_FEATURE_MODELS if demo else ()
+    models = tuple(_build(FeatureModelConfig, m) for m in models)
+    return dataclasses.replace(_build(FeatureConfig, values), models=models, granularity=granularity)
 
 
 def train_config(cfg: dict) -> TrainConfig:
     """Static :class:`TrainConfig` from the composed config dict."""
+    model = cfg.get("model") or {}
     return TrainConfig(
-        features=feature_config(cfg.get("features")),
+        features=feature_config(cfg.get("features"), model.get("query_granularity", "per_anchor"),
+                                demo=not (cfg.get("data") or {}).get("path")),
         iterations=int(cfg["train"]["iterations"]), seed=int(cfg["train"]["seed"]),
         model=_build(ModelConfig, cfg.get("model")), splat=_build(SplatConfig, cfg.get("splat")),
         loss=_build(LossConfig, cfg.get("loss")), optim=_build(OptimConfig, cfg.get("optim")),

@@ -43,6 +43,8 @@ class ModelConfig:
     # anchors than that are dropped for the step and counted in
     # ``visible_overflow``. 1.0 decodes every slot (never drops).
     visible_fraction: float = 0.6
+    # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
+    query_granularity: str = "per_anchor"
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
