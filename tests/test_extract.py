@@ -16,7 +16,7 @@ from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.features import FeatureError, feature_dir, load_features
 
 W, H, V = 40, 30, 4
-DIMS = {"daisy": 104, "hog": 36, "gabor": 18, "semantic": 16}
+DIMS = {"daisy": 104, "hog": 36, "gabor": 18, "semantic": 32}
 
 
 @pytest.fixture(scope="module")
@@ -326,3 +326,12 @@ def test_dinov2_with_local_weights(demo, names):
                    progress=False)
     fs = load_features(demo, "dinov2", names, image_size=(W, H))
     assert fs.dim == s.dim and fs.valid.mean() > 0.99
+
+
+def test_semantic_palette_is_orthonormal_up_to_dim_ids():
+    table = ex.semantic_palette(dim=32, seed=0, num_ids=40)
+    first = table[1:33].astype(np.float64)
+    np.testing.assert_allclose(first @ first.T, np.eye(32), atol=1e-6)
+    assert np.all(table[0] == 0)
+    np.testing.assert_allclose(np.linalg.norm(table[33:], axis=1), 1.0, rtol=1e-6)
+    np.testing.assert_array_equal(ex.semantic_palette(dim=32, seed=0, num_ids=10), table[:10])

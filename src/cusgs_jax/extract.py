@@ -13,7 +13,7 @@ hog       36 (108 with lab)      dense HOG: 9 unsigned orientations, soft-binned
                                  magnitudes, 2×2 cells of 6×6 px centred on every pixel, L2-Hys
 gabor     18 (54 with lab)       magnitudes of a ``skimage.filters.gabor`` bank (frequencies
                                  0.08, 0.16, 0.32 cycles/px × 6 orientations)
-semantic  16                     demo scene only: a fixed pseudo-random unit vector per object
+semantic  32                     demo scene only: a fixed unit vector per object (orthogonal up to 32 ids)
                                  id from ``object_ids/<stem>.npy``; id 0 (nothing) → zero vector
 clip      model width            optional: open_clip ViT patch tokens (local weights only)
 dinov2    model width            optional: DINOv2 patch tokens via transformers (local weights)
@@ -264,17 +264,28 @@ def gabor_features(image: np.ndarray, *, frequencies: Sequence[float] = (0.08, 0
     return _per_channel(image, lab, lambda ch: _gabor_channel(ch, kernels), _GABOR_EPS)
 
 
-def semantic_palette(dim: int = 16, seed: int = 0, num_ids: int = 256) -> np.ndarray:
-    """[num_ids, dim] float32: row k a fixed pseudo-random unit vector for object id k (seeded by
-    (seed, k) only, so it does not depend on which other ids exist); row 0 is zero."""
+def semantic_palette(dim: int = 32, seed: int = 0, num_ids: int = 256) -> np.ndarray:
+    """[num_ids, dim] float32 unit vectors per object id; row 0 is zero.
+
+    Ids 1…dim get the rows of one fixed random orthogonal matrix (seeded by
+    ``seed`` only), so up to ``dim`` objects are mutually orthogonal — an
+    exactly consistent, perfectly separable semantic channel, which makes the
+    ground-truth row of the retrieval protocol a true upper bound. Further ids
+    get pseudo-random unit vectors seeded by (seed, id). No row depends on which
+    other ids exist.
+    """
     table = np.zeros((num_ids, dim), np.float32)
+    basis, _ = np.linalg.qr(np.random.default_rng([_SEMANTIC_SALT, seed]).standard_normal((dim, dim)))
     for k in range(1, num_ids):
-        v = np.random.default_rng([_SEMANTIC_SALT, seed, k]).standard_normal(dim)
-        table[k] = v / np.linalg.norm(v)
+        if k <= dim:
+            table[k] = basis[k - 1]
+        else:
+            v = np.random.default_rng([_SEMANTIC_SALT, seed, k]).standard_normal(dim)
+            table[k] = v / np.linalg.norm(v)
     return table
 
 
-def semantic_features(object_ids: np.ndarray, *, dim: int = 16, seed: int = 0) -> np.ndarray:
+def semantic_features(object_ids: np.ndarray, *, dim: int = 32, seed: int = 0) -> np.ndarray:
     """[H, W] integer object ids (0 = none) → [H, W, dim] float32 per-object unit vectors
     (:func:`semantic_palette`); id-0 pixels get the zero vector (no target)."""
     ids = np.asarray(object_ids)
@@ -341,7 +352,7 @@ class _Descriptor:
 
 class _Semantic:
     def __init__(self, model: str, options: dict):
-        self.opts = _pop_options(model, options, {"dim": 16, "seed": 0})
+        self.opts = _pop_options(model, options, {"dim": 32, "seed": 0})
         self.palette = None
         self.source = (f"cusgs_jax.extract.semantic_features(dim={self.opts['dim']}, "
                        f"seed={self.opts['seed']}) from the demo scene's object_ids/")
@@ -605,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--overwrite", action="store_true", help="replace existing features")
     ap.add_argument("--dtype", choices=("float16", "float32"), default="float16")
     ap.add_argument("--downscale", type=int, default=1, help="load images at 1/D resolution")
-    ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (16)")
+    ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (32)")
     ap.add_argument("--weights", default=None,
                     help="clip/dinov2: LOCAL weights (file for clip, HF snapshot folder for "
                          "dinov2); nothing is downloaded")
