@@ -170,44 +170,16 @@ def resize_to(maps, size: tuple[int, int]) -> np.ndarray:
     """Area-average feature maps [N, H, W, D] (or [H, W, D]) to ``size = (h, w)``.
 
     Note the order: ``(h, w)`` — numpy-shape order, unlike
-    :func:`cusgs_jax.data.features.resize_features`, which takes ``(w, h)``.
-
-    * Same size: returned unchanged (as a NumPy array, not a copy).
-    * H divisible by h and W by w: exact block mean over the (H/h) × (W/w) blocks.
-    * Otherwise: ``skimage.transform.resize(order=1, anti_aliasing=True)`` on every channel (a
-      Gaussian prefilter then bilinear sampling — an approximation of the area average; it also
-      handles enlarging).
-
-    Every pixel counts, zero vectors included: meant for renders, which have no "no target"
-    holes (for target maps with holes use ``resize_features(method="area")``).
-    Returns float arrays (float64 from the skimage path, the input float dtype otherwise).
+    :func:`cusgs_jax.data.features.resize_features`, which takes ``(w, h)`` and
+    does the work (exact box filter). The same size returns the input itself.
     """
-    arr = np.asarray(maps)
-    squeeze = arr.ndim == 3
-    if squeeze:
-        arr = arr[None]
-    if arr.ndim != 4:
-        raise ValueError(f"maps must be [N, H, W, D] or [H, W, D], got shape {np.shape(maps)}")
-    h, w = (int(s) for s in size)
-    if h < 1 or w < 1:
-        raise ValueError(f"size must be (h, w) with positive integers, got {size}")
-    n, big_h, big_w, d = arr.shape
-    if not np.issubdtype(arr.dtype, np.floating):
-        arr = arr.astype(np.float64)
-    if (big_h, big_w) == (h, w):
-        out = arr
-    elif big_h % h == 0 and big_w % w == 0:
-        out = arr.reshape(n, h, big_h // h, w, big_w // w, d).mean(axis=(2, 4))
-    else:
-        from skimage.transform import resize  # lazy: only this path needs it
+    from cusgs_jax.data.features import resize_features
 
-        # Channels (views × features) are independent in skimage's resize when the output keeps
-        # the last axis: the prefilter's sigma and the interpolation along it are trivial.
-        stacked = np.moveaxis(arr, 0, 2).reshape(big_h, big_w, n * d)
-        out = resize(stacked, (h, w, n * d), order=1, anti_aliasing=True, preserve_range=True,
-                     mode="edge")
-        out = np.moveaxis(out.reshape(h, w, n, d), 2, 0)
-    return out[0] if squeeze else out
+    arr = np.asarray(maps)
+    h, w = (int(s) for s in size)
+    if arr.ndim in (3, 4) and arr.shape[-3:-1] == (h, w):
+        return arr
+    return resize_features(arr, (w, h), method="area")
 
 
 # --------------------------------------------------------------------------------------------
