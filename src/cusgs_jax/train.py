@@ -147,6 +147,11 @@ def camera_center(viewmat: jax.Array) -> jax.Array:
     return -viewmat[:3, :3].T @ viewmat[:3, 3]
 
 
+def num_visible_slots(capacity: int, cfg: TrainConfig) -> int:
+    """Static number of anchor slots decoded per view: ceil(visible_fraction · A), at least 1."""
+    return max(1, min(capacity, int(-(-cfg.model.visible_fraction * capacity // 1))))
+
+
 def visible_slots(anchors: Anchors, viewmat, K, width: int, height: int, cfg: TrainConfig):
     """Slots of the anchors to decode for a view, compacted to a static count.
 
@@ -157,7 +162,7 @@ def visible_slots(anchors: Anchors, viewmat, K, width: int, height: int, cfg: Tr
     capacity = anchors.capacity
     visible = frustum_mask(anchors.centers, viewmat, K, width, height, margin=cfg.model.frustum_margin)
     visible = visible & anchors.alive
-    count = max(1, min(capacity, int(-(-cfg.model.visible_fraction * capacity // 1))))
+    count = num_visible_slots(capacity, cfg)
     if count >= capacity:
         return jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0)
     (slots,) = jnp.nonzero(visible, size=count, fill_value=0)
@@ -292,8 +297,7 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
 
     def step(state: TrainState, batch):
         capacity = state.anchors.capacity
-        num_slots = visible_slots(state.anchors, batch["viewmat"], batch["K"], width, height, cfg)[0].shape[0]
-        delta = jnp.zeros((num_slots * n, 2), jnp.float32)
+        delta = jnp.zeros((num_visible_slots(capacity, cfg) * n, 2), jnp.float32)
         key = jax.random.fold_in(jax.random.PRNGKey(cfg.seed), state.step)
         (loss, (out, gaussians, slots, valid, vis_overflow, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(state.params, delta, state.anchors, batch, key)
