@@ -244,16 +244,17 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
             state, metrics = step_fn(state, batch)
             jax.block_until_ready(metrics)  # charge the step's real compute time to the clock
             if grow.start <= step + 1 <= grow.stop and (step + 1) % grow.interval == 0:
-                metrics = jax.device_get(metrics)
-                old_capacity = state.anchors.capacity
                 anchor_params, anchors, stats, opt_state, info = adjust_anchors(
                     state.params["anchor"], state.anchors, state.stats, state.opt_state, grow,
                     tcfg.model.voxel_size, np.random.default_rng([tcfg.seed, step]))
                 params = dict(state.params, anchor=anchor_params)
                 if info["capacity_grew"]:
-                    # adjust_anchors padded every capacity-shaped array; the step recompiles once
+                    # adjust_anchors padded the anchor arrays and the optimiser state; other
+                    # capacity-shaped parameters (the per-Gaussian query table) grow here too.
+                    # The step recompiles once.
+                    params = grow_capacity(params, info["capacity_grew"], info["capacity"])
                     log.warning("anchor capacity full: grew %d -> %d slots (the step recompiles once)",
-                                old_capacity, info["capacity"])
+                                info["capacity_grew"], info["capacity"])
                 state = TrainState(params=params, opt_state=opt_state, anchors=anchors, stats=stats,
                                    step=state.step, skipped=state.skipped)
         if (step + 1) % log_every == 0 or step + 1 == iterations:
