@@ -20,7 +20,7 @@ from cusgs_jax.runner import run, view_order
 TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
         "grow.stats_start=2", "grow.start=10", "grow.stop=30", "grow.interval=10",
         "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
-        "model.voxel_size=0.15"]
+        "model.voxel_size=0.15", "prune.start=10", "prune.interval=10", "prune.ratio=0.05"]
 
 
 @pytest.fixture(scope="module")
@@ -65,6 +65,11 @@ def test_run_writes_all_outputs(tiny_scene, tmp_path):
     evaluation = json.loads((tmp_path / "eval.json").read_text())
     assert len(evaluation["per_view"]) == 2 and evaluation["params"]["total"] > 0
     assert evaluation["checkpoint_bytes"] > 0 and evaluation["render_ms_per_view"] > 0
+    # feature-aware pruning ran at steps 10, 20, 30 and its count matches the anchors lost
+    assert evaluation["prune"]["passes"] == 3 and evaluation["prune"]["pruned"] > 0
+    assert evaluation["render_ms_before_prune"] > 0
+    assert rows[-1]["pruned"] == evaluation["prune"]["pruned"]
+    assert curve[-1]["alive_anchors"] == evaluation["alive_anchors"]
     assert len(list((tmp_path / "renders").glob("*.png"))) == 2
 
 

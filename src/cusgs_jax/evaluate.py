@@ -94,13 +94,14 @@ def count_parameters(params: dict, alive: np.ndarray, banks: dict | None = None)
 
 
 def evaluate_features(render, params, anchors, scene, views, banks: dict, feature_sets: dict, *,
-                      out_dir: pathlib.Path | None = None) -> dict:
+                      out_dir: pathlib.Path | None = None, retrieval: bool = True) -> dict:
     """Table-2 style feature metrics on held-out views, with the mean-feature baseline and retrieval.
 
     Args:
       render: ``render(params, anchors, viewmat, K, appearance_index, banks) -> (rgb, {model: [H,W,D]})``.
       feature_sets: {model: FeatureSet} with maps [N, h, w, D] for every scene view.
       out_dir: if given, writes ``<model>_<view>.png`` (PCA of rendered | target).
+      retrieval: also score open-vocabulary retrieval when the scene has object ids.
     Returns:
       {"models": {model: {"cosine", "l2", "baseline_cosine", "baseline_l2"}},
        "retrieval": {...} (demo scenes with object ids), "markdown": table}.
@@ -134,7 +135,7 @@ def evaluate_features(render, params, anchors, scene, views, banks: dict, featur
                 stem = pathlib.Path(scene.names[view]).stem
                 feature_eval.save_feature_comparison(out_dir / f"{name}_{stem}.png", pred[k], target[k])
     ids_dir = pathlib.Path(scene.path) / "object_ids"
-    if ids_dir.is_dir():
+    if retrieval and ids_dir.is_dir():
         model = "semantic" if "semantic" in feature_sets else next(iter(feature_sets))
         fs = feature_sets[model]
         h, w = fs.maps.shape[1:3]

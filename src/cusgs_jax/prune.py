@@ -142,8 +142,8 @@ class PruneStats:
     @staticmethod
     def zeros(capacity: int) -> PruneStats:
         """All-zero statistics for ``capacity`` anchor slots (float32 [A] each)."""
-        z = jnp.zeros(capacity, jnp.float32)
-        return PruneStats(z, z, z)
+        # three distinct buffers: a donated state must not hold one array twice
+        return PruneStats(*(jnp.zeros(capacity, jnp.float32) for _ in range(3)))
 
     def clear(self, mask: jax.Array) -> PruneStats:
         """Zero the rows where ``mask`` [A] bool is set (e.g. slots refilled by growing)."""

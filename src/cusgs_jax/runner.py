@@ -4,8 +4,8 @@
 writes into ``output_dir``:
 
 * ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, …
-* ``eval_curve.jsonl`` — held-out PSNR every ``eval.every`` steps with wall seconds
-* ``eval.json`` — per-view and mean PSNR/SSIM, model size, times
+* ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
+* ``eval.json`` — per-view and mean PSNR/SSIM, model size, times, pruning summary
 * ``renders/`` — held-out renders beside ground truth (PNG)
 * ``error_vs_time.png`` — held-out PSNR against training wall-clock time
 * ``checkpoints/`` — orbax checkpoints (periodic and final)
@@ -13,6 +13,7 @@ writes into ``output_dir``:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -29,10 +30,12 @@ from cusgs_jax.feature_field import FeatureConfig, FeatureModelConfig
 from cusgs_jax.evaluate import count_parameters, evaluate_views
 from cusgs_jax.grow_prune import GrowConfig, adjust_anchors
 from cusgs_jax.optim import OptimConfig, make_optimizer
+from cusgs_jax.prune import PruneConfig, prune_due
 from cusgs_jax.report import plot_error_vs_time
 from cusgs_jax.scaffold import grow_capacity
-from cusgs_jax.train import (LossConfig, ModelConfig, SplatConfig, TrainConfig, TrainState, init_train_state,
-                             make_feature_render_fn, make_render_fn, make_train_step)
+from cusgs_jax.train import (LossConfig, ModelConfig, SplatConfig, TrainConfig, TrainState, compact_for_render,
+                             init_train_state, make_feature_render_fn, make_prune_step, make_render_fn,
+                             make_train_step, render_config)
 
 log = logging.getLogger("cusgs_jax")
 
@@ -75,7 +78,7 @@ def train_config(cfg: dict) -> TrainConfig:
         iterations=int(cfg["train"]["iterations"]), seed=int(cfg["train"]["seed"]),
         model=_build(ModelConfig, cfg.get("model")), splat=_build(SplatConfig, cfg.get("splat")),
         loss=_build(LossConfig, cfg.get("loss")), optim=_build(OptimConfig, cfg.get("optim")),
-        grow=_build(GrowConfig, cfg.get("grow")),
+        grow=_build(GrowConfig, cfg.get("grow")), prune=_build(PruneConfig, cfg.get("prune")),
     )
 
 
@@ -171,6 +174,15 @@ class _Clock:
     def __exit__(self, *exc):
         self.total += time.perf_counter() - self._start
 
+    @contextlib.contextmanager
+    def paused(self):
+        """Inside a ``with clock:`` block: the time spent here is not charged."""
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self._start += time.perf_counter() - start
+
 
 def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     """Train, checkpoint and evaluate; returns the final ``eval.json`` dict."""
@@ -210,7 +222,26 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     step_fn = make_train_step(tcfg, tx, width, height)
     render = make_render_fn(tcfg, width, height)
 
-    grow = tcfg.grow
+    grow, pcfg = tcfg.grow, tcfg.prune
+    prune_fn = make_prune_step(tcfg)
+    render_cfg = render_config(tcfg)
+    compact_render = make_render_fn(render_cfg, width, height)
+    feature_render = make_feature_render_fn(tcfg, width, height) if fcfg.enabled else None
+    render_before_prune, prune_passes, pruned_total = None, 0, 0
+    if train_cfg.get("resume") and ckpt.latest_step() is not None:
+        prune_meta = ckpt.metadata().get("prune", {})
+        render_before_prune = prune_meta.get("render_ms_before_prune")
+        prune_passes, pruned_total = int(prune_meta.get("passes", 0)), int(prune_meta.get("pruned", 0))
+
+    def compacted(state):
+        return compact_for_render(state.params, state.anchors)
+
+    def time_render(state):
+        """Median ms per held-out view of the model as it is now, dead slots dropped."""
+        params, anchors = compacted(state)
+        return evaluate_views(compact_render, params, anchors, scene, test_idx, time_renders=True)[
+            "render_ms_per_view"]
+
     iterations = tcfg.iterations
     eval_every = int(eval_cfg.get("every", 500))
     ckpt_every = int(train_cfg.get("checkpoint_every", 1000))
@@ -220,12 +251,21 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     start_step = int(state.step)
 
     def save(step):
-        meta = dict(step=step, capacity=state.anchors.capacity, wall_s=clock.total, curve=curve)
+        meta = dict(step=step, capacity=state.anchors.capacity, wall_s=clock.total, curve=curve,
+                    prune=dict(passes=prune_passes, pruned=pruned_total, render_ms_before_prune=render_before_prune))
         ckpt.save(step, state, meta)
 
     def evaluate_curve(step):
         result = evaluate_views(render, state.params, state.anchors, scene, test_idx)
-        point = dict(step=step, wall_s=clock.total, psnr=result["psnr"], ssim=result["ssim"])
+        point = dict(step=step, wall_s=clock.total, psnr=result["psnr"], ssim=result["ssim"],
+                     alive_anchors=int(np.sum(state.anchors.alive)))
+        if fcfg.enabled:
+            from cusgs_jax.evaluate import evaluate_features
+
+            feats = evaluate_features(feature_render, state.params, state.anchors, scene, test_idx, banks,
+                                      feature_sets, retrieval=False)["models"]
+            point["feature_cosine"] = float(np.mean([m["cosine"] for m in feats.values()]))
+            point["feature_l2"] = float(np.mean([m["l2"] for m in feats.values()]))
         curve.append(point)
         curve_file.write(json.dumps(point) + "\n")
         curve_file.flush()
@@ -244,6 +284,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
             state, metrics = step_fn(state, batch)
             jax.block_until_ready(metrics)  # charge the step's real compute time to the clock
             if grow.start <= step + 1 <= grow.stop and (step + 1) % grow.interval == 0:
+                old_alive = np.asarray(state.anchors.alive)
                 anchor_params, anchors, stats, opt_state, info = adjust_anchors(
                     state.params["anchor"], state.anchors, state.stats, state.opt_state, grow,
                     tcfg.model.voxel_size, np.random.default_rng([tcfg.seed, step]))
@@ -255,15 +296,29 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
                     params = grow_capacity(params, info["capacity_grew"], info["capacity"])
                     log.warning("anchor capacity full: grew %d -> %d slots (the step recompiles once)",
                                 info["capacity_grew"], info["capacity"])
+                prune_stats = state.prune
+                if info["capacity_grew"]:
+                    prune_stats = grow_capacity(prune_stats, info["capacity_grew"], info["capacity"])
+                    old_alive = np.pad(old_alive, (0, info["capacity"] - len(old_alive)))
+                # slots refilled by growing start their pruning statistics from zero
+                prune_stats = prune_stats.clear(jnp.asarray(np.asarray(anchors.alive) & ~old_alive))
                 state = TrainState(params=params, opt_state=opt_state, anchors=anchors, stats=stats,
-                                   step=state.step, skipped=state.skipped)
+                                   prune=prune_stats, step=state.step, skipped=state.skipped)
+            if prune_due(step + 1, pcfg):
+                if render_before_prune is None:
+                    with clock.paused():
+                        render_before_prune = time_render(state)
+                state, info = prune_fn(state)
+                prune_passes += 1
+                pruned_total += int(info["pruned"])
         if (step + 1) % log_every == 0 or step + 1 == iterations:
             metrics = jax.device_get(metrics)
             now = time.perf_counter()
             row = dict(step=step + 1, wall_s=round(clock.total, 3), loss=float(metrics["loss"]),
                        **({"feature_loss": float(metrics["loss_feature"])} if fcfg.enabled else {}),
                        train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
-                       visible_anchors=int(metrics["visible_anchors"]), skipped=int(state.skipped),
+                       visible_anchors=int(metrics["visible_anchors"]), pruned=pruned_total,
+                       skipped=int(state.skipped),
                        visible_overflow=int(metrics["visible_overflow"]),
                        overflow=int(metrics["overflow"]),
                        step_s=round((now - last_log) / log_every, 4))
@@ -286,7 +341,10 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
     metrics_file.close()
     curve_file.close()
 
-    final = evaluate_views(render, state.params, state.anchors, scene, test_idx,
+    # Final evaluation on the compacted model: dead (pruned) slots are dropped,
+    # so render time reflects the alive anchors only (train.compact_for_render).
+    final_params, final_anchors = compacted(state)
+    final = evaluate_views(compact_render, final_params, final_anchors, scene, test_idx,
                            out_dir=out / "renders" if eval_cfg.get("save_renders", True) else None,
                            time_renders=True)
     size = count_parameters(state.params, np.asarray(state.anchors.alive), banks)
@@ -294,7 +352,10 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
         psnr=final["psnr"], ssim=final["ssim"], per_view=final["per_view"],
         params=size, alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
         checkpoint_bytes=ckpt.step_bytes(iterations), train_wall_s=clock.total,
-        render_ms_per_view=final["render_ms_per_view"], skipped_updates=int(state.skipped),
+        render_ms_per_view=final["render_ms_per_view"], render_ms_before_prune=render_before_prune,
+        prune=dict(strategy=pcfg.strategy, ratio=pcfg.ratio, lambda_norm=pcfg.lambda_norm,
+                   lambda_grad=pcfg.lambda_grad, passes=prune_passes, pruned=pruned_total),
+        skipped_updates=int(state.skipped),
         iterations=iterations, width=width, height=height, held_out_views=len(test_idx),
         curve=curve,
     )
@@ -302,7 +363,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
         from cusgs_jax.evaluate import evaluate_features
 
         result["features"] = evaluate_features(
-            make_feature_render_fn(tcfg, width, height), state.params, state.anchors, scene, test_idx, banks,
+            feature_render, state.params, state.anchors, scene, test_idx, banks,
             feature_sets, out_dir=out / "features" if eval_cfg.get("save_renders", True) else None)
         (out / "features.md").write_text(result["features"]["markdown"])
     (out / "eval.json").write_text(json.dumps(result, indent=1))

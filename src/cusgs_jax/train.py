@@ -24,6 +24,7 @@ from cusgs_jax.feature_field import (FeatureConfig, decode_queries, feature_loss
 from cusgs_jax.grow_prune import GrowConfig, GrowStats, accumulate_stats
 from cusgs_jax.memory.attention import attend, precompute_keys
 from cusgs_jax.optim import OptimConfig, make_optimizer
+from cusgs_jax.prune import PruneConfig, PruneStats, accumulate_prune_stats, prune_pass, stats_window
 from cusgs_jax.scaffold import AnchorParams, Anchors, init_anchors
 from cusgs_jax.splat import rasterize
 
@@ -79,6 +80,7 @@ class TrainConfig:
     optim: OptimConfig = OptimConfig()
     grow: GrowConfig = GrowConfig()
     features: FeatureConfig = FeatureConfig()
+    prune: PruneConfig = PruneConfig()
 
 
 @jax.tree_util.register_dataclass
@@ -91,6 +93,8 @@ class TrainState:
       opt_state: optax state.
       anchors: centres and alive mask.
       stats: growing statistics.
+      prune: feature-aware pruning statistics since the last pruning pass
+        (all zero and never updated unless ``prune.strategy == "feature_aware"``).
       step: [] int32.
       skipped: [] int32 updates skipped because loss or gradient was not finite.
     """
@@ -99,6 +103,7 @@ class TrainState:
     opt_state: Any
     anchors: Anchors
     stats: GrowStats
+    prune: PruneStats
     step: jax.Array
     skipped: jax.Array
 
@@ -138,7 +143,7 @@ def init_train_state(cfg: TrainConfig, points: np.ndarray, num_train_views: int,
     tx = make_optimizer(cfg.optim, params, cfg.iterations, extent)
     state = TrainState(params=params, opt_state=tx.init(params), anchors=anchors,
                        stats=GrowStats.zeros(anchors.capacity, cfg.model.n_offsets),
-                       step=jnp.int32(0), skipped=jnp.int32(0))
+                       prune=PruneStats.zeros(anchors.capacity), step=jnp.int32(0), skipped=jnp.int32(0))
     return state, tx
 
 
@@ -320,10 +325,17 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
             state.stats, to_slots(valid, False), to_slots(gaussians.opacities.reshape(-1, n)),
             to_slots((gaussians.active & out.visible).reshape(-1, n), False),
             to_slots(grad2d.reshape(-1, n, 2)), width, height, in_window & finite)
+        prune_stats = state.prune
+        if cfg.prune.strategy == "feature_aware":  # static: other strategies trace none of this
+            # ‖∇_z L‖ of this step's loss for every decoded anchor, and the splatter's
+            # per-Gaussian Σ opacity·T with LightGaussian's volume weight (prune.py).
+            prune_stats = accumulate_prune_stats(
+                state.prune, slots, valid, grads["anchor"].latent[slots], out.significance, gaussians.scales,
+                gaussians.active, stats_window(state.step, cfg.prune) & finite, cfg.prune)
         mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
         new_state = TrainState(
             params=keep(new_params, state.params), opt_state=keep(new_opt, state.opt_state),
-            anchors=state.anchors, stats=stats, step=state.step + 1,
+            anchors=state.anchors, stats=stats, prune=prune_stats, step=state.step + 1,
             skipped=state.skipped + (~finite).astype(jnp.int32))
         metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
                        visible_anchors=jnp.sum(valid), visible_overflow=vis_overflow, overflow=out.overflow,
@@ -331,6 +343,58 @@ def make_train_step(cfg: TrainConfig, tx, width: int, height: int):
         return new_state, metrics
 
     return jax.jit(step, donate_argnums=0)
+
+
+def make_prune_step(cfg: TrainConfig):
+    """Jitted ``prune(state) -> (state, info)``: one feature-aware pruning pass between steps.
+
+    Clears the ``alive`` bit of the lowest-scoring ``floor(prune.ratio · alive)``
+    anchors (:func:`cusgs_jax.prune.prune_pass`) and resets the pruning
+    statistics. Shapes are unchanged, so neither this function nor the train
+    step recompiles; a dead slot is skipped by the frustum gather, receives no
+    update (the step masks anchor updates by ``alive``) and may later be
+    refilled by growing. ``info``: {"pruned", "alive", "candidates"} int32.
+    For strategies other than "feature_aware" the anchors are unchanged.
+    """
+
+    def prune(state: TrainState):
+        anchors, stats, info = prune_pass(state.anchors, state.params["anchor"].latent, state.prune, cfg.prune)
+        return dataclasses.replace(state, anchors=anchors, prune=stats), info
+
+    return jax.jit(prune, donate_argnums=0)
+
+
+def compact_for_render(params: dict, anchors: Anchors, multiple: int = 64):
+    """Drop dead anchor slots so rendering pays only for alive anchors.
+
+    Gathers the alive slots (in slot order) of every per-anchor array
+    (``params["anchor"]``, a per-Gaussian query table) into a capacity of
+    ``alive`` rounded up to ``multiple`` (few distinct shapes, few compiles);
+    the padding slots are dead. Render the result with
+    ``model.visible_fraction = 1.0`` (:func:`render_config`) so no visible
+    anchor is dropped. Host-side, outside jit.
+
+    Returns:
+      (params, anchors) with capacity ``A' = ceil(alive / multiple) · multiple``.
+    """
+    alive = np.asarray(anchors.alive)
+    keep = np.flatnonzero(alive)
+    new_capacity = max(multiple, -(-len(keep) // multiple) * multiple)
+    index = np.concatenate([keep, np.full(new_capacity - len(keep), keep[0] if len(keep) else 0)])
+    live = np.arange(new_capacity) < len(keep)
+
+    def gather(x):
+        return jnp.asarray(x)[index]
+
+    params = dict(params, anchor=jax.tree_util.tree_map(gather, params["anchor"]))
+    if "queries" in params and "table" in params["queries"]:
+        params["queries"] = dict(params["queries"], table=gather(params["queries"]["table"]))
+    return params, Anchors(gather(anchors.centers), jnp.asarray(live))
+
+
+def render_config(cfg: TrainConfig) -> TrainConfig:
+    """The config for rendering a :func:`compact_for_render` model (every slot decoded)."""
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, visible_fraction=1.0))
 
 
 def main() -> None:  # pragma: no cover - thin forwarder
