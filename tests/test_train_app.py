@@ -9,6 +9,7 @@ import sys
 
 import pytest
 from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
 
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.train_app import record_failure
@@ -34,6 +35,7 @@ def test_every_ready_sweep_composes(name):
     assert len(params) == 1 and len(str(next(iter(params.values()))).split(",")) >= 2
     assert cfg.hydra.launcher._target_.endswith("JoblibLauncher")
     assert cfg.train.iterations < 3000  # reduced schedule for the 2-core demo sweeps
+    assert OmegaConf.select(cfg, "hydra.sweep.dir").startswith(f"multirun/{name}/")
 
 
 def test_weight_options_set_the_pairs():

@@ -184,8 +184,11 @@ class _Clock:
             self._start += time.perf_counter() - start
 
 
-def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
-    """Train, checkpoint and evaluate; returns the final ``eval.json`` dict."""
+def run(cfg: dict, output_dir: str | pathlib.Path, progress_label: str = "train") -> dict:
+    """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
+
+    ``progress_label`` names the progress bar (a sweep labels each job's bar).
+    """
     out = pathlib.Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     train_cfg, eval_cfg = cfg["train"], cfg.get("eval", {})
@@ -271,7 +274,7 @@ def run(cfg: dict, output_dir: str | pathlib.Path) -> dict:
         curve_file.flush()
         return point
 
-    bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc="train",
+    bar = tqdm(range(start_step, iterations), initial=start_step, total=iterations, desc=progress_label,
                disable=not train_cfg.get("progress", True), dynamic_ncols=True)
     last_log = time.perf_counter()
     for step in bar:

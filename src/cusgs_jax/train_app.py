@@ -45,7 +45,8 @@ def main(cfg: DictConfig) -> float:
     output_dir = hydra_cfg.runtime.output_dir
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
     try:
-        result = run(OmegaConf.to_container(cfg, resolve=True), output_dir)
+        result = run(OmegaConf.to_container(cfg, resolve=True), output_dir,
+                     progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")
     except SceneError as error:
         record_failure(output_dir, error)
         log.error("%s", error)
