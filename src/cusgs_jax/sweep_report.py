@@ -59,8 +59,9 @@ METRICS = [
     ("feature_l2", "feat. L2", "{:.4f}", "L2 error of the rendered feature maps, mean over feature models"),
     ("train_s", "train (s)", "{:.1f}", "training wall-clock seconds"),
     ("render_ms", "render ms/view", "{:.1f}", "median held-out render time per view"),
-    ("render_ms_before_prune", "render ms/view (pre-prune)", "{:.1f}",
-     "render time per view before pruning (pruning runs only)"),
+    ("render_ms_before_prune", "render ms/view at 1st prune", "{:.1f}",
+     "render time per view of the model just before the first pruning pass (pruning runs only; it has "
+     "fewer anchors than the final model when growing continues afterwards)"),
 ]
 MARKERS = (".hydra/config.yaml", "eval.json", "failed.json")
 FIGSIZE, DPI = (8.0, 5.0), 120
