@@ -101,6 +101,46 @@ def test_existing_features_need_overwrite(demo):
         ex.extract(demo, "hog", progress=False)
 
 
+def test_ensure_extracted_skips_complete_and_replaces_partial_sets(demo, names):
+    ex.extract(demo, "gabor", overwrite=True, progress=False)
+    meta = feature_dir(demo, "gabor") / "meta.json"
+    stamp = meta.stat().st_mtime_ns
+    assert ex.ensure_extracted(demo, "gabor", progress=False) is False
+    assert meta.stat().st_mtime_ns == stamp  # untouched
+    meta.unlink()  # an interrupted extraction: files but no meta.json
+    assert ex.ensure_extracted(demo, "gabor", progress=False) is True
+    assert load_features(demo, "gabor", names, image_size=(W, H)).maps.shape == (V, H, W, DIMS["gabor"])
+
+
+def test_extraction_lock_is_exclusive_across_open_files(demo):
+    import fcntl
+
+    with ex._model_lock(demo, "gabor"):
+        lock_path = feature_dir(demo, "gabor").with_name(".gabor.lock")
+        with open(lock_path, "a") as other, pytest.raises(BlockingIOError):
+            fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    with open(lock_path, "a") as other:  # released on exit
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+
+def test_concurrent_ensure_extracted_extracts_once(tmp_path):
+    """Two processes asking for the same features at once (a parallel sweep): both succeed,
+    exactly one extracts, and the set is complete."""
+    import subprocess
+    import sys
+
+    scene = generate_demo_scene(tmp_path / "scene", num_views=3, width=24, height=18, num_points=600)
+    code = ("import sys; from cusgs_jax.extract import ensure_extracted; "
+            "print(ensure_extracted(sys.argv[1], 'semantic', progress=False))")
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(scene)], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for _ in range(2)]
+    results = [p.communicate(timeout=120) for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], [err for _, err in results]
+    assert sorted(out.strip() for out, _ in results) == ["False", "True"]
+    names = load_scene(scene, holdout_every=0).names
+    assert load_features(scene, "semantic", names).maps.shape[0] == 3
+
+
 def test_bad_model_and_options(demo):
     with pytest.raises(FeatureError, match="unknown feature model 'sift'.*daisy"):
         ex.extract(demo, "sift", progress=False)

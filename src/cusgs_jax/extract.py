@@ -38,7 +38,9 @@ area-resized to ``resolution``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import fcntl
 import json
 import os
 import pathlib
@@ -51,6 +53,7 @@ import numpy as np
 
 from cusgs_jax.data.colmap import SceneError, load_scene
 from cusgs_jax.data.features import (
+    META_FILE,
     FeatureError,
     FeatureWriter,
     feature_dir,
@@ -62,6 +65,7 @@ __all__ = [
     "MODELS",
     "ExtractSummary",
     "daisy_features",
+    "ensure_extracted",
     "extract",
     "gabor_features",
     "hog_features",
@@ -592,6 +596,43 @@ def extract(scene_path: str | os.PathLike, model: str, *,
                           source=extractor.source, seconds=time.perf_counter() - t_start,
                           seconds_per_view=busy / scene.num_images,
                           valid_fraction=valid / max(total, 1))
+
+
+@contextlib.contextmanager
+def _model_lock(scene_path: str | os.PathLike, model: str):
+    """An exclusive inter-process lock (``flock``) on ``<scene>/features/.<model>.lock``."""
+    lock_path = feature_dir(scene_path, model).with_name(f".{model}.lock")
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock_path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def ensure_extracted(scene_path: str | os.PathLike, model: str, **kwargs) -> bool:
+    """Extract ``model``'s features unless a complete set (``meta.json``) is already there.
+
+    Safe when several processes ask at once (the jobs of a parallel sweep on one
+    scene): they serialise on a lock file beside the model folder, and the ones
+    that wait find the finished set and return. A folder without ``meta.json``
+    is an interrupted extraction and is replaced.
+
+    Args:
+      scene_path, model, **kwargs: as :func:`extract` (``overwrite`` is decided here).
+    Returns:
+      True when this call extracted, False when the features were already there.
+    """
+    kwargs.pop("overwrite", None)
+    meta = feature_dir(scene_path, model) / META_FILE
+    if meta.is_file():
+        return False
+    with _model_lock(scene_path, model):
+        if meta.is_file():  # another process finished while we waited
+            return False
+        extract(scene_path, model, overwrite=True, **kwargs)
+    return True
 
 
 # --------------------------------------------------------------------------------------------

@@ -113,17 +113,17 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int, auto_extract: bo
     Returns:
       (maps {model: FeatureSet}, banks {model: [S, D] float32 numpy}).
     """
-    from cusgs_jax.data.features import feature_dir, load_features
+    from cusgs_jax.data.features import load_features
     from cusgs_jax.memory import psc
 
     maps, banks = {}, {}
     for index, model in enumerate(fcfg.models):
-        if auto_extract and model.name in BUILT_IN_EXTRACTORS and not (
-                feature_dir(scene.path, model.name) / "meta.json").is_file():
-            from cusgs_jax.extract import extract
+        if auto_extract and model.name in BUILT_IN_EXTRACTORS:
+            from cusgs_jax.extract import ensure_extracted
 
-            log.info("extracting %s features for %s", model.name, scene.path)
-            extract(scene.path, model.name, progress=False)
+            # locked: the jobs of a parallel sweep share the demo scene's cache
+            if ensure_extracted(scene.path, model.name, progress=False):
+                log.info("extracted %s features for %s", model.name, scene.path)
         fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
         rows = fs.maps[scene.train_indices].reshape(-1, fs.dim)
         rows = rows[np.any(rows != 0, axis=-1)]
