@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.feature_field import (FeatureConfig, FeatureModelConfig, decode_queries, feature_loss,
-                                     init_query_heads)
+                                     init_query_heads, refill_query_table)
 from cusgs_jax.grow_prune import GrowConfig
 from cusgs_jax.train import ModelConfig, TrainConfig, init_train_state, make_train_step
 
@@ -119,3 +119,36 @@ def test_m3_query_split_when_dims_are_not_given():
     cfg = FeatureConfig(models=tuple(FeatureModelConfig(n) for n in ("clip", "siglip", "dinov2", "seem",
                                                                      "llama3", "llamav")))
     assert cfg.query_dim == 160 and [m.query_dim for m in cfg.models] == [16, 32, 32, 16, 32, 32]
+
+
+def test_refilled_slots_get_fresh_queries_and_moments():
+    """A slot refilled by growing must not inherit the per-Gaussian queries (or their Adam
+    moments) of the anchor that lived there before; other slots are untouched."""
+    from cusgs_jax.optim import reset_rows
+
+    cfg = _cfg(granularity="per_gaussian")
+    state, tx = init_train_state(cfg, _points(), 2, 2.0, _banks())
+    step = make_train_step(cfg, tx, W, H)
+    for i in range(2):
+        state, _ = step(state, _batch(seed=i))
+    capacity = state.anchors.capacity
+    rows = np.zeros(capacity, bool)
+    rows[[1, 4, capacity - 1]] = True
+    table = state.params["queries"]["table"]
+    new = np.asarray(refill_query_table(table, jnp.asarray(rows), jax.random.PRNGKey(3)))
+    np.testing.assert_array_equal(new[~rows], np.asarray(table)[~rows])
+    assert np.all(new[rows] != np.asarray(table)[rows])
+    assert 0.02 < np.std(new[rows]) < 0.5  # drawn like the initial table (0.1 · N(0, 1))
+
+    before = state.opt_state
+    after = reset_rows(before, jnp.asarray(rows), capacity, group="table")
+    touched = 0
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(before), jax.tree_util.tree_leaves(after)):
+        x, y = np.asarray(x), np.asarray(y)
+        if "table" in jax.tree_util.keystr(path) and x.ndim and x.shape[0] == capacity:
+            assert np.any(x[rows] != 0) and np.all(y[rows] == 0)
+            np.testing.assert_array_equal(y[~rows], x[~rows])
+            touched += 1
+        else:  # anchor moments and everything else are left alone
+            np.testing.assert_array_equal(y, x)
+    assert touched == 2  # Adam's mu and nu of the table

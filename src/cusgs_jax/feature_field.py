@@ -90,6 +90,22 @@ def init_query_heads(key, cfg: FeatureConfig, latent_dim: int, appearance_dim: i
             "gaussian": init_mlp(k2, (q + 3, q))}
 
 
+def refill_query_table(table: jax.Array, rows: jax.Array, key) -> jax.Array:
+    """Fresh queries (drawn as :func:`init_query_heads` draws them) for the slots ``rows``.
+
+    A slot refilled by growing holds a new anchor; the per-Gaussian table
+    (``per_gaussian`` granularity) must not hand it the queries learned for
+    the anchor that lived there before.
+
+    Args:
+      table: [A, N, Q]; rows: [A] bool.
+    Returns:
+      [A, N, Q], unchanged where ``rows`` is False.
+    """
+    fresh = 0.1 * jax.random.normal(key, table.shape, table.dtype)
+    return jnp.where(rows[:, None, None], fresh, table)
+
+
 def decode_queries(params: dict, latent, direction, appearance, offsets, slots, cfg: FeatureConfig):
     """Per-Gaussian queries of the decoded anchors.
 

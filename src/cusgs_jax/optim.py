@@ -86,15 +86,17 @@ def make_optimizer(cfg: OptimConfig, params, total_steps: int, extent: float) ->
     return optax.multi_transform(groups, param_labels(params))
 
 
-def reset_rows(opt_state, rows, capacity: int):
+def reset_rows(opt_state, rows, capacity: int, group: str = "anchor"):
     """Zero the optimiser moments of anchor slots ``rows`` (new anchors start fresh).
 
     Args:
       rows: [A] bool mask of slots to reset.
+      group: reset the capacity-shaped moments whose tree path names this key
+        (``"anchor"``: the anchor parameters; ``"table"``: the per-Gaussian query table).
     """
     def reset(path, x):
         names = {_key_name(p) for p in path}
-        if "anchor" in names and isinstance(x, jax.Array) and x.ndim >= 1 and x.shape[0] == capacity:
+        if group in names and isinstance(x, jax.Array) and x.ndim >= 1 and x.shape[0] == capacity:
             mask = rows.reshape((capacity,) + (1,) * (x.ndim - 1))
             return jnp.where(mask, jnp.zeros_like(x), x)
         return x

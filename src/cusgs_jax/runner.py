@@ -26,10 +26,10 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.checkpoint import Checkpointer
-from cusgs_jax.feature_field import FeatureConfig, FeatureModelConfig
+from cusgs_jax.feature_field import FeatureConfig, FeatureModelConfig, refill_query_table
 from cusgs_jax.evaluate import count_parameters, evaluate_views
 from cusgs_jax.grow_prune import GrowConfig, adjust_anchors
-from cusgs_jax.optim import OptimConfig, make_optimizer
+from cusgs_jax.optim import OptimConfig, make_optimizer, reset_rows
 from cusgs_jax.prune import PruneConfig, prune_due
 from cusgs_jax.report import plot_error_vs_time
 from cusgs_jax.scaffold import grow_capacity
@@ -303,8 +303,14 @@ def run(cfg: dict, output_dir: str | pathlib.Path, progress_label: str = "train"
                 if info["capacity_grew"]:
                     prune_stats = grow_capacity(prune_stats, info["capacity_grew"], info["capacity"])
                     old_alive = np.pad(old_alive, (0, info["capacity"] - len(old_alive)))
-                # slots refilled by growing start their pruning statistics from zero
-                prune_stats = prune_stats.clear(jnp.asarray(np.asarray(anchors.alive) & ~old_alive))
+                # slots refilled by growing start their pruning statistics (and per-Gaussian queries) afresh
+                refilled = jnp.asarray(np.asarray(anchors.alive) & ~old_alive)
+                prune_stats = prune_stats.clear(refilled)
+                if "table" in params.get("queries", {}):
+                    key = jax.random.fold_in(jax.random.PRNGKey(tcfg.seed), step)
+                    params["queries"] = dict(params["queries"], table=refill_query_table(
+                        params["queries"]["table"], refilled, key))
+                    opt_state = reset_rows(opt_state, refilled, info["capacity"], group="table")
                 state = TrainState(params=params, opt_state=opt_state, anchors=anchors, stats=stats,
                                    prune=prune_stats, step=state.step, skipped=state.skipped)
             if prune_due(step + 1, pcfg):
