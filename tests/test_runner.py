@@ -105,9 +105,10 @@ def test_hydra_app_runs_and_reports_bad_paths(tiny_scene, tmp_path):
     assert str(missing) in done.stderr + done.stdout
 
 
-def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path):
+@pytest.mark.parametrize("granularity", ["per_anchor", "per_gaussian"])
+def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, granularity):
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
-                      "eval.every=20"), tmp_path)
+                      "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
     feats = result["features"]
     assert set(feats["models"]) == {"daisy", "semantic"}
     for row in feats["models"].values():

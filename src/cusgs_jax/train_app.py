@@ -41,6 +41,7 @@ def main(cfg: DictConfig) -> float:
     from cusgs_jax.runner import run
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
     hydra_cfg = HydraConfig.get()
     output_dir = hydra_cfg.runtime.output_dir
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
