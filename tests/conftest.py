@@ -1,57 +1,8 @@
-"""Shared test helpers: small random Gaussian scenes."""
+"""Shared test fixtures. Random scenes live in :mod:`cusgs_jax.testing.scenes`."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-
-KEYS = ("means", "quats", "scales", "opacities", "colors")
-
-
-def make_scene(seed=0, num=120, width=40, height=28, channels=3, *, behind=0, offscreen=0,
-               opaque=0, focal=None, depth_range=(1.0, 6.0)):
-    """Random Gaussians in a camera frustum, as float64 NumPy arrays.
-
-    Args:
-      behind: how many Gaussians to put behind the camera / in front of `near`.
-      offscreen: how many to put far outside the frustum.
-      opaque: how many get opacity 1 (alpha clamped at 0.999).
-    Returns:
-      dict with means [G,3], quats [G,4], scales [G,3], opacities [G],
-      colors [G,C], viewmat [4,4], K [3,3], background [C], width, height.
-    """
-    rng = np.random.default_rng(seed)
-    focal = focal or 0.9 * width
-    z = rng.uniform(*depth_range, num)
-    x = rng.uniform(-0.6, 0.6, num) * z * width / focal
-    y = rng.uniform(-0.6, 0.6, num) * z * height / focal
-    means = np.stack([x, y, z], -1)
-    if behind:
-        means[:behind, 2] = rng.uniform(-2.0, 0.009, behind)
-    if offscreen:
-        means[behind:behind + offscreen, 0] = rng.choice([-1, 1], offscreen) * rng.uniform(20, 40, offscreen)
-    scales = np.exp(rng.uniform(np.log(0.02), np.log(0.25), (num, 3)))
-    opacities = rng.uniform(0.05, 0.95, num)
-    opacities[num - opaque:] = 1.0
-    # A rotated, translated camera: world = camera frame rotated about y by 10°.
-    angle = np.deg2rad(10.0)
-    rot = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
-    center = np.array([0.3, -0.2, -0.5])
-    means = means @ rot.T + center  # camera→world
-    viewmat = np.eye(4)
-    viewmat[:3, :3] = rot.T
-    viewmat[:3, 3] = -rot.T @ center
-    K = np.array([[focal, 0, width / 2], [0, focal * 1.05, height / 2], [0, 0, 1]])
-    return dict(
-        means=means, quats=rng.normal(size=(num, 4)), scales=scales, opacities=opacities,
-        colors=rng.uniform(0, 1, (num, channels)), viewmat=viewmat, K=K,
-        background=rng.uniform(0, 1, channels), width=width, height=height,
-    )
-
-
-def as_dtype(scene, dtype):
-    """Scene arrays cast to `dtype` (ints untouched)."""
-    return {k: (np.asarray(v, dtype) if isinstance(v, np.ndarray) else v) for k, v in scene.items()}
 
 
 @pytest.fixture

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from cusgs_jax.prune import (PruneConfig, PruneStats, _floor_ratio, accumulate_prune_stats, anchor_scores,
-                             gaussian_volume_weight, prune_due, prune_pass, select_prune,
-                             significance_reference, stats_window)
+                             gaussian_volume_weight, prune_due, prune_pass, select_prune, stats_window)
 from cusgs_jax.scaffold import Anchors
 from cusgs_jax.splat import rasterize
+from cusgs_jax.testing.prune_reference import significance_reference
 
 
 def _random_view(rng, capacity, num_slots, n, f, alive, *, pad=0):

@@ -133,10 +133,11 @@ def prune_setup():
 
 def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
     """One step's PruneStats against a direct computation: autodiff of the same loss for ∇z, the
-    float64 reference rasteriser for Σ opacity·T, and prune.significance_reference for the score."""
+    float64 reference rasteriser for Σ opacity·T, and testing.prune_reference for the score."""
     from cusgs_jax import losses
-    from cusgs_jax.prune import anchor_scores, significance_reference
+    from cusgs_jax.prune import anchor_scores
     from cusgs_jax.splat.reference import rasterize_reference
+    from cusgs_jax.testing.prune_reference import significance_reference
     from cusgs_jax.train import decode_view, render_gaussians
 
     cfg, step, _, state0 = prune_setup

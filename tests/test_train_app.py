@@ -68,7 +68,7 @@ def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     assert str(missing) in json.loads((bad / "failed.json").read_text())["error"]
     assert not (bad / "eval.json").exists()
 
-    report = subprocess.run([sys.executable, "-m", "cusgs_jax.sweep_report", str(sweep)], capture_output=True,
+    report = subprocess.run([sys.executable, "-m", "cusgs_jax.app.report", str(sweep)], capture_output=True,
                             text=True, timeout=300)
     assert report.returncode == 0, report.stderr[-3000:]
     rows = list(csv.DictReader((sweep / "report" / "report.csv").open()))

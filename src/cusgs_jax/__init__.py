@@ -1,37 +1,61 @@
 """cusgs-jax: CUS-GS (compact unified structured Gaussian splatting) in JAX.
 
-The pure pieces, for research code composing its own jitted steps
-(shapes: A anchors, N offsets, G = A·N Gaussians, H×W images):
+A lazy facade: ``import cusgs_jax`` imports nothing heavy; each name below is
+imported from its module on first use (so command-line tools that never touch
+JAX do not load it). The naming table of array shapes is in :mod:`cusgs_jax.types`.
 
-* :func:`init_anchors`, :func:`voxelize` — scaffold from SfM points (``scaffold``)
-* :func:`init_decoder`, :func:`decode_gaussians`, :func:`frustum_mask` — anchors → Gaussians (``decode``)
-* :func:`rasterize`, :func:`rasterize_batch` — differentiable splatting (``splat``)
-* ``losses`` — L1, SSIM, volume regulariser, :func:`losses.image_loss`
-* :func:`accumulate_stats`, :func:`adjust_anchors` — growing and pruning (``grow_prune``)
-* :func:`accumulate_prune_stats`, :func:`prune_pass`, :class:`PruneConfig` — feature-aware pruning (``prune``)
-* :func:`make_train_step`, :func:`make_prune_step`, :func:`init_train_state` — the full step and the
-  pruning pass between steps (``train``)
-* :func:`load_scene`, :func:`demo_scene_path` — data (``data``)
+Data flow of one training step, with the module of each stage::
+
+    scene (data.colmap / data.demo) → anchors (model.anchors) → decode (model.decode)
+      → splat (splat.render) → loss (losses, model.field) → update (training.step, training.optim)
+      → densify (densify.scaffold, densify.feature_prune) → evaluate (eval.views, eval.features)
 """
 
-from cusgs_jax import losses, metrics
-from cusgs_jax.data.colmap import SceneData, SceneError, load_scene
-from cusgs_jax.data.demo import demo_scene_path, generate_demo_scene
-from cusgs_jax.decode import DecoderConfig, Gaussians, decode_gaussians, frustum_mask, init_decoder
-from cusgs_jax.grow_prune import GrowConfig, GrowStats, accumulate_stats, adjust_anchors
-from cusgs_jax.prune import PruneConfig, PruneStats, accumulate_prune_stats, anchor_scores, prune_pass
-from cusgs_jax.scaffold import AnchorParams, Anchors, init_anchors, voxelize
-from cusgs_jax.splat import RenderOutput, check_inputs, rasterize, rasterize_batch
-from cusgs_jax.train import TrainConfig, TrainState, init_train_state, make_prune_step, make_train_step
+from __future__ import annotations
+
+import importlib
 
 __version__ = "0.1.0"
-__all__ = [
-    "AnchorParams", "Anchors", "DecoderConfig", "Gaussians", "GrowConfig", "GrowStats", "PruneConfig", "PruneStats",
-    "RenderOutput",
-    "SceneData", "SceneError", "TrainConfig", "TrainState", "accumulate_prune_stats", "accumulate_stats",
-    "adjust_anchors", "anchor_scores",
-    "check_inputs", "decode_gaussians", "demo_scene_path", "frustum_mask", "generate_demo_scene",
-    "init_anchors", "init_decoder", "init_train_state", "load_scene", "losses", "make_prune_step", "make_train_step",
-    "metrics", "prune_pass",
-    "rasterize", "rasterize_batch", "voxelize",
-]
+
+_EXPORTS = {
+    # configuration and types
+    "Config": "config", "ModelConfig": "config", "SplatConfig": "config", "GrowConfig": "config",
+    "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "config",
+    "Camera": "types",
+    # data
+    "SceneData": "data.colmap", "SceneError": "data.colmap", "load_scene": "data.colmap",
+    "demo_scene_path": "data.demo", "generate_demo_scene": "data.demo",
+    # model
+    "AnchorParams": "model.anchors", "AnchorState": "model.anchors", "init_anchors": "model.anchors",
+    "voxelize": "model.anchors",
+    "Gaussians": "model.decode", "decode_gaussians": "model.decode", "frustum_mask": "model.decode",
+    "init_decoder": "model.decode", "decode_view": "model.decode",
+    # splatting
+    "RenderOutput": "splat", "check_inputs": "splat", "rasterize": "splat", "rasterize_batch": "splat",
+    # densification
+    "GrowStats": "densify.scaffold", "accumulate_stats": "densify.scaffold",
+    "ScaffoldStrategy": "densify.scaffold",
+    "PruneStats": "densify.feature_prune", "accumulate_prune_stats": "densify.feature_prune",
+    "anchor_scores": "densify.feature_prune", "prune_pass": "densify.feature_prune",
+    "FeaturePruneStrategy": "densify.feature_prune",
+    # training
+    "TrainState": "training.state", "init_train_state": "training.state",
+    "make_train_step": "training.step",
+}
+_MODULES = ("losses", "config", "types")
+
+__all__ = sorted([*_EXPORTS, *_MODULES])
+
+
+def __getattr__(name: str):
+    if name in _MODULES:
+        return importlib.import_module(f"cusgs_jax.{name}")
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"cusgs_jax.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'cusgs_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

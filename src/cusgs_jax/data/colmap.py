@@ -15,33 +15,30 @@ loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in CO
 undistorted cameras (PINHOLE, SIMPLE_PINHOLE) are supported.
 
 Every problem with the user's data raises :class:`SceneError`, whose message names the
-offending file and what to do about it.
+offending file and what to do about it. The image files are read by :mod:`.images`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 import pathlib
 from typing import Any
 
 import numpy as np
 
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.images import image_dir, load_images, scaled_size
+
 __all__ = ["SceneError", "SceneData", "load_scene", "SUPPORTED_CAMERA_MODELS"]
 
 SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 _MODEL_PARTS = ("cameras", "images", "points3D")
-_IMAGE_EXTENSIONS = (".png", ".PNG", ".jpg", ".JPG", ".jpeg", ".JPEG")
 _UNDISTORT_HINT = (
     "undistort the images first, e.g. `colmap image_undistorter --image_path <scene>/images "
     "--input_path <scene>/sparse/0 --output_path <undistorted scene> --output_type COLMAP`, "
     "and point data.path at the undistorted scene"
 )
-
-
-class SceneError(ValueError):
-    """A problem with the scene data on disk (or its settings); the message says how to fix it."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)  # arrays: compare/hash by identity
@@ -108,105 +105,28 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     """
     downscale = _check_int_setting("data.downscale", downscale, minimum=1)
     holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
-
-    if path is None or str(path) == "":
-        raise SceneError("data.path is empty: set data.path to a COLMAP scene folder "
-                         "containing images/ and sparse/0/")
-    scene = pathlib.Path(path).expanduser()
-    if not scene.exists():
-        raise SceneError(f"scene folder {scene} does not exist: set data.path to a COLMAP scene "
-                         "folder containing images/ and sparse/0/")
-    if not scene.is_dir():
-        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to a COLMAP "
-                         "scene folder containing images/ and sparse/0/")
+    scene = _scene_folder(path)
 
     model_dir = _find_model_dir(scene)
     files = _model_files(model_dir)
     rec = _read_reconstruction(model_dir, files)
-
-    # Registered images (an image without a pose cannot be trained on), sorted by name.
-    entries = []
-    for image_id, image in rec.images.items():
-        if not _has_pose(image):
-            continue
-        entries.append((image.name, image_id, image))
-    entries.sort(key=lambda e: e[0])
-    if not entries:
-        raise SceneError(
-            f"the COLMAP model {files['images']} has no registered images: the reconstruction "
-            "failed or is empty — rerun SfM (e.g. `colmap mapper`) and point data.path at its "
-            "output")
-
+    entries = _registered_images(rec, files)
     cameras = {}
     for _, _, image in entries:
         cam_id = image.camera_id
         if cam_id not in cameras:
             cameras[cam_id] = _camera_intrinsics(rec.cameras[cam_id], cam_id, files["cameras"])
-
-    names, viewmats = [], []
-    for name, _, image in entries:
-        mat = _cam_from_world(image)
-        if mat.shape != (3, 4) or not np.all(np.isfinite(mat)):
-            raise SceneError(
-                f"image {name!r} in {files['images']} has a non-finite pose (NaN/Inf in "
-                "cam_from_world); the reconstruction is broken — rerun SfM / bundle adjustment, "
-                "or delete that image from the model")
-        view = np.eye(4)
-        view[:3, :] = mat
-        names.append(name)
-        viewmats.append(view)
-    viewmats = np.stack(viewmats)
-
+    names, viewmats = _poses(entries, files)
     points, point_colors = _points(rec, files["points3D"])
 
     # The image folder and the expected loaded size of every image.
-    image_dir, from_prescaled = _image_dir(scene, downscale)
-    expected = {cid: (_scaled(cam["width"], downscale), _scaled(cam["height"], downscale))
-                for cid, cam in cameras.items()}
-    first_cam = entries[0][2].camera_id
-    for name, _, image in entries:
-        cid = image.camera_id
-        if expected[cid] != expected[first_cam]:
-            (w0, h0), (w1, h1) = expected[first_cam], expected[cid]
-            raise SceneError(
-                f"the images in {files['images']} do not share one size with "
-                f"data.downscale={downscale}: {entries[0][0]!r} (camera {first_cam}) loads at "
-                f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
-                "have one resolution — undistort/crop them to a common size (e.g. "
-                "`colmap image_undistorter`) and rerun")
-
-    # Read the images into one preallocated array.
-    images = None
-    for i, (name, _, image) in enumerate(entries):
-        cam = cameras[image.camera_id]
-        img = _load_image(image_dir, name, cam, image.camera_id, downscale, from_prescaled, scene)
-        if images is None:
-            images = np.empty((len(entries),) + img.shape, np.uint8)
-        elif img.shape != images.shape[1:]:
-            h0, w0 = images.shape[1:3]
-            h1, w1 = img.shape[:2]
-            raise SceneError(
-                f"images in {image_dir} differ in size: {names[0]!r} loads at {w0}x{h0} but "
-                f"{name!r} at {w1}x{h1}; all training images must have one resolution — "
-                "resize/crop them to a common size (and their cameras accordingly)")
-        images[i] = img
-    assert images is not None
+    folder, from_prescaled = image_dir(scene, downscale)
+    _check_common_size(entries, cameras, downscale, files)
+    images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
+                         cameras, downscale, from_prescaled, scene)
     height, width = images.shape[1:3]
-
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
-
-    num = len(entries)
-    idx = np.arange(num, dtype=np.int32)
-    if holdout_every > 0:
-        test_mask = idx % holdout_every == 0
-    else:
-        test_mask = np.zeros(num, bool)
-    train_indices, test_indices = idx[~test_mask], idx[test_mask]
-    if train_indices.size == 0:
-        raise SceneError(
-            f"data.holdout_every={holdout_every} holds out all {num} image(s) of {scene}, "
-            "leaving nothing to train on: set data.holdout_every=0 (no test views) or a larger "
-            "value")
+    train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
 
     centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
     extent = 1.1 * float(np.max(np.linalg.norm(centers - centers.mean(0), axis=-1)))
@@ -228,11 +148,99 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
 
 
 # --------------------------------------------------------------------------------------------
-# Model files
+# Settings and scene layout
 # --------------------------------------------------------------------------------------------
 
 
+def _scene_folder(path) -> pathlib.Path:
+    """``data.path`` as an existing folder (``~`` expanded); SceneError otherwise."""
+    if path is None or str(path) == "":
+        raise SceneError("data.path is empty: set data.path to a COLMAP scene folder "
+                         "containing images/ and sparse/0/")
+    scene = pathlib.Path(path).expanduser()
+    if not scene.exists():
+        raise SceneError(f"scene folder {scene} does not exist: set data.path to a COLMAP scene "
+                         "folder containing images/ and sparse/0/")
+    if not scene.is_dir():
+        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to a COLMAP "
+                         "scene folder containing images/ and sparse/0/")
+    return scene
+
+
+def _registered_images(rec, files: dict[str, pathlib.Path]) -> list[tuple[str, int, Any]]:
+    """[(name, image id, pycolmap Image), ...] of the images with a pose (an image without one
+    cannot be trained on), sorted by name; SceneError when there are none."""
+    entries = []
+    for image_id, image in rec.images.items():
+        if not _has_pose(image):
+            continue
+        entries.append((image.name, image_id, image))
+    entries.sort(key=lambda e: e[0])
+    if not entries:
+        raise SceneError(
+            f"the COLMAP model {files['images']} has no registered images: the reconstruction "
+            "failed or is empty — rerun SfM (e.g. `colmap mapper`) and point data.path at its "
+            "output")
+    return entries
+
+
+def _poses(entries, files: dict[str, pathlib.Path]) -> tuple[list[str], np.ndarray]:
+    """Names and [N, 4, 4] float64 world→camera matrices of ``entries``; SceneError on a
+    non-finite pose."""
+    names, viewmats = [], []
+    for name, _, image in entries:
+        mat = _cam_from_world(image)
+        if mat.shape != (3, 4) or not np.all(np.isfinite(mat)):
+            raise SceneError(
+                f"image {name!r} in {files['images']} has a non-finite pose (NaN/Inf in "
+                "cam_from_world); the reconstruction is broken — rerun SfM / bundle adjustment, "
+                "or delete that image from the model")
+        view = np.eye(4)
+        view[:3, :] = mat
+        names.append(name)
+        viewmats.append(view)
+    return names, np.stack(viewmats)
+
+
+def _check_common_size(entries, cameras: dict[int, dict], downscale: int,
+                       files: dict[str, pathlib.Path]) -> None:
+    """SceneError unless every camera of ``entries`` loads at the same size at ``downscale``."""
+    expected = {cid: (scaled_size(cam["width"], downscale), scaled_size(cam["height"], downscale))
+                for cid, cam in cameras.items()}
+    first_cam = entries[0][2].camera_id
+    for name, _, image in entries:
+        cid = image.camera_id
+        if expected[cid] != expected[first_cam]:
+            (w0, h0), (w1, h1) = expected[first_cam], expected[cid]
+            raise SceneError(
+                f"the images in {files['images']} do not share one size with "
+                f"data.downscale={downscale}: {entries[0][0]!r} (camera {first_cam}) loads at "
+                f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
+                "have one resolution — undistort/crop them to a common size (e.g. "
+                "`colmap image_undistorter`) and rerun")
+
+
+def _holdout_split(num: int, holdout_every: int,
+                   scene: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) int32 indices into the N = ``num`` views: test = every
+    ``holdout_every``-th (``i % holdout_every == 0``), none when 0; SceneError when no training
+    view is left."""
+    idx = np.arange(num, dtype=np.int32)
+    if holdout_every > 0:
+        test_mask = idx % holdout_every == 0
+    else:
+        test_mask = np.zeros(num, bool)
+    train_indices, test_indices = idx[~test_mask], idx[test_mask]
+    if train_indices.size == 0:
+        raise SceneError(
+            f"data.holdout_every={holdout_every} holds out all {num} image(s) of {scene}, "
+            "leaving nothing to train on: set data.holdout_every=0 (no test views) or a larger "
+            "value")
+    return train_indices, test_indices
+
+
 def _check_int_setting(name: str, value: Any, *, minimum: int) -> int:
+    """``value`` as an int >= ``minimum`` (integral floats accepted); SceneError otherwise."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
         if isinstance(value, float) and value.is_integer():
             value = int(value)
@@ -241,6 +249,11 @@ def _check_int_setting(name: str, value: Any, *, minimum: int) -> int:
     if value < minimum:
         raise SceneError(f"{name}={value} must be an integer >= {minimum}")
     return int(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Model files
+# --------------------------------------------------------------------------------------------
 
 
 def _has_model_file(folder: pathlib.Path, part: str) -> bool:
@@ -394,137 +407,3 @@ def _points(rec, points_file: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
             "point triangulation")
     xyz, rgb = xyz[keep], rgb[keep]
     return xyz.astype(np.float32), np.clip(rgb, 0, 255).astype(np.uint8)
-
-
-# --------------------------------------------------------------------------------------------
-# Images
-# --------------------------------------------------------------------------------------------
-
-
-def _scaled(size: int, downscale: int) -> int:
-    """Expected loaded size: size / d rounded half up (Mip-NeRF 360's images_d sizes)."""
-    return int(math.floor(size / downscale + 0.5))
-
-
-def _image_dir(scene: pathlib.Path, downscale: int) -> tuple[pathlib.Path, bool]:
-    """(folder to read, True when it already holds images downscaled by `downscale`)."""
-    if downscale > 1:
-        pre = scene / f"images_{downscale}"
-        if pre.is_dir():
-            return pre, True
-    full = scene / "images"
-    if not full.is_dir():
-        extra = ""
-        if downscale > 1:
-            extra = f" (nor {scene / f'images_{downscale}'} for data.downscale={downscale})"
-        raise SceneError(
-            f"no images folder: {full} does not exist{extra}; put the images named in the COLMAP "
-            "model there, or set data.path to the scene folder that contains images/ and "
-            "sparse/0/")
-    return full, False
-
-
-def _find_image_file(folder: pathlib.Path, name: str, allow_other_ext: bool) -> pathlib.Path | None:
-    path = folder / name
-    if path.is_file():
-        return path
-    if allow_other_ext:  # some datasets store images_d as .png next to .JPG originals
-        stem = path.with_suffix("")
-        for ext in _IMAGE_EXTENSIONS:
-            cand = stem.with_suffix(ext)
-            if cand.is_file():
-                return cand
-    return None
-
-
-def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path) -> np.ndarray:
-    img = np.asarray(img)
-    if img.ndim == 2:
-        img = img[..., None]
-    if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
-        raise SceneError(f"image {path} has an unsupported shape {img.shape} (expected a single "
-                         "grey, RGB or RGBA picture); re-export it as a PNG or JPEG")
-    if img.shape[-1] in (1, 2):  # grey or grey+alpha
-        img = np.repeat(img[..., :1], 3, axis=-1)
-    else:  # RGB or RGBA
-        img = img[..., :3]
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img)
-    if img.dtype == np.bool_:
-        return img.astype(np.uint8) * 255
-    if img.dtype == np.uint16:
-        return np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
-    if np.issubdtype(img.dtype, np.floating):
-        return np.round(np.clip(np.nan_to_num(img.astype(np.float32)), 0, 1) * 255).astype(np.uint8)
-    if np.issubdtype(img.dtype, np.integer):
-        return np.clip(img, 0, 255).astype(np.uint8)
-    raise SceneError(f"image {path} has an unsupported pixel type {img.dtype}; re-export it as "
-                     "an 8-bit PNG or JPEG")
-
-
-def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
-    """Anti-aliased downscale of a uint8 [H, W, 3] image to out_hw (≈ size / factor)."""
-    h, w = img.shape[:2]
-    oh, ow = out_hw
-    if h == oh * factor and w == ow * factor:  # exact box filter
-        out = img.reshape(oh, factor, ow, factor, 3).mean(axis=(1, 3), dtype=np.float32)
-    else:
-        from skimage.transform import resize
-        out = resize(img.astype(np.float32), (oh, ow, 3), order=1, anti_aliasing=True,
-                     preserve_range=True)
-    return np.clip(np.round(out), 0, 255).astype(np.uint8)
-
-
-def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, folder: pathlib.Path,
-               scene: pathlib.Path) -> str:
-    ratio = cam["width"] / img_w
-    k = round(ratio)
-    if k >= 1 and abs(ratio - k) * img_w <= 1.0:
-        if from_prescaled and k != downscale:
-            return (f" The images in {folder.name}/ look {k}x smaller than the COLMAP cameras, not "
-                    f"{downscale}x: rename the folder to images_{k}/ and set data.downscale={k}, "
-                    f"or replace its contents with {downscale}x-downscaled images (or delete it "
-                    "to have images/ downscaled on the fly).")
-        if not from_prescaled and k > 1:
-            return (f" The images in images/ look {k}x smaller than the COLMAP cameras (the "
-                    "loader expects images/ at the model's full resolution): move them to "
-                    f"{scene.name}/images_{k}/ and set data.downscale={k}, or put the "
-                    "full-resolution images in images/.")
-    return (" The images do not match this reconstruction (resized or cropped after SfM, or "
-            "from another scene): use the images COLMAP was run on, or rerun SfM / "
-            "undistortion on these.")
-
-
-def _load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downscale: int,
-                from_prescaled: bool, scene: pathlib.Path) -> np.ndarray:
-    path = _find_image_file(folder, name, allow_other_ext=from_prescaled)
-    if path is None:
-        raise SceneError(
-            f"image {name!r} from the COLMAP model is missing: {folder / name} does not exist; "
-            f"copy it into {folder} or remove the image from the reconstruction (data.path="
-            f"{scene})")
-    try:
-        import imageio.v3 as iio
-        raw = iio.imread(path)
-    except Exception as e:
-        raise SceneError(
-            f"cannot read image {path}: {type(e).__name__}: {e}. The file is corrupt or not an "
-            "image — replace it with a valid copy or remove the image from the reconstruction"
-        ) from e
-    img = _to_rgb_uint8(raw, path)
-    h, w = img.shape[:2]
-
-    # Expected size of the file as read: the camera size, or the camera size / d for images_d.
-    file_scale = downscale if from_prescaled else 1
-    exp_w, exp_h = _scaled(cam["width"], file_scale), _scaled(cam["height"], file_scale)
-    if abs(w - exp_w) > 1 or abs(h - exp_h) > 1:
-        setting = (f"with data.downscale={downscale} " if from_prescaled else "")
-        raise SceneError(
-            f"image {path} is {w}x{h} but its camera {camera_id} ({cam['width']}x{cam['height']}) "
-            f"means it should be {exp_w}x{exp_h} {setting}(±1 px)."
-            + _size_hint(w, cam, from_prescaled, downscale, folder, scene))
-    if not from_prescaled and downscale > 1:
-        # Reduce the image to round(camera size / d) (anti-aliased).
-        out_hw = (_scaled(cam["height"], downscale), _scaled(cam["width"], downscale))
-        img = _downscale(img, downscale, out_hw)
-    return img

@@ -1,4 +1,5 @@
-"""Dense per-view feature maps on disk: the format, a writer, a validating loader and resizing.
+"""Dense per-view feature maps on disk: the format, a writer, a validating loader (and
+:func:`resize_features`, re-exported from :mod:`.resize`).
 
 On-disk format (one folder per feature model)::
 
@@ -30,7 +31,8 @@ from typing import Any, Self
 
 import numpy as np
 
-from cusgs_jax.data.colmap import SceneError
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.resize import resize_features
 
 __all__ = [
     "FEATURES_DIR",
@@ -358,6 +360,35 @@ def _load_map(path: pathlib.Path, name: str, folder: pathlib.Path) -> np.ndarray
     return arr
 
 
+def _check_map_shape(arr: np.ndarray, path: pathlib.Path,
+                     first: tuple[pathlib.Path, tuple[int, ...]] | None, meta_path: pathlib.Path,
+                     meta: dict, image_size: tuple[int, int] | None) -> None:
+    """FeatureError unless the [h, w, D] map ``arr`` (read from ``path``) has the shape of the
+    first map (``first`` = (its path, its shape), None for the first) and of ``meta``
+    (dim, resolution [w, h]), and — with ``image_size`` (W, H) — the image's aspect within 5 %."""
+    dim, (mw, mh) = meta["dim"], meta["resolution"]
+    if first is not None and arr.shape != first[1]:
+        raise FeatureError(
+            f"feature map {path} has shape {arr.shape} but {first[0]} has {first[1]} (and "
+            f"{meta_path} says [h, w, D] = [{mh}, {mw}, {dim}]): all views of one model must "
+            "share one resolution and dimension — re-extract or resize the odd ones")
+    if arr.shape[2] != dim:
+        raise FeatureError(
+            f"feature map {path} has dimension D={arr.shape[2]} but {meta_path} says "
+            f"dim={dim}: fix meta.json or re-extract the features")
+    if (arr.shape[1], arr.shape[0]) != (mw, mh):
+        raise FeatureError(
+            f"feature map {path} is {arr.shape[1]}x{arr.shape[0]} (w x h) but {meta_path} "
+            f"says resolution [{mw}, {mh}]: fix meta.json or re-extract the features")
+    if image_size is not None:
+        iw, ih = image_size
+        if abs((mw / mh) / (iw / ih) - 1.0) > 0.05:
+            raise FeatureError(
+                f"feature map {path} is {mw}x{mh} (aspect {mw / mh:.3f}) but the image is "
+                f"{iw}x{ih} (aspect {iw / ih:.3f}): a feature map must cover the whole image "
+                "(not a crop or a padded square); re-extract it over the full image")
+
+
 def load_features(scene_path: str | os.PathLike, model: str, names: Sequence[str], *,
                   image_size: tuple[int, int] | None = None) -> FeatureSet:
     """Load and validate one model's feature maps for the given views.
@@ -399,26 +430,7 @@ def load_features(scene_path: str | os.PathLike, model: str, names: Sequence[str
     for i, name in enumerate(names):
         path = feature_file(scene, model, name)
         arr = _load_map(path, name, folder)
-        if first is not None and arr.shape != first[1]:
-            raise FeatureError(
-                f"feature map {path} has shape {arr.shape} but {first[0]} has {first[1]} (and "
-                f"{meta_path} says [h, w, D] = [{mh}, {mw}, {dim}]): all views of one model must "
-                "share one resolution and dimension — re-extract or resize the odd ones")
-        if arr.shape[2] != dim:
-            raise FeatureError(
-                f"feature map {path} has dimension D={arr.shape[2]} but {meta_path} says "
-                f"dim={dim}: fix meta.json or re-extract the features")
-        if (arr.shape[1], arr.shape[0]) != (mw, mh):
-            raise FeatureError(
-                f"feature map {path} is {arr.shape[1]}x{arr.shape[0]} (w x h) but {meta_path} "
-                f"says resolution [{mw}, {mh}]: fix meta.json or re-extract the features")
-        if image_size is not None:
-            iw, ih = image_size
-            if abs((mw / mh) / (iw / ih) - 1.0) > 0.05:
-                raise FeatureError(
-                    f"feature map {path} is {mw}x{mh} (aspect {mw / mh:.3f}) but the image is "
-                    f"{iw}x{ih} (aspect {iw / ih:.3f}): a feature map must cover the whole image "
-                    "(not a crop or a padded square); re-extract it over the full image")
+        _check_map_shape(arr, path, first, meta_path, meta, image_size)
         if first is None:
             first = (path, arr.shape)
         out = maps[i]
@@ -435,64 +447,3 @@ def load_features(scene_path: str | os.PathLike, model: str, names: Sequence[str
             "extractor probably failed) or drop the model")
     return FeatureSet(model=model, maps=maps, valid=valid, dim=dim, resolution=(mw, mh),
                       meta=meta, names=names)
-
-
-# --------------------------------------------------------------------------------------------
-# Resizing
-# --------------------------------------------------------------------------------------------
-
-
-def _area_weights(src: int, dst: int) -> np.ndarray:
-    """[dst, src] overlap of destination pixel i (spanning [i·s, (i+1)·s), s = src/dst, in source
-    pixels) with source pixel k ([k, k+1)). Rows sum to s."""
-    scale = src / dst
-    lo = np.arange(dst)[:, None] * scale
-    hi = lo + scale
-    k = np.arange(src)[None, :]
-    return np.clip(np.minimum(hi, k + 1) - np.maximum(lo, k), 0.0, None)
-
-
-def resize_features(maps: np.ndarray, size: tuple[int, int], *, method: str = "area") -> np.ndarray:
-    """Resize feature maps to ``size = (w2, h2)``.
-
-    Args:
-      maps: [N, h, w, D] (or [h, w, D]) feature maps; zero vectors are "no target".
-      size: (w2, h2), the output width and height.
-      method:
-        "area" (default): each output pixel is the overlap-weighted mean of the *valid* (non-zero)
-          input vectors under its footprint (exact box/area filter, like OpenCV's INTER_AREA when
-          shrinking; piecewise constant with blended borders when enlarging). Zero vectors do
-          not dilute their neighbours; an output pixel is zero only when no valid input overlaps
-          it. Use for continuous features.
-        "nearest": each output pixel copies the input pixel under its centre. Keeps vectors (and
-          the zero mask) exactly; use for label-like features (e.g. "semantic").
-    Returns:
-      [N, h2, w2, D] float32 (or [h2, w2, D] for a 3-D input).
-    """
-    arr = np.asarray(maps, np.float32)
-    squeeze = arr.ndim == 3
-    if squeeze:
-        arr = arr[None]
-    if arr.ndim != 4:
-        raise ValueError(f"maps must be [N, h, w, D] or [h, w, D], got shape {arr.shape}")
-    w2, h2 = (int(v) for v in size)
-    if w2 < 1 or h2 < 1:
-        raise ValueError(f"size must be (w, h) with positive integers, got {size}")
-    _, h, w, _ = arr.shape
-    if (h, w) == (h2, w2):
-        out = arr.copy()
-    elif method == "nearest":
-        rows = np.minimum(((np.arange(h2) + 0.5) * h / h2).astype(np.int64), h - 1)
-        cols = np.minimum(((np.arange(w2) + 0.5) * w / w2).astype(np.int64), w - 1)
-        out = arr[:, rows][:, :, cols]
-    elif method == "area":
-        wr = _area_weights(h, h2).astype(np.float32)
-        wc = _area_weights(w, w2).astype(np.float32)
-        valid = np.any(arr != 0, axis=-1).astype(np.float32)
-        num = np.einsum("ik,nkld,jl->nijd", wr, arr, wc, optimize=True)
-        den = np.einsum("ik,nkl,jl->nij", wr, valid, wc, optimize=True)
-        out = np.where(den[..., None] > 1e-12, num / np.maximum(den, 1e-12)[..., None], 0.0)
-        out = out.astype(np.float32)
-    else:
-        raise ValueError(f"method must be 'area' or 'nearest', got {method!r}")
-    return out[0] if squeeze else out

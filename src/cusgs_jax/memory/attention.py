@@ -45,7 +45,6 @@ __all__ = [
     "LOG_TEMPERATURE_CLIP",
     "apply_adapter",
     "attend",
-    "attend_reference",
     "attention_weights",
     "cosines",
     "init_memory_head",
@@ -257,38 +256,3 @@ def attend(params: dict, queries, keys, bank, valid=None, *, block: int | None =
     flat = jnp.pad(flat, ((0, nblocks * block - n), (0, 0)))
     out = jax.lax.map(jax.checkpoint(run), flat.reshape(nblocks, block, c))
     return out.reshape(nblocks * block, -1)[:n].reshape(batch + (out.shape[-1],))
-
-
-# --------------------------------------------------------------------------- reference
-
-
-def _np_normalize(x):
-    norm = np.linalg.norm(x, axis=-1, keepdims=True)
-    return np.where(norm > 0, x / np.where(norm > 0, norm, 1.0), 0.0)
-
-
-def attend_reference(params: dict, queries, bank, valid=None) -> np.ndarray:
-    """Float64 NumPy :func:`attend` (keys computed from the bank). Tests only.
-
-    Args:
-      params: memory head; queries [..., c]; bank [S, D]; valid [S] bool or None.
-    Returns:
-      [..., D] float64.
-    """
-    p = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), params)
-    q = _np_normalize(np.asarray(queries, np.float64))
-    bank = np.asarray(bank, np.float64)
-    keys = _np_normalize(bank @ p["key_proj"].T)
-    log_t = np.clip(p["log_temperature"], -LOG_TEMPERATURE_CLIP, LOG_TEMPERATURE_CLIP)
-    logits = (q @ keys.T) * np.exp(-log_t)
-    valid = np.ones(bank.shape[0], bool) if valid is None else np.asarray(valid, bool)
-    if not valid.any():
-        return np.zeros(q.shape[:-1] + bank.shape[1:])
-    logits = np.where(valid, logits, -np.inf)
-    e = np.exp(logits - logits.max(axis=-1, keepdims=True))
-    a = e / e.sum(axis=-1, keepdims=True)
-    f = a @ bank
-    ad = p["adapter"]
-    if "scale" in ad:
-        return f * ad["scale"] + ad["bias"]
-    return f + (f @ ad["v"]) @ ad["u"].T + ad["bias"]

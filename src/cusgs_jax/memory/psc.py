@@ -30,7 +30,7 @@ cosines in float32 (one jitted matmul per chunk, ``Precision.HIGHEST``) only to
 a float32 cosine below ``gamma - tol`` proves "below", one at or above
 ``gamma + tol`` proves "at or above", and only the pairs in between are decided by
 :func:`exact_cosine`. :func:`build` is therefore exactly equal to the plain
-:func:`build_reference` (same kept rows, in the same order).
+:func:`~cusgs_jax.testing.psc_reference.build_reference` (same kept rows, in the same order).
 
 ``gamma`` semantics. Ties (cosine exactly ``gamma``) are rejected. With
 ``gamma = 1.0`` (M3's setting for SEEM and LLaMA3) only rows with exactly the same
@@ -70,7 +70,6 @@ __all__ = [
     "PSCBank",
     "build",
     "build_per_model",
-    "build_reference",
     "exact_cosine",
     "screen_tolerance",
 ]
@@ -247,38 +246,6 @@ def _validate(gamma, chunk, max_entries):
     return gamma, int(chunk), None if max_entries is None else int(max_entries)
 
 
-# --------------------------------------------------------------------------- reference
-
-
-def build_reference(features, gamma: float, *, max_entries: int | None = None) -> PSCBank:
-    """Plain greedy PSC scan, one :func:`exact_cosine` per (row, kept entry) pair. Tests only.
-
-    Args:
-      features: [..., D] feature vectors (flattened to [M, D] in C order), any float dtype.
-      gamma: cosine threshold; a row is kept iff its cosine to every kept entry is < gamma.
-      max_entries: stop when a row would become entry number ``max_entries + 1``.
-    Returns:
-      PSCBank with entries [S, D] float32.
-    """
-    gamma, _, max_entries = _validate(gamma, 1, max_entries)
-    x = _rows_f32(_as_rows(features))
-    kept: list[int] = []
-    truncated = False
-    for r in range(x.shape[0]):
-        row = x[r]
-        if not np.any(row):
-            continue
-        if any(_exact_cos(row, x[k]) >= gamma for k in kept):
-            continue
-        if max_entries is not None and len(kept) >= max_entries:
-            truncated = True
-            break
-        kept.append(r)
-    idx = np.asarray(kept, np.int64)
-    return PSCBank(entries=x[idx].reshape(len(kept), x.shape[1]), count=len(kept), gamma=gamma,
-                   indices=idx, truncated=truncated)
-
-
 # --------------------------------------------------------------------------- fast build
 
 
@@ -418,7 +385,7 @@ def _greedy_within(rows, units, gamma, lo, hi) -> np.ndarray:
 
 def build(features, gamma: float, *, chunk: int = 4096, max_entries: int | None = None,
           initial_capacity: int | None = None) -> PSCBank:
-    """Build a PSC bank: exactly :func:`build_reference`, chunked and fast.
+    """Build a PSC bank: exactly the plain scan of :mod:`cusgs_jax.testing.psc_reference`, chunked and fast.
 
     Args:
       features: [..., D] feature vectors of one model (all views, flattened to [M, D] in

@@ -1,0 +1,391 @@
+"""Configuration: frozen dataclasses, the ONLY place a default value is written.
+
+``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the
+3000-step demo schedule). Hydra reads the same classes as its schema: they are
+registered in Hydra's ConfigStore as ``base_config`` (:func:`register_configs`),
+``conf/config.yaml`` composes it first, and the YAML group options under
+``conf/`` (``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps)
+hold only *overrides* of these values. Unknown keys and values of the wrong
+type are rejected by Hydra against this schema.
+
+Configuration is closed over by factories (``make_train_step(cfg, …)``) and
+never traced; the frozen classes make that safe.
+
+Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``,
+``dataclasses.replace``) or composes them like the CLI does
+(:func:`compose_config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Optional
+
+# M3's split of its 160 query channels when all six models are present (DESIGN.md §1).
+M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
+PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
+QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+
+
+def _tuples(obj) -> None:
+    """Lists handed in by OmegaConf become tuples (frozen configs stay hashable)."""
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if isinstance(value, list):
+            object.__setattr__(obj, field.name, tuple(value))
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoConfig:
+    """The built-in demo scene (used when ``data.path`` is null)."""
+
+    views: int = 30
+    width: int = 160
+    height: int = 120
+    seed: int = 0
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """``path``: a folder with ``images/`` and ``sparse/0/`` (COLMAP); None = the demo scene."""
+
+    path: Optional[str] = None
+    downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
+    holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
+    demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainOptions:
+    """The run: length, seed, checkpoints, logging."""
+
+    iterations: int = 3000
+    seed: int = 0
+    resume: bool = False  # continue from the newest checkpoint in checkpoint_dir
+    checkpoint_dir: Optional[str] = None  # default: <run folder>/checkpoints
+    checkpoint_every: int = 1000
+    log_every: int = 10
+    progress: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    every: int = 250  # held-out PSNR for the error-against-time curve
+    save_renders: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class DecoderConfig:
+    """Static decoder shape (closed over, never traced)."""
+
+    n_offsets: int = 10
+    latent_dim: int = 32
+    hidden: int = 32
+    appearance_dim: int = 32  # 0 disables the appearance embedding entirely
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Scaffold-GS anchors (DESIGN.md §1). ``voxel_size`` is in scene units: the paper's
+    0.01 is for Mip-NeRF 360 scale; the demo room is ~6 units wide."""
+
+    voxel_size: float = 0.04
+    n_offsets: int = 10
+    latent_dim: int = 32
+    hidden: int = 32
+    appearance: bool = True
+    appearance_dim: int = 32
+    capacity_factor: float = 2.0
+    frustum_margin: float = 0.15
+    # Anchors in the view frustum are gathered into ceil(visible_fraction · A)
+    # slots before decoding, so culled anchors cost nothing; more visible
+    # anchors than that are dropped for the step and counted in
+    # ``visible_overflow``. 1.0 decodes every slot (never drops).
+    visible_fraction: float = 0.6
+    # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
+    query_granularity: str = "per_anchor"
+
+    def __post_init__(self):
+        if self.query_granularity not in QUERY_GRANULARITIES:
+            raise ValueError(f"model.query_granularity must be one of {QUERY_GRANULARITIES}, "
+                             f"got {self.query_granularity!r}")
+
+    def decoder(self) -> DecoderConfig:
+        return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
+                             self.appearance_dim if self.appearance else 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplatConfig:
+    """Rasteriser settings (the image does not depend on tile/chunk size; 8/16 is fastest on CPU)."""
+
+    tile_size: int = 8
+    chunk_size: int = 16
+    max_pairs_per_gaussian: float = 3.0
+    antialiased: bool = False
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        _tuples(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """``L_img = l1·L1 + ssim·(1 − SSIM) + volume·mean(prod(scale))`` (Scaffold-GS)."""
+
+    l1_weight: float = 0.8
+    ssim_weight: float = 0.2
+    volume_weight: float = 0.01
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """(initial, final) learning rate per parameter group; decay is log-linear over the run.
+
+    ``offsets`` is multiplied by the scene extent (Scaffold-GS ``spatial_lr_scale``).
+    """
+
+    offsets: tuple[float, float] = (0.01, 0.0001)
+    latent: tuple[float, float] = (0.0075, 0.0075)
+    scaling: tuple[float, float] = (0.007, 0.007)
+    mlp_opacity: tuple[float, float] = (0.002, 0.00002)
+    mlp_cov: tuple[float, float] = (0.004, 0.004)
+    mlp_color: tuple[float, float] = (0.008, 0.00005)
+    appearance: tuple[float, float] = (0.05, 0.0005)
+    features: tuple[float, float] = (0.0005, 0.0005)  # query and memory heads (M3 f_emb)
+    eps: float = 1e-15
+
+    def __post_init__(self):
+        _tuples(self)
+
+    def groups(self) -> dict[str, tuple[float, float]]:
+        """{group: (initial, final)} for every learning-rate group."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "eps"}
+
+
+@dataclasses.dataclass(frozen=True)
+class GrowConfig:
+    """Scaffold-GS densification schedule and thresholds.
+
+    The step schedule is compressed for the 3000-step default run;
+    ``grow=scaffold`` (conf/grow/scaffold.yaml) is Scaffold-GS's 30k schedule.
+    """
+
+    stats_start: int = 100  # accumulate statistics from this step
+    start: int = 400  # first growing/pruning step
+    stop: int = 1500  # last growing/pruning step
+    interval: int = 100
+    grad_threshold: float = 0.0002
+    min_opacity: float = 0.005
+    success_threshold: float = 0.8
+    levels: int = 3  # update_depth
+    init_factor: int = 16  # update_init_factor
+    hierarchy_factor: int = 4  # update_hierachy_factor
+    capacity_growth: float = 1.5
+
+
+@dataclasses.dataclass(frozen=True)
+class PruneConfig:
+    """Feature-aware pruning schedule and weights (paper defaults; densify/feature_prune.py).
+
+    Attributes:
+      strategy: "feature_aware" | "scaffold" | "none" ("scaffold" and "none" keep only
+        Scaffold-GS's opacity pruning, which runs with growing).
+      ratio: fraction of the alive anchors removed per pass (0.1 %).
+      interval, start, stop: a pass at every step ``s`` with
+        ``start ≤ s ≤ stop`` and ``s % interval == 0``.
+      lambda_norm, lambda_grad: λ_n, λ_g.
+      volume_power: LightGaussian's exponent in ``(V / V_ref)^power``.
+      volume_percentile: V_ref is the entry at ``floor(p/100 · G)`` of the
+        active volumes sorted in decreasing order (LightGaussian's "90th
+        largest percentile", i.e. a small volume).
+      min_visits: anchors decoded in fewer views since the last pass are not
+        pruned (0: every alive anchor is a candidate).
+    """
+
+    strategy: str = "feature_aware"
+    ratio: float = 0.001
+    interval: int = 100
+    start: int = 500
+    stop: int = 15000
+    lambda_norm: float = 2.0
+    lambda_grad: float = 8.0
+    volume_power: float = 0.1
+    volume_percentile: float = 90.0
+    min_visits: int = 1
+
+    def __post_init__(self):
+        if self.strategy not in PRUNE_STRATEGIES:
+            raise ValueError(f"prune strategy must be one of {PRUNE_STRATEGIES}, got {self.strategy!r}")
+        if not 0.0 <= self.ratio <= 1.0:
+            raise ValueError(f"prune ratio must lie in [0, 1], got {self.ratio}")
+        if not 0.0 <= self.volume_percentile <= 100.0:
+            raise ValueError(f"volume_percentile must lie in [0, 100], got {self.volume_percentile}")
+        if self.interval < 1:
+            raise ValueError(f"prune interval must be ≥ 1, got {self.interval}")
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureModelConfig:
+    """One foundation model's slice of the field (``query_dim`` 0 = M3's split, else 16)."""
+
+    name: str = "?"
+    query_dim: int = 0
+    gamma: float = 0.8  # PSC cosine threshold
+    adapter: str = "affine"
+
+    def __post_init__(self):
+        if self.query_dim <= 0:
+            object.__setattr__(self, "query_dim", M3_QUERY_DIMS.get(self.name, 16))
+
+
+# The demo scene's two stand-in models (features=auto on the demo scene, features=demo).
+DEMO_FEATURE_MODELS = (FeatureModelConfig("daisy", 16, 0.8), FeatureModelConfig("semantic", 16, 1.0))
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureConfig:
+    """Multimodal feature field (closed over, never traced).
+
+    ``models``: a tuple of :class:`FeatureModelConfig` (dicts are converted), or
+    ``"auto"``: the demo's two models on the built-in demo scene and none on a
+    user's scene (resolved by :meth:`resolve`; unresolved it means none).
+    """
+
+    models: Any = "auto"
+    hidden: int = 32
+    weight: float = 0.5  # λ_e (M3)
+    sample_pixels: int = 2000  # pixels per step for the feature loss; 0 = all
+    max_bank_entries: int = 1024  # PSC cap per model (rows are scanned in a seeded random order)
+    psc_rows: int = 200_000  # training pixels (seeded random subset) the PSC scan looks at
+    auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic)
+
+    def __post_init__(self):
+        if self.models == "auto":
+            return
+        if isinstance(self.models, str) or not isinstance(self.models, (list, tuple)):
+            raise ValueError(f"features.models must be 'auto' or a list of models, got {self.models!r}")
+        models = tuple(m if isinstance(m, FeatureModelConfig) else FeatureModelConfig(**dict(m))
+                       for m in self.models)
+        object.__setattr__(self, "models", models)
+
+    def resolve(self, demo_scene: bool) -> FeatureConfig:
+        """``models="auto"`` → the demo's models on the demo scene, else none."""
+        if self.models != "auto":
+            return self
+        return dataclasses.replace(self, models=DEMO_FEATURE_MODELS if demo_scene else ())
+
+    @property
+    def model_list(self) -> tuple[FeatureModelConfig, ...]:
+        return () if self.models == "auto" else self.models
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.model_list)
+
+    @property
+    def query_dim(self) -> int:
+        return sum(m.query_dim for m in self.model_list)
+
+    def slices(self) -> list[tuple[str, slice]]:
+        """(model name, channel slice of the query) in order."""
+        out, start = [], 0
+        for m in self.model_list:
+            out.append((m.name, slice(start, start + m.query_dim)))
+            start += m.query_dim
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a run depends on; the step factories close over it (static)."""
+
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    train: TrainOptions = dataclasses.field(default_factory=TrainOptions)
+    eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+    model: ModelConfig = dataclasses.field(default_factory=ModelConfig)
+    splat: SplatConfig = dataclasses.field(default_factory=SplatConfig)
+    loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+    optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
+    grow: GrowConfig = dataclasses.field(default_factory=GrowConfig)
+    features: FeatureConfig = dataclasses.field(default_factory=FeatureConfig)
+    prune: PruneConfig = dataclasses.field(default_factory=PruneConfig)
+
+    def replace(self, **groups) -> Config:
+        """``cfg.replace(model=dict(voxel_size=0.1), train=dict(iterations=50))``: nested partial update."""
+        changes = {}
+        for name, values in groups.items():
+            current = getattr(self, name)
+            changes[name] = (dataclasses.replace(current, **values) if isinstance(values, dict) else values)
+        return dataclasses.replace(self, **changes)
+
+
+# --- Hydra -----------------------------------------------------------------------------------
+
+
+def _writable(node) -> None:
+    """OmegaConf marks nodes of frozen dataclasses read-only; Hydra must merge overrides into them."""
+    from omegaconf import DictConfig, ListConfig
+
+    node._set_flag("readonly", None)
+    if isinstance(node, DictConfig):
+        children = [node._get_node(k) for k in node.keys()]
+    elif isinstance(node, ListConfig):
+        children = [node._get_node(i) for i in range(len(node))]
+    else:
+        return
+    for child in children:
+        _writable(child)
+
+
+def register_configs() -> None:
+    """Register :class:`Config` (with its defaults) as Hydra's ``base_config`` schema."""
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.structured(Config)
+    _writable(node)
+    ConfigStore.instance().store(name="base_config", node=node)
+
+
+def from_omegaconf(cfg) -> Config:
+    """The frozen :class:`Config` of a composed Hydra config (the ``hydra`` node ignored)."""
+    from omegaconf import OmegaConf
+
+    values = OmegaConf.to_container(cfg, resolve=True)
+    values.pop("hydra", None)
+    return from_dict(values)
+
+
+def from_dict(values: dict) -> Config:
+    """:class:`Config` from a nested dict of plain values; unknown keys raise ``ValueError``."""
+    return _build(Config, values, "")
+
+
+def _build(cls, values: dict, prefix: str):
+    values = dict(values or {})
+    kwargs = {}
+    for field in dataclasses.fields(cls):
+        if field.name not in values:
+            continue
+        value = values.pop(field.name)
+        sub = field.default_factory if field.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub) and isinstance(value, dict):
+            value = _build(sub, value, f"{prefix}{field.name}.")
+        kwargs[field.name] = value
+    if values:
+        raise ValueError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
+                         f"valid: {[prefix + f.name for f in dataclasses.fields(cls)]}")
+    return cls(**kwargs)
+
+
+def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
+    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_configs()
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
+        return from_omegaconf(compose("config", overrides=list(overrides)))

@@ -1,0 +1,55 @@
+"""cusgs-extract (cusgs_jax.app.extract): the command line on a tiny demo scene."""
+
+from __future__ import annotations
+
+import pytest
+
+from cusgs_jax.app.extract import main
+from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.data.features import load_features
+
+W, H, V = 40, 30, 4
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """A tiny demo scene (module-wide; tests write features with overwrite=True)."""
+    return generate_demo_scene(tmp_path_factory.mktemp("demo"), num_views=V, width=W, height=H,
+                               num_points=1500)
+
+
+@pytest.fixture(scope="module")
+def names(demo):
+    return load_scene(demo, holdout_every=0).names
+
+
+def test_cli(demo, names, capsys):
+    assert main([str(demo), "--model", "gabor", "--lab", "--overwrite"]) == 0
+    out, err = capsys.readouterr()
+    assert "gabor features ->" in out and f"{V} views, {W}x{H}x54 float16" in out
+    assert "cusgs-extract gabor" in err  # the progress bar
+    assert load_features(demo, "gabor", names).dim == 54
+
+    assert main([str(demo), "--model", "semantic", "--dim", "8", "--resolution", "20", "15",
+                 "--dtype", "float32", "--overwrite", "--quiet"]) == 0
+    fs = load_features(demo, "semantic", names)
+    assert fs.dim == 8 and fs.resolution == (20, 15) and fs.meta["dtype"] == "float32"
+    assert fs.meta["options"] == {"dim": 8, "seed": 0}
+
+
+def test_cli_errors(demo, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "nowhere"), "--model", "daisy", "--quiet"])
+    assert e.value.code == 1
+    assert "cusgs-extract: error:" in capsys.readouterr().err
+    main([str(demo), "--model", "hog", "--overwrite", "--quiet"])
+    with pytest.raises(SystemExit) as e:
+        main([str(demo), "--model", "hog", "--quiet"])
+    assert e.value.code == 1 and "--overwrite" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main([str(demo), "--model", "semantic", "--lab"])
+    assert e.value.code == 2 and "--lab applies to" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        main([str(demo), "--model", "sift"])
+    assert e.value.code == 2

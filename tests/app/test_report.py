@@ -1,0 +1,160 @@
+"""``cusgs-report`` on a synthetic Hydra multirun folder (no training)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import yaml
+from PIL import Image
+
+from cusgs_jax.app.report import collect, find_jobs, load_job, main
+
+PLOTS = ("psnr_vs_time.png", "feature_error_vs_time.png", "psnr_vs_size.png", "anchors_vs_step.png")
+
+
+def _job(root, name, ratio, *, extra=()):
+    job = root / name
+    (job / ".hydra").mkdir(parents=True)
+    overrides = ["experiment=prune_ratio", f"prune.ratio={ratio}", "seed=0", *extra]
+    (job / ".hydra" / "overrides.yaml").write_text(yaml.safe_dump(overrides))
+    (job / ".hydra" / "config.yaml").write_text(yaml.safe_dump({"prune": {"ratio": ratio}, "seed": 0}))
+    return job
+
+
+def _jsonl(path, rows, tail=""):
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows) + tail)
+
+
+def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=None, curve=None):
+    params = {"anchors": total // 2, "mlps": total // 4, "appearance": 0, "query_heads": 0,
+              "memory_banks": 0, "adapters": 0, "total": total}
+    curve = curve or [{"step": 100, "wall_s": wall / 2, "psnr": psnr - 3, "ssim": ssim - 0.1},
+                      {"step": 200, "wall_s": wall, "psnr": psnr, "ssim": ssim}]
+    result = {"psnr": psnr, "ssim": ssim, "alive_anchors": anchors, "capacity": 4096, "train_wall_s": wall,
+              "render_ms_per_view": ms, "params": params, "curve": curve}
+    if before is not None:
+        result["render_ms_before_prune"] = before
+        result["prune"] = {"strategy": "feature_aware", "passes": 10, "pruned": 123}
+    if features is not None:
+        result["features"] = {"models": features, "markdown": "..."}
+    (job / "eval.json").write_text(json.dumps(result))
+    _jsonl(job / "metrics.jsonl", [{"step": s, "wall_s": s / 10, "loss": 0.1, "alive_anchors": 1000 - s}
+                                   for s in (10, 100, 200)])
+
+
+@pytest.fixture
+def sweep(tmp_path):
+    """Five jobs: two ok (one with feature curves), failed, incomplete, unreadable eval.json."""
+    root = tmp_path / "multirun" / "12-00-00"
+    root.mkdir(parents=True)
+    (root / "multirun.yaml").write_text("hydra: {mode: MULTIRUN}\n")
+    feats = {"clip": {"cosine": 0.2, "l2": 1.0, "baseline_cosine": 0.1, "baseline_l2": 0.5},
+             "dino": {"cosine": 0.4, "l2": 3.0, "baseline_cosine": 0.1, "baseline_l2": 0.5}}
+    curve = [{"step": 100, "wall_s": 5.0, "psnr": 22.0, "ssim": 0.7,
+              "feature_cosine": 0.5, "feature_l2": 4.0},
+             {"step": 200, "wall_s": 10.25, "psnr": 25.123456789, "ssim": 0.8123456,
+              "feature_cosine": 0.3, "feature_l2": 2.0}]
+    _eval(_job(root, "0", 0.01), 25.123456789, 0.8123456, 200_000, 900, 10.25, 3.3333,
+          before=4.75, features=feats, curve=curve)
+    _eval(_job(root, "1", 0.1), 26.5, 0.85, 3_000_000, 5000, 20.0, 7.5,
+          features={"clip": {"cosine": 0.25, "l2": 1.5}})
+    failed = _job(root, "2", 0.2)
+    (failed / "failed.json").write_text(json.dumps(
+        {"error": "FloatingPointError: NaN loss at step 7\nsecond line", "traceback": "Traceback ..."}))
+    _jsonl(failed / "eval_curve.jsonl", [{"step": 100, "wall_s": 3.0, "psnr": 12.0, "ssim": 0.3}])
+    running = _job(root, "3", 0.3)
+    _jsonl(running / "eval_curve.jsonl", [{"step": 100, "wall_s": 4.0, "psnr": 20.0, "ssim": 0.6}],
+           tail='{"step": 2')  # a half-written last line
+    _jsonl(running / "metrics.jsonl", [{"step": 10, "wall_s": 0.4, "alive_anchors": 800}])
+    broken = _job(root, "10", 0.5)
+    (broken / "eval.json").write_text('{"psnr": 30.0,')
+    return root
+
+
+def _csv_rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_report_end_to_end(sweep, capsys):
+    assert main([str(sweep)]) == 0
+    out = sweep / "report"
+    rows = _csv_rows(out / "report.csv")
+    assert [r["job"] for r in rows] == ["0", "1", "2", "3", "10"]  # natural order
+    assert "prune.ratio" in rows[0] and "experiment" not in rows[0] and "seed" not in rows[0]
+    assert [r["prune.ratio"] for r in rows] == ["0.01", "0.1", "0.2", "0.3", "0.5"]
+    assert [r["status"] for r in rows[:4]] == ["ok", "ok", "failed: FloatingPointError: NaN loss at step 7",
+                                               "incomplete"]
+    assert rows[4]["status"].startswith("failed: unreadable eval.json (JSONDecodeError")
+
+    first = rows[0]
+    assert float(first["psnr"]) == 25.123456789 and float(first["ssim"]) == 0.8123456
+    assert int(first["params"]) == 200_000 and int(first["anchors"]) == 900
+    assert float(first["train_s"]) == 10.25 and float(first["render_ms"]) == 3.3333
+    assert float(first["render_ms_before_prune"]) == 4.75
+    assert float(first["feature_cosine"]) == pytest.approx(0.3) and float(first["feature_l2"]) == 2.0
+    assert rows[1]["render_ms_before_prune"] == "" and float(rows[1]["feature_l2"]) == 1.5
+    for row in rows[2:]:
+        assert row["psnr"] == row["params"] == row["feature_cosine"] == ""
+
+    md = (out / "report.md").read_text()
+    assert md in capsys.readouterr().out
+    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | 200,000 | 900 | 0.8123 | 25.12 |" in md
+    assert "Best PSNR: job `1` (prune.ratio=0.1), 26.50 dB" in md
+    assert "smallest model: job `0` (prune.ratio=0.01), 200,000 parameters" in md
+
+    for name in PLOTS:
+        assert (out / name).stat().st_size > 0
+        with Image.open(out / name) as image:
+            image.verify()
+            assert image.format == "PNG" and image.size == (960, 600 if name != PLOTS[1] else 840)
+
+
+def test_records(sweep):
+    assert [p.name for p in find_jobs(sweep)] == ["0", "1", "2", "3", "10"]
+    records = {r["job"]: r for r in collect(sweep)}
+    assert records["3"]["curve"] == [{"step": 100, "wall_s": 4.0, "psnr": 20.0, "ssim": 0.6}]  # torn line skipped
+    assert records["3"]["anchor_curve"] == [(10, 800)]
+    assert records["0"]["curve"][-1]["feature_cosine"] == 0.3
+    assert load_job(sweep / "1")["job"] == "1"
+    assert records["2"]["overrides"]["prune.ratio"] == "0.2"
+
+
+def test_no_features_skips_plot_and_out_option(tmp_path, capsys):
+    root = tmp_path / "sweep"
+    _eval(_job(root, "0", 0.01), 24.0, 0.8, 1000, 10, 5.0, 1.0)
+    _eval(_job(root, "1", 0.02, extra=["+model.extra=1"]), 23.0, 0.7, 500, 5, 4.0, 1.0)
+    out = tmp_path / "elsewhere"
+    out.mkdir()
+    (out / "feature_error_vs_time.png").write_bytes(b"stale")
+    main([str(root), "--out", str(out)])
+    assert "skipped feature_error_vs_time.png" in capsys.readouterr().out
+    assert not (out / "feature_error_vs_time.png").exists() and not (root / "report").exists()
+    for name in set(PLOTS) - {"feature_error_vs_time.png"}:
+        assert (out / name).stat().st_size > 0
+    rows = _csv_rows(out / "report.csv")
+    assert rows[0]["model.extra"] == "" and rows[1]["model.extra"] == "1"
+    assert rows[0]["feature_cosine"] == "" and "| 0 | prune.ratio=0.01 | ok |" in (out / "report.md").read_text()
+
+
+def test_single_job_labels_defaults(tmp_path):
+    _eval(_job(tmp_path, "0", 0.01), 24.0, 0.8, 1000, 10, 5.0, 1.0)
+    main([str(tmp_path)])
+    assert "| 0 | (defaults) | ok |" in (tmp_path / "report" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("make", ["missing", "empty", "file"])
+def test_bad_root_exits_2(tmp_path, capsys, make):
+    root = tmp_path / "not_a_sweep"
+    if make == "empty":
+        root.mkdir()
+        (root / "notes.txt").write_text("hello")
+    elif make == "file":
+        root.write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        main([str(root)])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert str(root) in err and "cusgs-train -m" in err

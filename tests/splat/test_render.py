@@ -1,0 +1,217 @@
+"""rasterize() against the float64 reference: forward, gradients, invariances."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cusgs_jax.splat import check_inputs, rasterize, rasterize_batch
+from cusgs_jax.splat.reference import rasterize_reference
+from cusgs_jax.testing.scenes import KEYS, as_dtype, make_scene
+
+
+def _with_stack(scene, count=12, opacity=0.9):
+    """Add a stack of opaque Gaussians in front of everything so some pixels hit T ≤ 1e-4."""
+    s = dict(scene)
+    rng = np.random.default_rng(7)
+    view = s["viewmat"]
+    cam_pts = np.stack([np.full(count, 0.05), np.full(count, 0.02), np.linspace(0.8, 0.9, count)], -1)
+    world = (cam_pts - view[:3, 3]) @ view[:3, :3]
+    s["means"] = np.concatenate([s["means"], world])
+    s["quats"] = np.concatenate([s["quats"], rng.normal(size=(count, 4))])
+    s["scales"] = np.concatenate([s["scales"], np.full((count, 3), 0.12)])
+    s["opacities"] = np.concatenate([s["opacities"], np.full(count, opacity)])
+    s["colors"] = np.concatenate([s["colors"], rng.uniform(0, 1, (count, s["colors"].shape[1]))])
+    return s
+
+
+def _render(scene, **kw):
+    return rasterize(*(jnp.asarray(scene[k]) for k in KEYS), jnp.asarray(scene["viewmat"]),
+                     jnp.asarray(scene["K"]), scene["width"], scene["height"], **kw)
+
+
+def _reference(scene, **kw):
+    return rasterize_reference(*(np.asarray(scene[k], np.float64) for k in KEYS),
+                               np.asarray(scene["viewmat"], np.float64), np.asarray(scene["K"], np.float64),
+                               scene["width"], scene["height"], **kw)
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+@pytest.mark.parametrize("channels", [1, 3, 8])
+def test_forward_matches_reference(antialiased, channels):
+    scene = as_dtype(_with_stack(make_scene(channels, channels=channels, behind=6, offscreen=6, opaque=8)),
+                     np.float32)
+    out = _render(scene, background=jnp.asarray(scene["background"]), antialiased=antialiased)
+    ref = _reference(scene, background=scene["background"].astype(np.float64), antialiased=antialiased)
+    # The scene exercises culling, the 0.999 clamp and early termination.
+    assert not ref["visible"][:6].any()
+    assert (ref["alpha"] >= 0.999).any() and (ref["n_contrib"] > 0).mean() > 0.5
+    assert int(out.overflow) == 0
+    # float32 against float64: ~50 composited terms of magnitude ≤ 1, eps 6e-8.
+    np.testing.assert_allclose(out.image, ref["image"], atol=2e-5)
+    np.testing.assert_allclose(out.alpha, ref["alpha"], atol=2e-5)
+    np.testing.assert_allclose(out.depth, ref["depth"], atol=2e-5 * 8)
+    np.testing.assert_array_equal(out.n_contrib, ref["n_contrib"])
+    np.testing.assert_array_equal(out.hits, ref["hits"])
+    np.testing.assert_allclose(out.significance, ref["significance"], rtol=1e-4, atol=1e-4)
+    np.testing.assert_array_equal(out.visible, ref["visible"])
+    np.testing.assert_array_equal(out.radii, ref["radii"])
+
+
+def test_early_termination_is_exercised():
+    scene = as_dtype(_with_stack(make_scene(3), count=12, opacity=0.9), np.float32)
+    ref = _reference(scene)
+    out = _render(scene)
+    # 0.1^4 = 1e-4 ≤ 1e-4: at most 3 of the stacked 0.9-opacity Gaussians get composited.
+    stopped = ref["alpha"] > 0.999
+    assert stopped.sum() > 5
+    np.testing.assert_array_equal(np.asarray(out.n_contrib)[stopped], ref["n_contrib"][stopped])
+
+
+def _loss_weights(scene, seed=3):
+    rng = np.random.default_rng(seed)
+    h, w, c = scene["height"], scene["width"], scene["colors"].shape[1]
+    return rng.normal(size=(h, w, c)), rng.normal(size=(h, w)), rng.normal(size=(h, w))
+
+
+def _jax_loss(scene, weights, antialiased=False):
+    wi, wa, wd = weights
+
+    def loss(means, quats, scales, opacities, colors, background):
+        out = rasterize(means, quats, scales, opacities, colors, jnp.asarray(scene["viewmat"]),
+                        jnp.asarray(scene["K"]), scene["width"], scene["height"],
+                        background=background, antialiased=antialiased)
+        return (jnp.sum(out.image * wi) + jnp.sum(out.alpha * wa) + jnp.sum(out.depth * wd))
+
+    return loss
+
+
+@pytest.mark.parametrize("antialiased", [False, True])
+def test_gradients_match_finite_differences_float64(x64, antialiased):
+    scene = make_scene(11, num=40, width=24, height=20, channels=2, behind=2, opaque=3)
+    weights = _loss_weights(scene)
+    args = [jnp.asarray(scene[k]) for k in KEYS] + [jnp.asarray(scene["background"])]
+    grads = jax.grad(_jax_loss(scene, weights, antialiased), argnums=tuple(range(6)))(*args)
+    wi, wa, wd = weights
+
+    def ref_loss(arrays):
+        r = rasterize_reference(*arrays[:5], scene["viewmat"], scene["K"], scene["width"], scene["height"],
+                                background=arrays[5], antialiased=antialiased)
+        return np.sum(r["image"] * wi) + np.sum(r["alpha"] * wa) + np.sum(r["depth"] * wd)
+
+    base = [np.asarray(scene[k], np.float64).copy() for k in KEYS] + [scene["background"].copy()]
+    rng = np.random.default_rng(0)
+    eps = 1e-6
+    for which, grad in enumerate(grads):
+        grad = np.asarray(grad).reshape(-1)
+        size = base[which].size
+        for index in rng.choice(size, min(size, 10), replace=False):
+            plus = [a.copy() for a in base]
+            plus[which].reshape(-1)[index] += eps
+            minus = [a.copy() for a in base]
+            minus[which].reshape(-1)[index] -= eps
+            fd = (ref_loss(plus) - ref_loss(minus)) / (2 * eps)
+            # Central differences: truncation O(eps²·f''') plus rounding 1e-16/eps.
+            assert abs(fd - grad[index]) <= 1e-6 + 1e-5 * abs(fd), (KEYS + ("background",))[which]
+
+
+def test_float32_gradients_match_float64():
+    scene = make_scene(5, num=150, width=40, height=32, channels=3, behind=3, offscreen=3, opaque=5)
+    weights = _loss_weights(scene)
+    argnums = tuple(range(6))
+    args32 = [jnp.asarray(scene[k], jnp.float32) for k in KEYS] + [jnp.asarray(scene["background"], jnp.float32)]
+    g32 = jax.grad(_jax_loss(as_dtype(scene, np.float32), weights), argnums=argnums)(*args32)
+    with jax.enable_x64(True):
+        args64 = [jnp.asarray(scene[k], jnp.float64) for k in KEYS] + [jnp.asarray(scene["background"], jnp.float64)]
+        g64 = jax.grad(_jax_loss(scene, weights), argnums=argnums)(*args64)
+        g64 = [np.asarray(g) for g in g64]
+    for name, a, b in zip(KEYS + ("background",), g32, g64):
+        # Each entry sums O(100) pixel terms; float32 rounding ~1e-6 relative to the largest.
+        np.testing.assert_allclose(np.asarray(a), b, atol=2e-4 * np.abs(b).max() + 1e-6, err_msg=name)
+
+
+def test_jit_matches_no_jit():
+    scene = as_dtype(make_scene(2, num=30, width=20, height=18, behind=2), np.float32)
+    jitted = _render(scene)
+    with jax.disable_jit():
+        eager = _render(scene)
+    for field in ("image", "alpha", "depth", "n_contrib", "significance", "hits"):
+        np.testing.assert_allclose(getattr(jitted, field), getattr(eager, field), rtol=1e-5, atol=1e-6, err_msg=field)
+
+
+def test_permutation_invariance():
+    scene = as_dtype(make_scene(4, behind=3, offscreen=3, opaque=4), np.float32)
+    perm = np.random.default_rng(0).permutation(len(scene["means"]))
+    permuted = dict(scene, **{k: scene[k][perm] for k in KEYS})
+    a, b = _render(scene), _render(permuted)
+    np.testing.assert_allclose(a.image, b.image, atol=1e-6)
+    np.testing.assert_array_equal(a.n_contrib, b.n_contrib)
+    np.testing.assert_allclose(np.asarray(a.significance)[perm], b.significance, rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(a.hits)[perm], b.hits)
+
+
+def test_zero_opacity_contributes_nothing_and_gets_zero_gradient():
+    scene = as_dtype(make_scene(6, num=60), np.float32)
+    extra = as_dtype(make_scene(16, num=20), np.float32)
+    combined = {k: np.concatenate([scene[k], extra[k]]) for k in KEYS}
+    combined["opacities"][60:] = 0.0
+    combined = dict(scene, **combined)
+    # Same shapes, the extra Gaussians removed by moving them behind the camera:
+    # the same program must give bit-identical output.
+    removed = dict(combined, means=combined["means"].copy())
+    removed["means"][60:] = -(removed["viewmat"][:3, 3] @ removed["viewmat"][:3, :3]) - 1e3 * removed["viewmat"][2, :3]
+    a, b = _render(removed), _render(combined)
+    for field in ("image", "alpha", "depth", "n_contrib", "significance", "hits"):
+        np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    assert not np.asarray(b.visible[60:]).any()
+    # Against the scene without them (a differently shaped program): equal to float rounding.
+    np.testing.assert_allclose(_render(scene).image, b.image, atol=1e-7)
+    weights = _loss_weights(scene)
+    args = [jnp.asarray(combined[k]) for k in KEYS] + [jnp.asarray(scene["background"], jnp.float32)]
+    grads = jax.grad(_jax_loss(combined, weights), argnums=tuple(range(5)))(*args)
+    for name, g in zip(KEYS, grads):
+        assert np.all(np.asarray(g)[60:] == 0.0), name
+        assert np.all(np.isfinite(np.asarray(g))), name
+
+
+def test_tile_size_and_chunk_do_not_change_the_image():
+    scene = as_dtype(make_scene(8, num=200, width=45, height=37), np.float32)
+    base = _render(scene)
+    for kw in (dict(tile_size=8), dict(tile_size=16, chunk_size=8), dict(tile_size=32, chunk_size=64)):
+        other = _render(scene, **kw)
+        np.testing.assert_allclose(other.image, base.image, atol=1e-6, err_msg=str(kw))
+        np.testing.assert_array_equal(other.n_contrib, base.n_contrib)
+
+
+def test_overflow_is_reported_not_silent():
+    scene = as_dtype(make_scene(9, num=200), np.float32)
+    full = _render(scene)
+    assert int(full.overflow) == 0
+    small = _render(scene, max_pairs=50)
+    assert int(small.overflow) == int(full.num_pairs) - 50
+    assert int(small.num_pairs) == 50
+
+
+def test_vmap_batch_equals_single_renders_and_no_recompile():
+    scene = as_dtype(make_scene(10, num=80), np.float32)
+    views = np.stack([scene["viewmat"], scene["viewmat"]])
+    views[1, :3, 3] += np.array([0.05, -0.03, 0.1], np.float32)
+    Ks = np.stack([scene["K"], scene["K"]])
+    batch = rasterize_batch(*(jnp.asarray(scene[k]) for k in KEYS), jnp.asarray(views), jnp.asarray(Ks),
+                            scene["width"], scene["height"])
+    for i in range(2):
+        single = _render(dict(scene, viewmat=views[i], K=Ks[i]))
+        np.testing.assert_allclose(batch.image[i], single.image, atol=1e-6)
+    before = rasterize._cache_size()
+    moved = dict(scene, means=scene["means"] + np.float32(0.01))
+    _render(moved)
+    _render(dict(moved, opacities=scene["opacities"] * np.float32(0.5)))
+    assert rasterize._cache_size() == before
+
+
+def test_check_inputs_accepts_valid_scene():
+    scene = as_dtype(make_scene(12, num=10), np.float32)
+    check_inputs(*(scene[k] for k in KEYS), scene["viewmat"], scene["K"], scene["width"], scene["height"],
+                 background=scene["background"])
