@@ -22,41 +22,35 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cusgs_jax.app.inputs import load_feature_targets
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.demo import generate_demo_scene
-from cusgs_jax.train import ModelConfig, TrainConfig, init_train_state, make_train_step
-
-
-def _feature_config():
-    from omegaconf import OmegaConf
-
-    from cusgs_jax.runner import feature_config
-
-    path = os.path.join(os.path.dirname(__import__("cusgs_jax").__file__), "conf", "features", "demo.yaml")
-    return feature_config(OmegaConf.to_container(OmegaConf.load(path)))
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.step import make_train_step
+from cusgs_jax.types import Camera
 
 
 def bench(width: int, height: int, steps: int, views: int, voxel_size: float, features: bool) -> dict:
-    from cusgs_jax.runner import load_feature_targets
-
-    cfg = TrainConfig(iterations=30_000, model=ModelConfig(voxel_size=voxel_size),
-                      **({"features": _feature_config()} if features else {}))
+    cfg = Config().replace(train=dict(iterations=30_000), model=dict(voxel_size=voxel_size),
+                           features=dict(models=DEMO_FEATURE_MODELS if features else ()))
     with tempfile.TemporaryDirectory() as tmp:
         scene = load_scene(generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width,
                                                height=height), holdout_every=0)
         banks, targets = None, {}
         if features:
-            maps, banks = load_feature_targets(cfg.features, scene, 0, auto_extract=True)
+            maps, banks = load_feature_targets(cfg.features, scene, 0)
             banks = {k: jnp.asarray(v) for k, v in banks.items()}
             targets = {k: jnp.asarray(fs.maps.astype(np.float16)) for k, fs in maps.items()}
-    state, tx = init_train_state(cfg, scene.points, len(scene.names), scene.extent, banks)
-    step = make_train_step(cfg, tx, width, height)
+    strategies = make_strategies(cfg)
+    state, tx = init_train_state(cfg, scene.points, len(scene.names), scene.extent, strategies, banks)
+    step = make_train_step(cfg, tx, strategies)
     images = jnp.asarray(scene.images.astype(np.float32) / 255.0)
 
     def batch(i):
         v = i % len(scene.names)
-        b = dict(image=images[v], viewmat=jnp.asarray(scene.viewmats[v]), K=jnp.asarray(scene.Ks[v]),
-                 index=jnp.int32(v))
+        b = dict(image=images[v], camera=Camera.of_scene(scene, v), index=jnp.int32(v))
         if features:
             b["features"] = {k: t[v] for k, t in targets.items()}
             b["banks"] = banks

@@ -75,16 +75,6 @@ class EvalConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class DecoderConfig:
-    """Static decoder shape (closed over, never traced)."""
-
-    n_offsets: int = 10
-    latent_dim: int = 32
-    hidden: int = 32
-    appearance_dim: int = 32  # 0 disables the appearance embedding entirely
-
-
-@dataclasses.dataclass(frozen=True)
 class ModelConfig:
     """Scaffold-GS anchors (DESIGN.md §1). ``voxel_size`` is in scene units: the paper's
     0.01 is for Mip-NeRF 360 scale; the demo room is ~6 units wide."""
@@ -113,6 +103,16 @@ class ModelConfig:
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
                              self.appearance_dim if self.appearance else 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class DecoderConfig:
+    """Static decoder shape (closed over, never traced); usually ``ModelConfig.decoder()``."""
+
+    n_offsets: int = ModelConfig.n_offsets
+    latent_dim: int = ModelConfig.latent_dim
+    hidden: int = ModelConfig.hidden
+    appearance_dim: int = ModelConfig.appearance_dim  # 0 disables the appearance embedding
 
 
 @dataclasses.dataclass(frozen=True)

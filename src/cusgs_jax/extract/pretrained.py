@@ -26,7 +26,7 @@ import numpy as np
 
 from cusgs_jax.data.features import FeatureError
 from cusgs_jax.data.resize import resize_features
-from cusgs_jax.extract.scene import BUILT_IN_EXTRACTORS, _pop_options, _resized_image, _View
+from cusgs_jax.extract.base import BUILT_IN_EXTRACTORS, View, pop_options, resized_image
 
 _INSTALL_HINT = {
     "clip": "pip install torch open_clip_torch",
@@ -82,7 +82,7 @@ class _Clip:
     modification). The whole image is resized to the model's square input."""
 
     def __init__(self, model: str, options: dict):
-        self.opts = _pop_options(model, options, {"weights": None, "arch": "ViT-B-16",
+        self.opts = pop_options(model, options, {"weights": None, "arch": "ViT-B-16",
                                                   "device": "cpu"})
         weights = _require_weights("clip", self.opts["weights"])
         self.torch, open_clip = _require_modules("clip", ("torch", "open_clip"))
@@ -94,11 +94,11 @@ class _Clip:
         self.input = size if isinstance(size, int) else int(size[0])
         self.source = f"open_clip {self.opts['arch']} patch tokens, weights {weights}"
 
-    def __call__(self, view: _View, size):
+    def __call__(self, view: View, size):
         """→ [h, w, D] float32: the g×g token grid resized to the image aspect (long side g) or
         to ``size`` = (w, h)."""
         torch = self.torch
-        img = _resized_image(view.image, (self.input, self.input))
+        img = resized_image(view.image, (self.input, self.input))
         mean = np.array([0.48145466, 0.4578275, 0.40821073])
         std = np.array([0.26862954, 0.26130258, 0.27577711])
         x = torch.from_numpy(((img - mean) / std).transpose(2, 0, 1)[None].astype(np.float32))
@@ -120,7 +120,7 @@ class _Dinov2:
     image keeps its aspect, its long side resized to ``input_size`` (a multiple of 14)."""
 
     def __init__(self, model: str, options: dict):
-        self.opts = _pop_options(model, options, {"weights": None, "input_size": 448,
+        self.opts = pop_options(model, options, {"weights": None, "input_size": 448,
                                                   "device": "cpu"})
         weights = _require_weights("dinov2", self.opts["weights"])
         self.torch, transformers = _require_modules("dinov2", ("torch", "transformers"))
@@ -130,17 +130,20 @@ class _Dinov2:
         self.skip = 1 + int(getattr(self.net.config, "num_register_tokens", 0) or 0)
         self.source = f"DINOv2 last-layer patch tokens (transformers), weights {weights}"
 
-    def __call__(self, view: _View, size):
+    def __call__(self, view: View, size):
         """→ [gh, gw, D] float32 patch tokens, or area-resized to ``size`` = (w, h)."""
         torch = self.torch
         h, w = view.image.shape[:2]
         s = self.opts["input_size"] / max(h, w)
         gh = max(1, round(h * s / self.patch))
         gw = max(1, round(w * s / self.patch))
-        img = _resized_image(view.image, (gw * self.patch, gh * self.patch))
+        img = resized_image(view.image, (gw * self.patch, gh * self.patch))
         mean, std = np.array([0.485, 0.456, 0.406]), np.array([0.229, 0.224, 0.225])
         x = torch.from_numpy(((img - mean) / std).transpose(2, 0, 1)[None].astype(np.float32))
         with torch.no_grad():
             out = self.net(pixel_values=x.to(self.opts["device"])).last_hidden_state
         grid = out[0, self.skip:].float().cpu().numpy().reshape(gh, gw, -1)
         return resize_features(grid, _grid_size(size, (gh, gw)))
+
+
+PRETRAINED = {"clip": _Clip, "dinov2": _Dinov2}  # model name → extractor class

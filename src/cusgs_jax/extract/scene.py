@@ -27,7 +27,7 @@ area-resized to ``resolution``.
 
 Extractor protocol (the registry ``_EXTRACTORS``): ``cls(model, options)`` validates the options
 (``.opts``: the full option dict) and sets ``.source`` (meta "source"); ``extractor(view, size)``
-maps a :class:`_View` and the target size (w, h) or None to an [h, w, D] float map.
+maps a :class:`View` and the target size (w, h) or None to an [h, w, D] float map.
 """
 
 from __future__ import annotations
@@ -52,6 +52,7 @@ from cusgs_jax.data.features import (
     FeatureWriter,
     feature_dir,
 )
+from cusgs_jax.extract.base import BUILT_IN_EXTRACTORS, MODELS, View, pop_options, resized_image
 from cusgs_jax.extract.descriptors import (
     daisy_features,
     gabor_features,
@@ -67,42 +68,9 @@ __all__ = [
     "extract",
 ]
 
-BUILT_IN_EXTRACTORS = ("daisy", "hog", "gabor", "semantic")  # weight-free, offline
-MODELS = BUILT_IN_EXTRACTORS + ("clip", "dinov2")
-
-
 # --------------------------------------------------------------------------------------------
 # Extractors
 # --------------------------------------------------------------------------------------------
-
-
-@dataclasses.dataclass(frozen=True)
-class _View:
-    """One image handed to an extractor: its scene folder, COLMAP name and pixels."""
-
-    scene: pathlib.Path
-    name: str
-    image: np.ndarray  # [H, W, 3] uint8 at the loaded resolution
-
-
-def _resized_image(image: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
-    """[H, W, 3] uint8 → [h, w, 3] float in [0, 1] (anti-aliased resize when size=(w, h))."""
-    from skimage import transform, util
-
-    img = util.img_as_float(image)
-    if size is None or (img.shape[1], img.shape[0]) == tuple(size):
-        return img
-    w, h = size
-    return np.clip(transform.resize(img, (h, w, 3), order=1, anti_aliasing=True), 0.0, 1.0)
-
-
-def _pop_options(model: str, options: dict, allowed: dict) -> dict:
-    """``allowed`` (option → default) updated with ``options``; FeatureError on unknown keys."""
-    unknown = sorted(set(options) - set(allowed))
-    if unknown:
-        raise FeatureError(f"option(s) {', '.join(unknown)} not supported by model {model!r}; "
-                           f"it accepts: {', '.join(sorted(allowed)) or 'none'}")
-    return {**allowed, **options}
 
 
 class _Descriptor:
@@ -117,26 +85,26 @@ class _Descriptor:
 
     def __init__(self, model: str, options: dict):
         self.fn, defaults = self._FNS[model]
-        self.opts = _pop_options(model, options, {**defaults, "lab": False})
+        self.opts = pop_options(model, options, {**defaults, "lab": False})
         shown = ", ".join(f"{k}={v}" for k, v in self.opts.items())
         channels = "CIE-Lab channels (L/100, a/100, b/100)" if self.opts["lab"] else "grey image"
         self.source = (f"cusgs_jax.extract.{self.fn.__name__}({shown}) on the {channels}; "
                        "soft-L2-normalised")
 
-    def __call__(self, view: _View, size):
+    def __call__(self, view: View, size):
         """→ [h, w, D] float32 descriptors of the image resized to ``size`` = (w, h) (or not)."""
-        return self.fn(_resized_image(view.image, size), **self.opts)
+        return self.fn(resized_image(view.image, size), **self.opts)
 
 
 class _Semantic:
     """semantic: per-object unit vectors from the demo scene's ``object_ids/<stem>.npy``."""
 
     def __init__(self, model: str, options: dict):
-        self.opts = _pop_options(model, options, {"dim": 32, "seed": 0})
+        self.opts = pop_options(model, options, {"dim": 32, "seed": 0})
         self.source = (f"cusgs_jax.extract.semantic_features(dim={self.opts['dim']}, "
                        f"seed={self.opts['seed']}) from the demo scene's object_ids/")
 
-    def __call__(self, view: _View, size):
+    def __call__(self, view: View, size):
         """→ [h, w, dim] float32; ids resized to ``size`` = (w, h) by nearest neighbour."""
         folder = view.scene / "object_ids"
         if not folder.is_dir():
@@ -167,20 +135,16 @@ class _Semantic:
         return semantic_features(ids.astype(np.int64), dim=self.opts["dim"], seed=self.opts["seed"])
 
 
-def _pretrained(cls_name: str) -> Callable[[str, dict], Any]:
-    """A factory for an extractor of :mod:`cusgs_jax.extract.pretrained`, imported on first use."""
+def _pretrained(model: str, options: dict):
+    """An extractor of :mod:`cusgs_jax.extract.pretrained` (torch is imported on first use)."""
+    from cusgs_jax.extract.pretrained import PRETRAINED
 
-    def make(model: str, options: dict):
-        from cusgs_jax.extract import pretrained
-
-        return getattr(pretrained, cls_name)(model, options)
-
-    return make
+    return PRETRAINED[model](model, options)
 
 
 _EXTRACTORS: dict[str, Callable[[str, dict], Any]] = {
     "daisy": _Descriptor, "hog": _Descriptor, "gabor": _Descriptor, "semantic": _Semantic,
-    "clip": _pretrained("_Clip"), "dinov2": _pretrained("_Dinov2"),
+    "clip": _pretrained, "dinov2": _pretrained,
 }
 
 
@@ -273,7 +237,7 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     with writer:
         for i in tqdm(range(scene.num_images), desc=f"cusgs-extract {model}", unit="view",
                       disable=not progress, file=sys.stderr):
-            view = _View(scene.path, scene.names[i], scene.images[i])
+            view = View(scene.path, scene.names[i], scene.images[i])
             t0 = time.perf_counter()
             fmap = extractor(view, resolution)
             busy += time.perf_counter() - t0

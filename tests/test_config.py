@@ -1,0 +1,184 @@
+"""The configuration has one source of defaults (config.py) that Hydra composes unchanged."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import pathlib
+import typing
+
+import pytest
+
+from cusgs_jax import config as config_module
+from cusgs_jax.config import (
+    Config,
+    DecoderConfig,
+    FeatureConfig,
+    ModelConfig,
+    PruneConfig,
+    compose_config,
+    from_dict,
+)
+
+SRC = pathlib.Path(config_module.__file__).parent
+CONF = SRC / "conf"
+
+
+def _field_types(cls) -> dict[str, object]:
+    return typing.get_type_hints(cls, vars(config_module))
+
+
+def _leaves(obj, prefix=""):
+    """(dotted name, value) of every leaf field of a config dataclass instance."""
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if dataclasses.is_dataclass(value):
+            yield from _leaves(value, f"{prefix}{field.name}.")
+        else:
+            yield f"{prefix}{field.name}", value
+
+
+def test_default_composition_equals_the_dataclass_defaults():
+    composed = compose_config()
+    assert composed == Config()
+    # and field by field, so a failure names the option that differs
+    for (name, value), (name2, value2) in zip(_leaves(composed), _leaves(Config())):
+        assert name == name2 and value == value2, name
+
+
+def test_composed_hydra_node_holds_every_field_with_its_default():
+    """Every field of Config exists in the composed Hydra node with the dataclass's value."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    config_module.register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
+        node = OmegaConf.to_container(compose("config"), resolve=True)
+    for name, value in _leaves(Config()):
+        current = node
+        for part in name.split("."):
+            assert part in current, f"{name} missing from the composed config"
+            current = current[part]
+        if isinstance(value, tuple):
+            current = tuple(current) if not isinstance(current, str) else current
+        assert current == value, name
+
+
+def _annotated_config_params(tree: ast.AST):
+    """(function node, {parameter name: config class}) for every function of a module."""
+    classes = {name: getattr(config_module, name) for name in dir(config_module)
+               if dataclasses.is_dataclass(getattr(config_module, name))}
+    for fn in ast.walk(tree):
+        if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            continue
+        params = {}
+        for arg in [*fn.args.posonlyargs, *fn.args.args, *fn.args.kwonlyargs]:
+            if isinstance(arg.annotation, ast.Name) and arg.annotation.id in classes:
+                params[arg.arg] = classes[arg.annotation.id]
+            elif isinstance(arg.annotation, ast.Constant) and arg.annotation.value in classes:
+                params[arg.arg] = classes[arg.annotation.value]
+        if params:
+            yield fn, params
+
+
+def _chain(node: ast.Attribute) -> tuple[str, list[str]] | None:
+    parts = []
+    while isinstance(node, ast.Attribute):
+        parts.append(node.attr)
+        node = node.value
+    return (node.id, parts[::-1]) if isinstance(node, ast.Name) else None
+
+
+def test_every_config_field_the_code_reads_exists():
+    """An AST scan: ``cfg.a.b`` on a parameter annotated with a config class names real fields."""
+    checked = 0
+    for path in sorted(SRC.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for fn, params in _annotated_config_params(tree):
+            attributes = [n for n in ast.walk(fn) if isinstance(n, ast.Attribute)]
+            inner = {id(n.value) for n in attributes}
+            for node in attributes:
+                chain = _chain(node) if id(node) not in inner else None  # whole chains only
+                if chain is None or chain[0] not in params:
+                    continue
+                root, parts = chain
+                cls = params[root]
+                for part in parts:
+                    where = f"{path.relative_to(SRC)}:{fn.name}: {root}.{'.'.join(parts)}"
+                    assert hasattr(cls, part) or part in {f.name for f in dataclasses.fields(cls)}, where
+                    hint = _field_types(cls).get(part)
+                    if not (isinstance(hint, type) and dataclasses.is_dataclass(hint)):
+                        break
+                    cls = hint
+                checked += 1
+    assert checked > 50  # the scan really saw the code's config reads
+
+
+def test_yaml_options_hold_only_overrides_of_known_fields():
+    """Every key in the conf/ group files names a Config field (no second set of defaults)."""
+    from omegaconf import OmegaConf
+
+    groups = {f.name for f in dataclasses.fields(Config)}
+    for path in sorted(CONF.glob("*/*.yaml")):
+        group = path.parent.name
+        data = OmegaConf.to_container(OmegaConf.load(path)) or {}
+        data = {k: v for k, v in data.items() if k != "defaults"}
+        if group in groups:
+            from_dict({group: data})  # raises on an unknown key
+        elif group != "experiment":
+            pytest.fail(f"unexpected config group folder {path.parent}")
+
+
+def test_scaffold_grow_option_and_demo_features():
+    cfg = compose_config(["grow=scaffold", "features=demo"])
+    assert (cfg.grow.start, cfg.grow.stop, cfg.grow.stats_start) == (1500, 15000, 500)
+    assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic"]
+    assert cfg.features.query_dim == 32
+
+
+def test_overrides_reach_the_frozen_config():
+    cfg = compose_config(["model.voxel_size=0.1", "train.iterations=7", "prune.ratio=0.5",
+                          "model.query_granularity=per_gaussian"])
+    assert cfg.model.voxel_size == 0.1 and cfg.train.iterations == 7
+    assert cfg.prune.ratio == 0.5 and cfg.model.query_granularity == "per_gaussian"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.model.voxel_size = 1.0  # type: ignore[misc]
+
+
+@pytest.mark.parametrize("override", ["+model.foo=1", "model.foo=1", "train.iterations=abc",
+                                      "prune.strategy=bogus", "prune.ratio=1.5",
+                                      "model.query_granularity=per_pixel", "grow=nope"])
+def test_bad_overrides_are_rejected(override):
+    with pytest.raises(Exception) as info:
+        compose_config([override])
+    assert info.type.__name__ != "AssertionError"
+
+
+def test_from_dict_rejects_unknown_keys_and_converts_lists():
+    with pytest.raises(ValueError, match="model.foo"):
+        from_dict({"model": {"foo": 1}})
+    cfg = from_dict({"splat": {"background": [1.0, 0.5, 0.0]},
+                     "features": {"models": [{"name": "clip"}]}})
+    assert cfg.splat.background == (1.0, 0.5, 0.0)
+    assert cfg.features.model_list[0].query_dim == 16  # M3's split for CLIP
+    hash(cfg)  # frozen configs stay hashable (closed over by jit)
+
+
+def test_feature_auto_resolves_by_scene():
+    assert FeatureConfig().resolve(demo_scene=True).query_dim == 32
+    assert not FeatureConfig().resolve(demo_scene=False).enabled
+    assert not FeatureConfig().enabled  # unresolved "auto" means none
+
+
+def test_decoder_defaults_follow_the_model_defaults():
+    assert DecoderConfig() == ModelConfig().decoder()
+    assert ModelConfig(appearance=False).decoder().appearance_dim == 0
+
+
+def test_prune_config_validation():
+    with pytest.raises(ValueError, match="ratio"):
+        PruneConfig(ratio=-0.1)
+    with pytest.raises(ValueError, match="interval"):
+        PruneConfig(interval=0)
