@@ -30,23 +30,26 @@ def main(argv=None) -> float:
     path = args.scene or cg.demo_scene_path(num_views=args.views, width=args.size[0], height=args.size[1])
     scene = cg.load_scene(path, holdout_every=0)
     decoder_cfg = cg.DecoderConfig(n_offsets=5, latent_dim=16, hidden=32, appearance_dim=0)
-    anchor_params, anchors = cg.init_anchors(scene.points, voxel_size=0.1, n_offsets=5, latent_dim=16)
-    params = {"anchor": anchor_params, "decoder": cg.init_decoder(jax.random.PRNGKey(0), decoder_cfg)}
+    anchors = cg.init_anchors(scene.points, voxel_size=0.1, n_offsets=5, latent_dim=16)  # an AnchorState
+    # learnable: the per-anchor arrays (offsets, scaling, latents) and the decoder MLPs; the
+    # anchor centres and the alive mask stay fixed (this toy never grows or prunes)
+    params = {"anchor": anchors.params, "decoder": cg.init_decoder(jax.random.PRNGKey(0), decoder_cfg)}
     tx = optax.adam(3e-3)
     opt_state = tx.init(params)
     images = jnp.asarray(scene.images.astype(np.float32) / 255.0)
+    viewmats, Ks = jnp.asarray(scene.viewmats), jnp.asarray(scene.Ks)
     width, height = scene.width, scene.height
 
     @jax.jit
     def step(params, opt_state, view):
-        viewmat, K = jnp.asarray(scene.viewmats)[view], jnp.asarray(scene.Ks)[view]
+        camera = cg.Camera(Ks[view], viewmats[view], width, height)
 
         def loss_fn(params):
-            visible = cg.frustum_mask(anchors.centers, viewmat, K, width, height) & anchors.alive
-            center = -viewmat[:3, :3].T @ viewmat[:3, 3]
-            g = cg.decode_gaussians(params["decoder"], params["anchor"], anchors, center, None, visible, decoder_cfg)
-            out = cg.rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, viewmat, K, width, height,
-                               tile_size=8)
+            visible = cg.frustum_mask(anchors.centers, camera.world_to_camera, camera.K, width, height)
+            g = cg.decode_gaussians(params["decoder"], params["anchor"], anchors.centers, visible & anchors.alive,
+                                    camera.center, None, decoder_cfg)
+            out = cg.rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.world_to_camera, camera.K,
+                               width, height, tile_size=8)
             target = images[view]
             return 0.8 * cg.losses.l1(out.image, target) + 0.2 * cg.losses.ssim_loss(out.image, target)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import math
 import pathlib
 
 from cusgs_jax.data.demo import generate_demo_scene
@@ -16,4 +17,5 @@ def test_custom_step_example_trains(tmp_path):
     spec.loader.exec_module(module)
     first = module.main([str(scene), "--steps", "1"])
     last = module.main([str(scene), "--steps", "60"])
+    assert math.isfinite(first) and math.isfinite(last)
     assert last < first

@@ -1,0 +1,175 @@
+"""End-to-end runs (app/run.py) on a tiny demo scene: outputs, exact resume, interrupted saves,
+unique log steps across resumes, the learning curve's last point = the final evaluation."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import jax
+import numpy as np
+import pytest
+
+from cusgs_jax.app.inputs import view_order
+from cusgs_jax.app.run import finalise, run, setup, train
+from cusgs_jax.config import compose_config
+from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.training.checkpoint import Checkpointer
+
+TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
+        "grow.stats_start=2", "grow.start=10", "grow.stop=30", "grow.interval=10",
+        "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
+        "model.voxel_size=0.15", "prune.start=10", "prune.interval=10", "prune.ratio=0.05"]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_views=9, width=40, height=30,
+                               num_points=1500)
+
+
+def _cfg(scene, *extra):
+    return compose_config([f"data.path={scene}", *TINY, *extra])
+
+
+@pytest.fixture(scope="module")
+def straight(tiny_scene, tmp_path_factory):
+    """One uninterrupted 30-step run (read only by the tests): (folder, returned eval dict)."""
+    out = tmp_path_factory.mktemp("straight")
+    return out, run(_cfg(tiny_scene), out)
+
+
+def _jsonl(path):
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+def _final_state_leaves(run_dir):
+    ckpt = Checkpointer(run_dir / "checkpoints")
+    step = ckpt.latest_step()
+    path = run_dir / "checkpoints" / str(step)
+    ckpt.close()
+    import orbax.checkpoint as ocp
+
+    restored = ocp.StandardCheckpointer().restore(path / "state")
+    return step, jax.tree_util.tree_leaves(restored)
+
+
+def _latest_checkpoint(run_dir):
+    ckpt = Checkpointer(run_dir / "checkpoints")
+    step = ckpt.latest_step()
+    ckpt.close()
+    return step
+
+
+def _strictly_increasing(values):
+    return all(a < b for a, b in zip(values, values[1:]))
+
+
+def test_view_order_is_a_permutation_per_epoch():
+    seq = [view_order(3, 7, s) for s in range(14)]
+    assert sorted(seq[:7]) == list(range(7)) and sorted(seq[7:]) == list(range(7))
+    assert seq == [view_order(3, 7, s) for s in range(14)]
+    assert seq[:7] != seq[7:]  # a fresh permutation per epoch
+
+
+def test_run_writes_all_outputs(straight):
+    tmp_path, result = straight
+    assert np.isfinite(result["psnr"]) and result["psnr"] > 8
+    for name in ("metrics.jsonl", "eval_curve.jsonl", "eval.json", "error_vs_time.png"):
+        assert (tmp_path / name).is_file(), name
+    rows = _jsonl(tmp_path / "metrics.jsonl")
+    assert [r["step"] for r in rows] == list(range(10, 31, 10))
+    assert {"wall_s", "loss", "train_psnr", "alive_anchors"} <= set(rows[0])
+    curve = _jsonl(tmp_path / "eval_curve.jsonl")
+    assert [c["step"] for c in curve] == [15, 30]
+    evaluation = json.loads((tmp_path / "eval.json").read_text())
+    assert evaluation == json.loads(json.dumps(result))  # the returned dict is what eval.json holds
+    assert len(evaluation["per_view"]) == 2 and evaluation["params"]["total"] > 0
+    assert evaluation["checkpoint_bytes"] > 0 and evaluation["render_ms_per_view"] > 0
+    # feature-aware pruning ran at steps 10, 20, 30 and its count matches the anchors lost
+    assert evaluation["prune"]["passes"] == 3 and evaluation["prune"]["pruned"] > 0
+    assert evaluation["render_ms_before_prune"] > 0
+    assert rows[-1]["pruned"] == evaluation["prune"]["pruned"]
+    assert curve[-1]["alive_anchors"] == evaluation["alive_anchors"]
+    assert len(list((tmp_path / "renders").glob("*.png"))) == 2
+
+
+def test_last_curve_point_equals_the_final_evaluation(straight):
+    """The curve is evaluated at the final step with the same renderer as eval.json."""
+    tmp_path, result = straight
+    curve = _jsonl(tmp_path / "eval_curve.jsonl")
+    assert curve[-1]["step"] == result["iterations"] == 30
+    assert curve[-1]["psnr"] == result["psnr"] and curve[-1]["ssim"] == result["ssim"]
+    assert result["psnr"] == pytest.approx(np.mean([v["psnr"] for v in result["per_view"]]), abs=1e-12)
+    assert result["curve"] == curve  # eval.json carries the same curve as eval_curve.jsonl
+    assert curve[0]["psnr"] != curve[-1]["psnr"]  # the curve really moved
+
+
+def test_resume_continues_exactly(tiny_scene, straight, tmp_path):
+    straight_dir, _ = straight
+    interrupted = tmp_path / "interrupted"
+    run(_cfg(tiny_scene), interrupted)
+    # pretend the run died after step 20: drop the last checkpoint, and leave a
+    # half-written one behind as a kill during a save would
+    shutil.rmtree(interrupted / "checkpoints" / "30")
+    (interrupted / "checkpoints" / "30.orbax-checkpoint-tmp-1234").mkdir()
+    (interrupted / "checkpoints" / "30.orbax-checkpoint-tmp-1234" / "junk").write_text("partial")
+    run(_cfg(tiny_scene, "train.resume=true"), interrupted)
+    step_a, leaves_a = _final_state_leaves(straight_dir)
+    step_b, leaves_b = _final_state_leaves(interrupted)
+    assert step_a == step_b == 30
+    assert len(leaves_a) == len(leaves_b)
+    for a, b in zip(leaves_a, leaves_b):
+        np.testing.assert_array_equal(a, b)
+    # the resumed run's logs hold every step once (rows after the restored step were dropped)
+    assert [r["step"] for r in _jsonl(interrupted / "metrics.jsonl")] == [10, 20, 30]
+    assert [c["step"] for c in _jsonl(interrupted / "eval_curve.jsonl")] == [15, 30]
+
+
+def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp_path):
+    """A run killed after its last logs but before its last checkpoint is resumed with more
+    iterations: the step columns of metrics.jsonl and eval_curve.jsonl stay strictly increasing
+    and unique (rows after the restored step are dropped, then written again), and so does the
+    training clock."""
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)  # the finished 30-step run: rows 10, 20, 30; curve 15, 30
+    shutil.rmtree(out / "checkpoints" / "30")  # killed after step 30's rows, before its checkpoint
+    assert _latest_checkpoint(out) == 20
+
+    session = setup(_cfg(tiny_scene, "train.iterations=45", "train.resume=true"), out)
+    assert int(session.state.step) == 20
+    assert [r["step"] for r in _jsonl(out / "metrics.jsonl")] == [10, 20]
+    assert [c["step"] for c in _jsonl(out / "eval_curve.jsonl")] == [15]
+    assert [c["step"] for c in session.curve] == [15]
+    train(session)
+    result = finalise(session)
+
+    rows, curve = _jsonl(out / "metrics.jsonl"), _jsonl(out / "eval_curve.jsonl")
+    steps, curve_steps = [r["step"] for r in rows], [c["step"] for c in curve]
+    assert steps == [10, 20, 30, 40, 45] and curve_steps == [15, 30, 45]
+    for values in (steps, curve_steps):
+        assert _strictly_increasing(values) and len(set(values)) == len(values)
+    assert _strictly_increasing([r["wall_s"] for r in rows])
+    assert _strictly_increasing([c["wall_s"] for c in curve])
+    assert result["curve"] == curve and result["iterations"] == 45
+    assert curve[-1]["psnr"] == result["psnr"]  # the last point is the final evaluation
+    assert _latest_checkpoint(out) == 45
+
+
+# per_gaussian drives the refilled-slot query reset through growing end to end (slow; the
+# per-anchor variant runs by default)
+@pytest.mark.parametrize("granularity", ["per_anchor", pytest.param("per_gaussian", marks=pytest.mark.slow)])
+def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, granularity):
+    result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
+                      "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
+    feats = result["features"]
+    assert set(feats["models"]) == {"daisy", "semantic"}
+    for row in feats["models"].values():
+        assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
+    assert {"rendered", "ground_truth"} <= set(feats["retrieval"])
+    assert (tmp_path / "features.md").read_text().count("|") > 10
+    assert len(list((tmp_path / "features").glob("*.png"))) == 4  # 2 models × 2 held-out views
+    params = json.loads((tmp_path / "eval.json").read_text())["params"]
+    assert params["query_heads"] > 0 and params["memory_banks"] > 0 and params["adapters"] > 0
+    rows = _jsonl(tmp_path / "metrics.jsonl")
+    assert np.isfinite(rows[-1]["feature_loss"])

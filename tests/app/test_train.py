@@ -1,0 +1,120 @@
+"""The Hydra app (app/train.py, ``cusgs-train`` / ``python -m cusgs_jax.app.train``): single runs, bad
+paths, the ready sweeps, and a joblib sweep that survives a failing job and is read by cusgs-report."""
+
+from __future__ import annotations
+
+import csv
+import json
+import pathlib
+import shutil
+import subprocess
+import sys
+
+import pytest
+from hydra import compose, initialize_config_module
+from omegaconf import OmegaConf
+
+from cusgs_jax.app.train import record_failure
+from cusgs_jax.config import Config, compose_config, register_configs
+from cusgs_jax.data.demo import generate_demo_scene
+
+APP = [sys.executable, "-m", "cusgs_jax.app.train"]
+
+TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
+        "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2",
+        "prune.start=2", "prune.interval=2", "prune.ratio=0.05", "eval.save_renders=false",
+        "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
+        "model.voxel_size=0.15"]
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    return generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_views=9, width=32, height=24,
+                               num_points=800)
+
+
+def _console_script(name):
+    """The installed console script next to this interpreter (else on PATH)."""
+    path = pathlib.Path(sys.executable).parent / name
+    return str(path) if path.is_file() else shutil.which(name)
+
+
+def test_no_overrides_compose_the_dataclass_defaults():
+    """``cusgs-train`` with no overrides runs exactly ``Config()`` (config.py holds every default)."""
+    assert compose_config([]) == Config()
+    cfg = compose_config(["model.voxel_size=0.1", "train.iterations=50"])
+    assert cfg == Config().replace(model=dict(voxel_size=0.1), train=dict(iterations=50))
+
+
+@pytest.mark.parametrize("name", ["voxel_size", "prune_ratio", "prune_strategy", "prune_weights", "queries"])
+def test_every_ready_sweep_composes(name):
+    register_configs()
+    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
+        cfg = compose("config", overrides=[f"experiment={name}"], return_hydra_config=True)
+    params = cfg.hydra.sweeper.params
+    assert len(params) == 1 and len(str(next(iter(params.values()))).split(",")) >= 2
+    assert cfg.hydra.launcher._target_.endswith("JoblibLauncher")
+    assert cfg.train.iterations < 3000  # reduced schedule for the 2-core demo sweeps
+    assert OmegaConf.select(cfg, "hydra.sweep.dir").startswith(f"multirun/{name}/")
+
+
+def test_weight_options_set_the_pairs():
+    for n, g in ((8, 2), (6, 4), (4, 6), (2, 8)):
+        cfg = compose_config([f"prune=weights_{n}_{g}"])
+        assert (cfg.prune.lambda_norm, cfg.prune.lambda_grad, cfg.prune.strategy) == (n, g, "feature_aware")
+
+
+def test_record_failure_writes_error_and_traceback(tmp_path):
+    try:
+        raise ValueError("bad voxel size")
+    except ValueError as error:
+        path = record_failure(tmp_path / "job", error)
+    data = json.loads(path.read_text())
+    assert data["error"] == "ValueError: bad voxel size" and "Traceback" in data["traceback"]
+
+
+def test_hydra_app_runs_and_reports_bad_paths(tiny_scene, tmp_path):
+    cmd = [*APP, f"data.path={tiny_scene}", *TINY, f"hydra.run.dir={tmp_path / 'app'}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert (tmp_path / "app" / "eval.json").is_file()
+    assert json.loads((tmp_path / "app" / "eval.json").read_text())["iterations"] == 6
+    # the console script, on a scene that does not exist: exit status 2 and the path in the message
+    script = _console_script("cusgs-train")
+    assert script, "the cusgs-train console script is not installed"
+    missing = tmp_path / "no_such_scene"
+    cmd = [script, f"data.path={missing}", f"hydra.run.dir={tmp_path / 'bad'}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 2
+    assert str(missing) in done.stderr + done.stdout
+    assert str(missing) in json.loads((tmp_path / "bad" / "failed.json").read_text())["error"]
+
+
+def test_unknown_option_is_rejected(tmp_path):
+    done = subprocess.run([*APP, "model.no_such_option=1", f"hydra.run.dir={tmp_path / 'x'}"],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode != 0 and "no_such_option" in done.stderr + done.stdout
+    assert not (tmp_path / "x" / "eval.json").exists()
+
+
+def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
+    missing = tmp_path / "no_such_scene"
+    sweep = tmp_path / "sweep"
+    cmd = [*APP, "-m", f"data.path={tiny_scene},{missing}", *TINY,
+           "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}"]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    good, bad = sweep / "0", sweep / "1"
+    result = json.loads((good / "eval.json").read_text())
+    assert result["prune"]["passes"] == 3 and result["prune"]["pruned"] > 0
+    assert (good / ".hydra" / "overrides.yaml").is_file()
+    assert str(missing) in json.loads((bad / "failed.json").read_text())["error"]
+    assert not (bad / "eval.json").exists()
+
+    report = subprocess.run([sys.executable, "-m", "cusgs_jax.app.report", str(sweep)], capture_output=True,
+                            text=True, timeout=300)
+    assert report.returncode == 0, report.stderr[-3000:]
+    rows = list(csv.DictReader((sweep / "report" / "report.csv").open()))
+    assert [r["status"].split(":")[0] for r in rows] == ["ok", "failed"]
+    assert float(rows[0]["psnr"]) == pytest.approx(result["psnr"])
+    assert (sweep / "report" / "psnr_vs_time.png").is_file()

@@ -1,0 +1,77 @@
+"""Per-group Adam with log-linear learning-rate decay (training/optim.py)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cusgs_jax.config import Config, OptimConfig
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.training.optim import GROUP_OF_PATH, log_linear_schedule, make_optimizer, param_labels
+from cusgs_jax.training.state import init_train_state
+
+CFG = Config().replace(train=dict(iterations=4),
+                       model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8),
+                       features=dict(models=({"name": "a", "query_dim": 4},), hidden=8))
+EXTENT = 2.5
+
+
+def _trainable():
+    pts = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+    banks = {"a": jnp.ones((3, 5), jnp.float32)}
+    state, _ = init_train_state(CFG, pts, 2, EXTENT, make_strategies(CFG), banks)
+    return state.trainable
+
+
+def test_log_linear_schedule_end_points_and_midpoint():
+    schedule = log_linear_schedule(0.01, 0.0001, 100)
+    np.testing.assert_allclose(float(schedule(0)), 0.01, rtol=1e-6)
+    np.testing.assert_allclose(float(schedule(100)), 0.0001, rtol=1e-5)
+    np.testing.assert_allclose(float(schedule(50)), 0.001, rtol=1e-5)  # geometric mean
+    np.testing.assert_allclose(float(schedule(1000)), 0.0001, rtol=1e-5)  # clamped after the run
+    values = [float(schedule(s)) for s in range(0, 101, 10)]
+    assert all(a > b for a, b in zip(values, values[1:]))
+    assert float(log_linear_schedule(0.3, 0.3, 10)(7)) == pytest.approx(0.3)
+
+
+def test_every_parameter_has_its_group():
+    trainable = _trainable()
+    labels = param_labels(trainable)
+    anchor = labels["anchor"]
+    assert (anchor.offsets, anchor.latent, anchor.log_scaling) == ("offsets", "latent", "scaling")
+    for head, group in (("opacity", "mlp_opacity"), ("cov", "mlp_cov"), ("color", "mlp_color")):
+        assert set(jax.tree_util.tree_leaves(labels["decoder"][head])) == {group}
+    assert labels["appearance"] == "appearance"
+    assert set(jax.tree_util.tree_leaves(labels["queries"])) == {"features"}
+    assert set(jax.tree_util.tree_leaves(labels["memory"])) == {"features"}
+    assert set(GROUP_OF_PATH.values()) == set(OptimConfig().groups())
+    with pytest.raises(KeyError, match="no optimiser group"):
+        param_labels({"mystery": jnp.zeros(3)})
+
+
+def test_each_group_steps_with_its_own_decaying_rate():
+    """With a constant unit gradient Adam's bias-corrected step is the learning rate (float32 rounding)."""
+    trainable = _trainable()
+    cfg = CFG.optim
+    tx = make_optimizer(cfg, trainable, CFG.train.iterations, EXTENT)
+    opt_state = tx.init(trainable)
+    grads = jax.tree_util.tree_map(jnp.ones_like, trainable)
+    seen = {"offsets": [], "latent": [], "mlp_opacity": [], "mlp_color": [], "appearance": [], "features": []}
+    for _ in range(CFG.train.iterations + 1):
+        updates, opt_state = tx.update(grads, opt_state, trainable)
+        seen["offsets"].append(np.asarray(updates["anchor"].offsets))
+        seen["latent"].append(np.asarray(updates["anchor"].latent))
+        seen["mlp_opacity"].append(jax.tree_util.tree_leaves(updates["decoder"]["opacity"])[0])
+        seen["mlp_color"].append(jax.tree_util.tree_leaves(updates["decoder"]["color"])[0])
+        seen["appearance"].append(np.asarray(updates["appearance"]))
+        seen["features"].append(jax.tree_util.tree_leaves(updates["memory"])[0])
+    for group, steps in seen.items():
+        init, final = cfg.groups()[group]
+        if group == "offsets":  # Scaffold-GS spatial_lr_scale
+            init, final = init * EXTENT, final * EXTENT
+        schedule = log_linear_schedule(init, final, CFG.train.iterations)
+        for count, update in enumerate(steps):
+            np.testing.assert_allclose(np.asarray(update), -float(schedule(count)), rtol=1e-4, err_msg=group)
+        np.testing.assert_allclose(np.asarray(steps[-1]), -final, rtol=1e-4, err_msg=group)

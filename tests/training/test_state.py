@@ -1,0 +1,110 @@
+"""The training state (training/state.py): TrainState, init_train_state, init_nets."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cusgs_jax.config import Config
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.feature_prune import PruneStats
+from cusgs_jax.densify.scaffold import GrowStats
+from cusgs_jax.model.anchors import AnchorState, voxelize
+from cusgs_jax.training.state import TrainState, init_nets, init_train_state
+
+CFG = Config().replace(train=dict(iterations=50),
+                       model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
+FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
+
+
+def _points():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (400, 3))
+    pts[:, 2] += 3.0
+    return pts
+
+
+def _banks():
+    rng = np.random.default_rng(1)
+    return {"a": jnp.asarray(rng.normal(size=(5, 3)), jnp.float32), "b": jnp.asarray(rng.normal(size=(7, 2)),
+                                                                                        jnp.float32)}
+
+
+def test_fresh_state_from_points():
+    strategies = make_strategies(CFG)
+    state, tx = init_train_state(CFG, _points(), 3, 2.0, strategies)
+    initial = len(voxelize(_points(), CFG.model.voxel_size))
+    assert isinstance(state.anchors, AnchorState)
+    assert state.anchors.capacity == math.ceil(CFG.model.capacity_factor * initial)
+    assert int(np.sum(state.anchors.alive)) == initial and bool(np.all(np.asarray(state.anchors.alive)[:initial]))
+    assert state.anchors.params.offsets.shape == (state.anchors.capacity, 4, 3)
+    assert state.anchors.params.latent.shape == (state.anchors.capacity, 8)
+    assert state.anchors.params.query_table is None
+    assert int(state.step) == 0 and int(state.skipped) == 0
+    assert set(state.nets) == {"decoder", "appearance"}
+    assert state.nets["appearance"].shape == (3, 8)
+    # one statistics entry per strategy, sized to the capacity
+    assert set(state.densify) == {"scaffold", "feature_prune"}
+    assert isinstance(state.densify["scaffold"], GrowStats) and isinstance(state.densify["feature_prune"], PruneStats)
+    assert state.densify["scaffold"].grad_accum.shape == (state.anchors.capacity, 4)
+    assert state.densify["feature_prune"].contrib.shape == (state.anchors.capacity,)
+    # the optimiser state covers exactly the trainable tree
+    assert jax.tree_util.tree_structure(tx.init(state.trainable)) == jax.tree_util.tree_structure(state.opt_state)
+
+
+def test_same_seed_same_state_and_seed_changes_networks():
+    strategies = make_strategies(CFG)
+    a, _ = init_train_state(CFG, _points(), 2, 2.0, strategies)
+    b, _ = init_train_state(CFG, _points(), 2, 2.0, strategies)
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
+        np.testing.assert_array_equal(x, y)
+    c, _ = init_train_state(CFG.replace(train=dict(seed=1)), _points(), 2, 2.0, strategies)
+    differs = [not np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a.nets),
+                                                         jax.tree_util.tree_leaves(c.nets))]
+    assert any(differs)
+    np.testing.assert_array_equal(a.anchors.centers, c.anchors.centers)  # anchors come from the points
+
+
+def test_trainable_round_trip_and_pytree():
+    state, _ = init_train_state(CFG, _points(), 2, 2.0, make_strategies(CFG))
+    trainable = state.trainable
+    assert set(trainable) == {"anchor", "decoder", "appearance"}
+    assert trainable["anchor"] is state.anchors.params
+    bumped = jax.tree_util.tree_map(lambda x: x + 1.0, trainable)
+    new = state.with_trainable(bumped)
+    np.testing.assert_array_equal(new.anchors.params.latent, state.anchors.params.latent + 1.0)
+    np.testing.assert_array_equal(new.nets["appearance"], state.nets["appearance"] + 1.0)
+    np.testing.assert_array_equal(new.anchors.centers, state.anchors.centers)  # centres are not trainable
+    np.testing.assert_array_equal(new.anchors.alive, state.anchors.alive)
+    leaves, treedef = jax.tree_util.tree_flatten(state)
+    rebuilt = jax.tree_util.tree_unflatten(treedef, leaves)
+    assert isinstance(rebuilt, TrainState) and rebuilt.anchors.capacity == state.anchors.capacity
+    assert state.replace(step=jnp.int32(7)).step == 7 and state.step == 0  # frozen: replace copies
+
+
+def test_appearance_off_has_no_embedding():
+    cfg = CFG.replace(model=dict(appearance=False))
+    nets = init_nets(jax.random.PRNGKey(0), cfg, 4)
+    assert set(nets) == {"decoder"}
+
+
+def test_feature_heads_need_one_bank_per_model():
+    cfg = CFG.replace(features=FEATURES)
+    with pytest.raises(ValueError, match="PSC bank"):
+        init_nets(jax.random.PRNGKey(0), cfg, 2)
+    with pytest.raises(ValueError, match="PSC bank"):
+        init_nets(jax.random.PRNGKey(0), cfg, 2, {"a": _banks()["a"]})
+    nets = init_nets(jax.random.PRNGKey(0), cfg, 2, _banks())
+    assert set(nets) == {"decoder", "appearance", "queries", "memory"}
+    assert set(nets["memory"]) == {"a", "b"}
+
+
+def test_per_gaussian_queries_live_in_the_anchor_table():
+    cfg = CFG.replace(features=FEATURES, model=dict(query_granularity="per_gaussian"))
+    state, _ = init_train_state(cfg, _points(), 2, 2.0, make_strategies(cfg), _banks())
+    assert "queries" not in state.nets and set(state.nets["memory"]) == {"a", "b"}
+    assert state.anchors.params.query_table.shape == (state.anchors.capacity, 4, 10)

@@ -1,0 +1,293 @@
+"""The jitted train step (training/step.py) with the densification strategies (densify/base.py):
+compiles once, deterministic, skips non-finite updates, feature-aware pruning statistics and passes."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cusgs_jax.config import Config
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, anchor_scores, prune_due
+from cusgs_jax.model.anchors import compact
+from cusgs_jax.model.decode import decode_view
+from cusgs_jax.training.render import make_render_fn, render_gaussians
+from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.step import make_train_step
+from cusgs_jax.types import Camera
+
+W, H = 32, 24
+K = jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+
+
+def _cfg(**grow):
+    return Config().replace(
+        train=dict(iterations=50),
+        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8),
+        grow={**dict(stats_start=0, start=5, stop=50, interval=5), **grow})
+
+
+def _points():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (400, 3))
+    pts[:, 2] += 3.0
+    return pts
+
+
+def _batch(seed=0, nan=False):
+    rng = np.random.default_rng(seed)
+    image = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    if nan:
+        image[3, 4, 1] = np.nan
+    view = np.eye(4, dtype=np.float32)
+    view[:3, 3] = rng.normal(0, 0.05, 3)
+    return dict(image=jnp.asarray(image), camera=Camera(K, jnp.asarray(view), W, H), index=jnp.int32(seed % 2))
+
+
+def _init(cfg):
+    strategies = make_strategies(cfg)
+    state, tx = init_train_state(cfg, _points(), 2, 2.0, strategies)
+    return strategies, state, tx
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = _cfg(grad_threshold=0.0, min_opacity=0.2, success_threshold=0.8)
+    strategies, state, tx = _init(cfg)
+    return cfg, tx, strategies, make_train_step(cfg, tx, strategies), state
+
+
+def _copy(tree):
+    return jax.tree_util.tree_map(lambda x: jnp.array(x, copy=True), tree)
+
+
+def _scaffold(strategies):
+    (strategy,) = [s for s in strategies if s.name == "scaffold"]
+    return strategy
+
+
+def test_make_strategies_follows_the_prune_strategy():
+    assert [s.name for s in make_strategies(_cfg())] == ["scaffold", "feature_prune"]
+    for name in ("scaffold", "none"):
+        assert [s.name for s in make_strategies(_cfg().replace(prune=dict(strategy=name)))] == ["scaffold"]
+
+
+def test_step_compiles_once_across_growing_and_pruning(setup):
+    cfg, tx, strategies, step, state = setup
+    state = _copy(state)
+    scaffold = _scaffold(strategies)
+    grown = pruned = adjustments = 0
+    for i in range(20):
+        state, metrics = step(state, _batch(i))
+        if (i + 1) % cfg.grow.interval == 0:
+            assert scaffold.due(i + 1)
+            state, info = scaffold.update(state, tx, i + 1)
+            assert info["capacity_grew"] is None
+            grown += info["grown"]
+            pruned += info["pruned"]
+            adjustments += 1
+        else:
+            assert not scaffold.due(i + 1)
+    assert adjustments == 4
+    assert grown > 0 and pruned > 0  # the masks really changed
+    assert step._cache_size() == 1
+    assert int(state.step) == 20 and bool(metrics["finite"])
+
+
+def test_same_seed_same_numbers(setup):
+    cfg, tx, strategies, step, state0 = setup
+    finals = []
+    for _ in range(2):
+        state = _copy(state0)
+        for i in range(3):
+            state, metrics = step(state, _batch(i))
+        finals.append((jax.device_get(state.trainable), float(metrics["loss"])))
+    assert finals[0][1] == finals[1][1]
+    leaves_a, leaves_b = (jax.tree_util.tree_leaves(f[0]) for f in finals)
+    assert len(leaves_a) == len(leaves_b) > 0
+    for a, b in zip(leaves_a, leaves_b):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_non_finite_update_is_skipped_and_counted(setup):
+    cfg, tx, strategies, step, state0 = setup
+    state, _ = step(_copy(state0), _batch(0))
+    before = jax.device_get((state.trainable, state.opt_state))
+    state, metrics = step(state, _batch(1, nan=True))
+    assert not bool(metrics["finite"]) and int(state.skipped) == 1
+    after = jax.device_get((state.trainable, state.opt_state))
+    for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after)):
+        np.testing.assert_array_equal(a, b)
+    state, metrics = step(state, _batch(2))
+    assert bool(metrics["finite"]) and int(state.skipped) == 1
+
+
+def test_dead_anchors_do_not_move(setup):
+    cfg, tx, strategies, step, state0 = setup
+    state = _copy(state0)
+    alive = np.array(state.anchors.alive)
+    alive[:5] = False
+    state = state.replace(anchors=state.anchors.replace(alive=jnp.asarray(alive)))
+    before = jax.device_get(state.anchors.params)
+    for i in range(2):
+        state, _ = step(state, _batch(i))
+    after = jax.device_get(state.anchors.params)
+    moved = False
+    for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after)):
+        np.testing.assert_array_equal(a[:5], b[:5])
+        moved |= not np.array_equal(a[alive], b[alive])
+    assert moved
+
+
+# ---------------------------------------------------------------- feature-aware pruning in training
+
+def _prune_cfg(**prune):
+    base = {"strategy": "feature_aware", "ratio": 0.1, "interval": 3, "start": 3, "stop": 50, "min_visits": 0}
+    return _cfg().replace(prune={**base, **prune})
+
+
+def _prune_strategy(strategies) -> FeaturePruneStrategy:
+    (strategy,) = [s for s in strategies if s.name == FeaturePruneStrategy.name]
+    return strategy
+
+
+@pytest.fixture(scope="module")
+def prune_setup():
+    cfg = _prune_cfg()
+    strategies, state, tx = _init(cfg)
+    return cfg, tx, make_train_step(cfg, tx, strategies), _prune_strategy(strategies), state
+
+
+def _train_render(cfg):
+    """The train step's own decode → rasterise path (visible_fraction < 1, no compaction)."""
+
+    @jax.jit
+    def render(anchors, nets, camera, index):
+        gaussians, _ = decode_view(nets, anchors, camera, index, cfg.model)
+        return jnp.clip(render_gaussians(gaussians, camera, cfg.splat).image, 0.0, 1.0)
+
+    return render
+
+
+def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
+    """One step's PruneStats against a direct computation: autodiff of the same loss for ∇z, the
+    float64 reference rasteriser for Σ opacity·T, and testing.prune_reference for the score."""
+    from cusgs_jax import losses
+    from cusgs_jax.splat.reference import rasterize_reference
+    from cusgs_jax.testing.prune_reference import significance_reference
+
+    cfg, tx, step, _, state0 = prune_setup
+    batch = _batch(3)
+    camera = batch["camera"]
+    trainable, anchors = jax.device_get(state0.trainable), state0.anchors
+
+    def loss_of(p):
+        g, view = decode_view(p, anchors.replace(params=p["anchor"]), camera, batch["index"], cfg.model)
+        out = render_gaussians(g, camera, cfg.splat)
+        loss, _ = losses.image_loss(out.image, batch["image"], g.scales, g.active, l1_weight=cfg.loss.l1_weight,
+                                    ssim_weight=cfg.loss.ssim_weight, volume_weight=cfg.loss.volume_weight)
+        return loss, (g, view)
+
+    grads, (g, view) = jax.grad(loss_of, has_aux=True)(trainable)
+    slots, valid = np.asarray(view.slots), np.asarray(view.valid)
+    reference = rasterize_reference(np.asarray(g.means), np.asarray(g.quats), np.asarray(g.scales),
+                                    np.asarray(g.opacities), np.asarray(g.colors),
+                                    np.asarray(camera.world_to_camera), np.asarray(camera.K), W, H)
+    record = {"slots": slots, "valid": valid,
+              "latent_grad": np.asarray(grads["anchor"].latent)[slots],
+              "significance": reference["significance"], "scales": np.asarray(g.scales),
+              "active": np.asarray(g.active)}
+    state, _ = step(_copy(state0), batch)
+    stats = state.densify[FeaturePruneStrategy.name]
+    latent = np.asarray(state.anchors.params.latent)
+    alive = np.asarray(state.anchors.alive)
+    expected = significance_reference(latent, alive, [record], cfg.prune)
+    got = np.asarray(anchor_scores(state.anchors.params.latent, stats, state.anchors.alive, cfg.prune))
+    assert np.sum(np.asarray(stats.contrib) > 0) > 10  # the view really touched many anchors
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(expected))
+    np.testing.assert_allclose(got[alive], expected[alive], rtol=2e-4, atol=1e-5)
+    seen = np.zeros(len(alive), bool)
+    seen[slots[valid]] = True
+    np.testing.assert_array_equal(np.asarray(stats.grad_count), seen.astype(np.float32))
+
+
+def test_prune_pass_honours_ratio_and_pruned_anchors_are_inert(prune_setup):
+    cfg, tx, step, prune, state0 = prune_setup
+    state = _copy(state0)
+    for i in range(3):
+        state, _ = step(state, _batch(i))
+    assert prune.due(int(state.step))
+    alive_before = np.array(state.anchors.alive)
+    state, info = prune.update(state, tx, int(state.step))
+    alive_after = np.array(state.anchors.alive)
+    removed = alive_before & ~alive_after
+    assert int(info["pruned"]) == removed.sum() == int(0.1 * alive_before.sum()) > 0
+    assert not np.any(alive_after & ~alive_before)
+    assert float(jnp.sum(state.densify[prune.name].contrib)) == 0.0  # statistics restart after a pass
+
+    # pruned anchors contribute nothing: the render equals the render of the model without them ...
+    batch = _batch(5)
+    camera, index = batch["camera"], batch["index"]
+    train_render = _train_render(cfg)
+    image = train_render(state.anchors, state.nets, camera, index)
+    compact_anchors = compact(state.anchors)
+    assert compact_anchors.capacity < state.anchors.capacity
+    render = make_render_fn(cfg)  # every slot decoded
+    compact_image, _ = render(compact_anchors, state.nets, camera, index)
+    np.testing.assert_allclose(np.asarray(image), np.asarray(compact_image), atol=1e-6)
+    full_image, _ = render(state.anchors, state.nets, camera, index)
+    np.testing.assert_allclose(np.asarray(full_image), np.asarray(compact_image), atol=1e-6)
+
+    # ... their parameters get exactly zero gradient and do not move in later steps
+    def image_sum(anchor_params):
+        return jnp.sum(train_render(state.anchors.replace(params=anchor_params), state.nets, camera, index))
+
+    grad = jax.grad(image_sum)(state.anchors.params)
+    for leaf in jax.tree_util.tree_leaves(grad):
+        assert np.all(np.asarray(leaf)[removed] == 0)
+    before = jax.device_get(state.anchors.params)
+    for i in range(3):
+        state, _ = step(state, _batch(10 + i))
+    after = jax.device_get(state.anchors.params)
+    for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after)):
+        np.testing.assert_array_equal(a[removed], b[removed])
+    assert step._cache_size() == 1 and prune._pass._cache_size() == 1  # masks, not new shapes
+
+
+def test_prune_ratio_counts_exactly_and_repeated_passes_do_not_recompile(prune_setup):
+    cfg, tx, step, prune, state0 = prune_setup
+    state = _copy(state0)
+    counts = [int(np.sum(state.anchors.alive))]
+    for i in range(12):
+        state, _ = step(state, _batch(i))
+        done = int(state.step)
+        assert prune.due(done) == prune_due(done, cfg.prune)
+        if prune_due(done, cfg.prune):
+            state, info = prune.update(state, tx, done)
+            counts.append(int(info["alive"]))
+    assert len(counts) == 5  # passes at steps 3, 6, 9, 12
+    for before, after in zip(counts, counts[1:]):
+        assert after == before - before // 10
+    assert step._cache_size() == 1 and prune._pass._cache_size() == 1
+
+
+def test_strategy_none_keeps_every_anchor_and_collects_nothing():
+    cfg = _prune_cfg(strategy="none")
+    strategies, state, tx = _init(cfg)
+    # no feature-aware strategy is built: nothing is traced, collected or stored for it
+    assert [s.name for s in strategies] == ["scaffold"] and set(state.densify) == {"scaffold"}
+    step = make_train_step(cfg, tx, strategies)
+    alive = np.array(state.anchors.alive)
+    for i in range(3):
+        state, _ = step(state, _batch(i))
+    assert set(state.densify) == {"scaffold"}
+    assert not any(prune_due(s, cfg.prune) for s in range(cfg.train.iterations + 1))
+    # a pass with strategy "none" removes nothing (the statistics it would read are all zero)
+    prune = FeaturePruneStrategy(cfg.prune)
+    state = state.replace(densify={**state.densify, prune.name: prune.init_state(state.anchors.capacity)})
+    assert all(float(jnp.sum(x)) == 0.0 for x in jax.tree_util.tree_leaves(state.densify[prune.name]))
+    state, info = prune.update(state, tx, 3)
+    assert int(info["pruned"]) == 0
+    np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)

@@ -1,0 +1,101 @@
+"""Rendering a model for evaluation (training/render.py): make_render_fn / make_feature_render_fn."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from cusgs_jax.config import Config
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.model.anchors import compact
+from cusgs_jax.model.decode import decode_view
+from cusgs_jax.model.field import retrieve
+from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, render_config, render_gaussians,
+                                       view_queries)
+from cusgs_jax.training.state import init_train_state
+from cusgs_jax.types import Camera
+
+W, H = 32, 24
+CAMERA = Camera(jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]]), jnp.eye(4), W, H)
+CFG = Config().replace(train=dict(iterations=10),
+                       model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
+FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
+
+
+def _points():
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-1, 1, (400, 3))
+    pts[:, 2] += 3.0
+    return pts
+
+
+def _banks():
+    rng = np.random.default_rng(1)
+    return {"a": jnp.asarray(rng.normal(size=(5, 3)), jnp.float32),
+            "b": jnp.asarray(rng.normal(size=(7, 2)), jnp.float32)}
+
+
+def _state(cfg, banks=None):
+    state, _ = init_train_state(cfg, _points(), 2, 2.0, make_strategies(cfg), banks)
+    # non-zero latents and offsets, and a third of the anchors dead (as after pruning)
+    key = jax.random.PRNGKey(3)
+    params = state.anchors.params
+    params = dataclasses.replace(params, latent=jax.random.normal(key, params.latent.shape),
+                                 offsets=0.3 * jax.random.normal(jax.random.fold_in(key, 1), params.offsets.shape))
+    alive = np.array(state.anchors.alive)
+    alive[np.flatnonzero(alive)[::3]] = False
+    return state.replace(anchors=state.anchors.replace(params=params, alive=jnp.asarray(alive)))
+
+
+def test_render_config_decodes_every_slot_and_changes_nothing_else():
+    cfg = render_config(CFG)
+    assert CFG.model.visible_fraction < 1.0 and cfg.model.visible_fraction == 1.0
+    assert cfg.replace(model=dict(visible_fraction=CFG.model.visible_fraction)) == CFG
+
+
+def test_compact_render_equals_the_full_model_and_the_direct_path():
+    state = _state(CFG)
+    render = make_render_fn(CFG)
+    anchors = compact(state.anchors)
+    assert anchors.capacity < state.anchors.capacity
+    image, overflow = render(anchors, state.nets, CAMERA, jnp.int32(1))
+    image = np.asarray(image)
+    assert image.shape == (H, W, 3) and int(overflow) == 0
+    assert image.min() >= 0.0 and image.max() <= 1.0 and image.std() > 0.01  # something was drawn
+    full, _ = render(state.anchors, state.nets, CAMERA, jnp.int32(1))
+    np.testing.assert_allclose(np.asarray(full), image, atol=1e-6)
+    # the train step's path at visible_fraction < 1 (no visible anchor dropped here) agrees
+    gaussians, view = decode_view(state.nets, state.anchors, CAMERA, jnp.int32(1), CFG.model)
+    assert int(view.overflow) == 0
+    direct = np.clip(np.asarray(render_gaussians(gaussians, CAMERA, CFG.splat).image), 0, 1)
+    np.testing.assert_allclose(direct, image, atol=1e-6)
+    # the appearance embedding matters
+    other, _ = render(anchors, state.nets, CAMERA, jnp.int32(0))
+    assert not np.allclose(np.asarray(other), image)
+
+
+@pytest.mark.parametrize("granularity", ["per_anchor", "per_gaussian"])
+def test_feature_render_matches_rgb_and_retrieves_every_model(granularity):
+    cfg = CFG.replace(features=FEATURES, model=dict(query_granularity=granularity))
+    banks = _banks()
+    state = _state(cfg, banks)
+    anchors = compact(state.anchors)
+    rgb, features = make_feature_render_fn(cfg)(anchors, state.nets, CAMERA, jnp.int32(1), banks)
+    image, _ = make_render_fn(cfg)(anchors, state.nets, CAMERA, jnp.int32(1))
+    np.testing.assert_allclose(np.asarray(rgb), np.asarray(image), atol=1e-6)  # extra channels leave RGB alone
+    assert set(features) == {"a", "b"}
+    assert features["a"].shape == (H, W, 3) and features["b"].shape == (H, W, 2)
+    # the features are the memory read-out of the composited queries (eager vs jitted: float32 rounding)
+    full = render_config(cfg)
+    gaussians, view = decode_view(state.nets, anchors, CAMERA, jnp.int32(1), full.model)
+    queries = view_queries(state.nets, anchors, view, CAMERA, jnp.int32(1), full)
+    assert queries.shape == (gaussians.means.shape[0], 10)
+    rendered = render_gaussians(gaussians, CAMERA, full.splat, extra_channels=queries).image[..., 3:]
+    expected = retrieve(state.nets["memory"], banks, rendered, full.features)
+    for name in ("a", "b"):
+        assert np.all(np.isfinite(np.asarray(features[name])))
+        np.testing.assert_allclose(np.asarray(features[name]), np.asarray(expected[name]), atol=1e-5)
