@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.splat.project import normalize_quats, project_gaussians, quats_to_rotmats, world_to_camera
-from cusgs_jax.splat.reference import project_reference
+from cusgs_jax.testing.splat_reference import project_reference
 from cusgs_jax.testing.scenes import as_dtype, make_scene
 
 

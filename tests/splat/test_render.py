@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.splat import check_inputs, rasterize, rasterize_batch
-from cusgs_jax.splat.reference import rasterize_reference
+from cusgs_jax.testing.splat_reference import rasterize_reference
 from cusgs_jax.testing.scenes import KEYS, as_dtype, make_scene
 
 

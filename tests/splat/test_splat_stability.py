@@ -50,7 +50,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.splat import check_inputs, rasterize
-from cusgs_jax.splat.reference import rasterize_reference
+from cusgs_jax.testing.splat_reference import rasterize_reference
 
 W, H, F = 48, 36, 40.0  # 3 × 3 tiles of 16 px; the bottom row is partial (4 px)
 G = 64  # every scene but the stack has G Gaussians, so one compile serves them all

@@ -175,7 +175,7 @@ def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
     """One step's PruneStats against a direct computation: autodiff of the same loss for ∇z, the
     float64 reference rasteriser for Σ opacity·T, and testing.prune_reference for the score."""
     from cusgs_jax import losses
-    from cusgs_jax.splat.reference import rasterize_reference
+    from cusgs_jax.testing.splat_reference import rasterize_reference
     from cusgs_jax.testing.prune_reference import significance_reference
 
     cfg, tx, step, _, state0 = prune_setup

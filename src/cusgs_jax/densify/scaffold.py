@@ -182,6 +182,10 @@ class ScaffoldStrategy:
         """An adjustment after ``step`` completed steps."""
         return self.cfg.start <= step <= self.cfg.stop and step % self.cfg.interval == 0
 
+    def generator(self, step: int) -> np.random.Generator:
+        """The candidate-dropping draws of the adjustment after ``step`` steps (seeded: resumes replay it)."""
+        return np.random.default_rng([self.seed, step - 1])
+
     def update(self, state, tx, step: int):
         """Grow, then prune weak anchors (host side, after ``step`` completed steps).
 
@@ -189,8 +193,8 @@ class ScaffoldStrategy:
           (state, info) with info ``grown``, ``pruned``, ``capacity``, ``capacity_grew`` (old capacity or None).
         """
         stats = state.densify[self.name]
-        rng = np.random.default_rng([self.seed, step - 1])
-        centers, latents, log_cells, took_part = plan_growth(state.anchors, stats, self.cfg, self.voxel_size, rng)
+        centers, latents, log_cells, took_part = plan_growth(state.anchors, stats, self.cfg, self.voxel_size,
+                                                             self.generator(step))
         # the Gaussians that took part are reset (Scaffold-GS resets offset_denom/accum there)
         stats = dataclasses.replace(stats, grad_accum=jnp.where(took_part, 0.0, stats.grad_accum),
                                     grad_count=jnp.where(took_part, 0.0, stats.grad_count))

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from cusgs_jax.splat.reference import project_reference, rasterize_reference
+from cusgs_jax.testing.splat_reference import project_reference, rasterize_reference
 
 W, H = 16, 12
 F = 100.0

@@ -1,19 +1,33 @@
-"""Feature-aware pruning: scores against NumPy, masking, selection, jit, and a rendered scene."""
+"""Feature-aware pruning: scores against NumPy, masking, selection, jit, a rendered scene, the strategy."""
 
 from __future__ import annotations
 
 import math
+import types
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.prune import (PruneConfig, PruneStats, _floor_ratio, accumulate_prune_stats, anchor_scores,
-                             gaussian_volume_weight, prune_due, prune_pass, select_prune, stats_window)
-from cusgs_jax.scaffold import Anchors
+from cusgs_jax.config import PruneConfig
+from cusgs_jax.densify.base import ViewRecord
+from cusgs_jax.densify.feature_prune import (FeaturePruneStrategy, PruneStats, _floor_ratio,
+                                             accumulate_prune_stats, anchor_scores, gaussian_volume_weight,
+                                             prune_due, prune_pass, select_prune, stats_window)
+from cusgs_jax.densify.scaffold import GrowStats
+from cusgs_jax.model.anchors import AnchorParams, AnchorState
+from cusgs_jax.model.decode import VisibleSlots
 from cusgs_jax.splat import rasterize
 from cusgs_jax.testing.prune_reference import significance_reference
+from cusgs_jax.training.state import TrainState
+
+
+def _anchors(centers, alive, latent) -> AnchorState:
+    """Anchors with the given centres, alive mask and latents z (offsets and scales are not read)."""
+    a = latent.shape[0]
+    params = AnchorParams(offsets=jnp.zeros((a, 1, 3)), log_scaling=jnp.zeros((a, 6)), latent=jnp.asarray(latent))
+    return AnchorState(jnp.asarray(centers), jnp.asarray(alive), params)
 
 
 def _random_view(rng, capacity, num_slots, n, f, alive, *, pad=0):
@@ -218,12 +232,12 @@ def test_prune_pass_jit_once_and_clears_alive():
     latent = jnp.asarray(rng.normal(size=(a, f)), jnp.float32)
     stats = PruneStats(jnp.asarray(rng.uniform(0, 1, a), jnp.float32), jnp.full(a, 3.0),
                        jnp.asarray(rng.uniform(0, 100, a), jnp.float32))
-    run = jax.jit(lambda anchors, z, s: prune_pass(anchors, z, s, cfg))
+    run = jax.jit(lambda anchors, s: prune_pass(anchors, s, cfg))
     for count in (500, 420, 137):
         alive = np.zeros(a, bool)
         alive[rng.choice(a, count, replace=False)] = True
-        anchors = Anchors(centers, jnp.asarray(alive))
-        new, fresh, info = run(anchors, latent, stats)
+        anchors = _anchors(centers, jnp.asarray(alive), latent)
+        new, fresh, info = run(anchors, stats)
         new_alive = np.asarray(new.alive)
         pruned = alive & ~new_alive
         assert int(info["pruned"]) == pruned.sum() == math.floor(count * 0.01)
@@ -237,15 +251,15 @@ def test_prune_pass_jit_once_and_clears_alive():
 
     # anchors not decoded since the last pass are kept (min_visits = 1)
     unseen = PruneStats(stats.latent_grad_norm, stats.grad_count.at[:250].set(0.0), stats.contrib)
-    new, _, info = run(Anchors(centers, jnp.ones(a, bool)), latent, unseen)
+    new, _, info = run(_anchors(centers, jnp.ones(a, bool), latent), unseen)
     assert int(info["candidates"]) == 250 and int(info["pruned"]) == 5
     assert np.asarray(new.alive)[:250].all()
 
     # "none" and "scaffold" change no anchor
     for strategy in ("none", "scaffold"):
-        anchors = Anchors(centers, jnp.ones(a, bool))
+        anchors = _anchors(centers, jnp.ones(a, bool), latent)
         off = PruneConfig(strategy=strategy)
-        new, fresh, info = jax.jit(lambda an, z, s, c=off: prune_pass(an, z, s, c))(anchors, latent, stats)
+        new, fresh, info = jax.jit(lambda an, s, c=off: prune_pass(an, s, c))(anchors, stats)
         np.testing.assert_array_equal(new.alive, anchors.alive)
         assert int(info["pruned"]) == 0
     with pytest.raises(ValueError):
@@ -310,6 +324,53 @@ def test_hidden_anchor_has_no_contribution_on_a_render():
     assert contrib[3] == 0 and contrib[5] == 0
     scores = np.asarray(anchor_scores(jnp.asarray(latent), stats, jnp.asarray(alive), cfg))
     assert np.argmin(scores) == 0
-    new, _, info = prune_pass(Anchors(jnp.zeros((a, 3)), jnp.asarray(alive)), jnp.asarray(latent), stats, cfg)
+    new, _, info = prune_pass(_anchors(jnp.zeros((a, 3)), jnp.asarray(alive), jnp.asarray(latent)), stats, cfg)
     assert int(info["pruned"]) == 1
     np.testing.assert_array_equal(new.alive, alive & (np.arange(a) != 0))
+
+
+def test_strategy_accumulates_views_and_prunes_by_mask():
+    """FeaturePruneStrategy: the step hook is accumulate_prune_stats on the view's record (inside the
+    window, finite steps only); the pass clears alive bits and resets only its own statistics."""
+    rng = np.random.default_rng(7)
+    a, n, f = 40, 3, 5
+    cfg = PruneConfig(ratio=0.1, start=200, interval=100, stop=1000)
+    strategy = FeaturePruneStrategy(cfg)
+    alive = np.ones(a, bool)
+    alive[[2, 9]] = False
+    view = _random_view(rng, a, 12, n, f, alive, pad=2)
+    render = types.SimpleNamespace(significance=jnp.asarray(view["significance"]))
+    gaussians = types.SimpleNamespace(scales=jnp.asarray(view["scales"]), active=jnp.asarray(view["active"]))
+
+    def record(step, finite=True):
+        slots = VisibleSlots(jnp.asarray(view["slots"]), jnp.asarray(view["valid"]), jnp.int32(0))
+        return ViewRecord(slots=slots, gaussians=gaussians, render=render, grad2d=jnp.zeros((14 * n, 2)),
+                          latent_grad=jnp.asarray(view["latent_grad"]), capacity=a, width=8, height=8,
+                          step=jnp.int32(step), finite=jnp.asarray(finite))
+
+    stats = strategy.accumulate(strategy.init_state(a), record(150))
+    want = _accumulate(PruneStats.zeros(a), view, cfg=cfg)
+    for x, y in zip(jax.tree_util.tree_leaves(stats), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(x, y)
+    assert float(jnp.sum(stats.grad_count)) == 12
+    for step, finite in ((99, True), (1000, True), (150, False)):  # outside the window / skipped update
+        off = strategy.accumulate(strategy.init_state(a), record(step, finite))
+        assert not any(np.any(np.asarray(x)) for x in jax.tree_util.tree_leaves(off)), (step, finite)
+    assert [s for s in range(0, 1101, 50) if strategy.due(s)] == list(range(200, 1001, 100))
+
+    latent = rng.normal(size=(a, f)).astype(np.float32)
+    eligible = np.asarray(stats.grad_count) >= 1
+    scores = np.asarray(anchor_scores(jnp.asarray(latent), stats, jnp.asarray(alive), cfg))
+    expect = np.zeros(a, bool)  # floor(0.1 · 38) = 3 lowest-scoring decoded alive anchors
+    expect[np.flatnonzero(alive & eligible)[np.argsort(scores[alive & eligible], kind="stable")[:3]]] = True
+    grow = GrowStats(*(jnp.full(shape, 2.0) for shape in ((a, n), (a, n), (a,), (a,))))
+    state = TrainState(anchors=_anchors(jnp.zeros((a, 3)), alive, latent), nets={}, opt_state=None,
+                       densify={"feature_prune": stats, "scaffold": grow}, step=jnp.int32(0), skipped=jnp.int32(0))
+    new, info = strategy.update(state, None, 200)
+    assert int(info["pruned"]) == 3 and int(info["alive"]) == 35
+    np.testing.assert_array_equal(new.anchors.alive, alive & ~expect)
+    np.testing.assert_array_equal(new.anchors.params.latent, latent)  # a mask flip: nothing else moves
+    for x in jax.tree_util.tree_leaves(new.densify["feature_prune"]):
+        np.testing.assert_array_equal(x, np.zeros(a))
+    for x in jax.tree_util.tree_leaves(new.densify["scaffold"]):
+        np.testing.assert_array_equal(x, 2.0)
