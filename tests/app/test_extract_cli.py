@@ -5,23 +5,9 @@ from __future__ import annotations
 import pytest
 
 from cusgs_jax.app.extract import main
-from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.features import load_features
 
-W, H, V = 40, 30, 4
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """A tiny demo scene (module-wide; tests write features with overwrite=True)."""
-    return generate_demo_scene(tmp_path_factory.mktemp("demo"), num_views=V, width=W, height=H,
-                               num_points=1500)
-
-
-@pytest.fixture(scope="module")
-def names(demo):
-    return load_scene(demo, holdout_every=0).names
+W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 
 
 def test_cli(demo, names, capsys):

@@ -18,17 +18,9 @@ from cusgs_jax.data.features import (
     load_features,
     write_features,
 )
+from cusgs_jax.testing.scenes import feature_maps
 
 NAMES = ("a.png", "b.png", "c.jpg")
-
-
-def _maps(n=3, h=5, w=7, d=4, seed=0):
-    rng = np.random.default_rng(seed)
-    maps = rng.normal(size=(n, h, w, d)).astype(np.float32)
-    maps[0, 0, 0] = 0.0  # a "no target" pixel
-    if n > 1 and h > 2:
-        maps[1, 2, :] = 0.0  # a row without targets
-    return maps
 
 
 @pytest.fixture
@@ -45,7 +37,7 @@ def scene(tmp_path):
 @pytest.mark.parametrize("dtype", ["float16", "float32"])
 @pytest.mark.parametrize("hw", [(5, 7), (3, 4), (1, 9)])
 def test_round_trip(scene, dtype, hw):
-    maps = _maps(h=hw[0], w=hw[1])
+    maps = feature_maps(h=hw[0], w=hw[1])
     folder = write_features(scene, "toy", maps, NAMES, source="unit test", dtype=dtype)
     assert folder == feature_dir(scene, "toy") == scene / "features" / "toy"
     for name in NAMES:
@@ -71,14 +63,14 @@ def test_round_trip(scene, dtype, hw):
 
 
 def test_load_follows_requested_order_and_subset(scene):
-    maps = _maps()
+    maps = feature_maps()
     write_features(scene, "toy", dict(zip(NAMES, maps)), source="dict input")
     fs = load_features(scene, "toy", ["c.jpg", "a.png"])
     np.testing.assert_array_equal(fs.maps, maps[[2, 0]].astype(np.float16).astype(np.float32))
 
 
 def test_names_with_subfolders(scene):
-    maps = _maps(n=2)
+    maps = feature_maps(n=2)
     write_features(scene, "toy", maps, ["cam0/x.JPG", "cam1/x.JPG"], source="s")
     assert (scene / "features/toy/cam0/x.npy").is_file()
     fs = load_features(scene, "toy", ["cam1/x.JPG"])
@@ -86,10 +78,10 @@ def test_names_with_subfolders(scene):
 
 
 def test_overwrite(scene):
-    write_features(scene, "toy", _maps(), NAMES, source="first")
+    write_features(scene, "toy", feature_maps(), NAMES, source="first")
     with pytest.raises(FeatureError, match="already exist.*overwrite"):
-        write_features(scene, "toy", _maps(), NAMES, source="second")
-    new = _maps(n=1, h=2, w=3, d=6, seed=3)
+        write_features(scene, "toy", feature_maps(), NAMES, source="second")
+    new = feature_maps(n=1, h=2, w=3, d=6, seed=3)
     write_features(scene, "toy", new, ["z.png"], source="second", overwrite=True)
     assert sorted(p.name for p in feature_dir(scene, "toy").iterdir()) == ["meta.json", "z.npy"]
     fs = load_features(scene, "toy", ["z.png"])
@@ -111,7 +103,7 @@ def test_writer_streams_and_meta_last(scene):
 
 def test_write_rejects_bad_input(scene):
     with pytest.raises(FeatureError, match="names"):
-        write_features(scene, "toy", _maps(), None, source="s")
+        write_features(scene, "toy", feature_maps(), None, source="s")
     with pytest.raises(FeatureError, match=r"\[N, h, w, D\]"):
         write_features(scene, "toy", np.zeros((3, 4, 5)), NAMES, source="s")
     with pytest.raises(FeatureError, match="same \\[h, w, D\\]"):
@@ -125,9 +117,9 @@ def test_write_rejects_bad_input(scene):
         write_features(scene, "t5", {"a.png": np.ones((2, 2, 3)), "a.jpg": np.ones((2, 2, 3))},
                        source="s")
     with pytest.raises(FeatureError, match="dtype"):
-        write_features(scene, "t6", _maps(), NAMES, source="s", dtype="float64")
+        write_features(scene, "t6", feature_maps(), NAMES, source="s", dtype="float64")
     with pytest.raises(FeatureError, match="not a valid folder name"):
-        write_features(scene, "../evil", _maps(), NAMES, source="s")
+        write_features(scene, "../evil", feature_maps(), NAMES, source="s")
     with pytest.raises(FeatureError, match="relative path"):
         feature_file(scene, "toy", "../x.png")
 
@@ -139,8 +131,8 @@ def test_write_rejects_bad_input(scene):
 
 def test_list_feature_models(scene):
     assert list_feature_models(scene) == []
-    write_features(scene, "zeta", _maps(), NAMES, source="s")
-    write_features(scene, "alpha", _maps(), NAMES, source="s")
+    write_features(scene, "zeta", feature_maps(), NAMES, source="s")
+    write_features(scene, "alpha", feature_maps(), NAMES, source="s")
     (scene / "features" / "incomplete").mkdir()  # no meta.json: not listed
     assert list_feature_models(scene) == ["alpha", "zeta"]
 
@@ -151,7 +143,7 @@ def test_list_feature_models(scene):
 
 
 def _written(scene, **kw):
-    maps = kw.pop("maps", _maps())
+    maps = kw.pop("maps", feature_maps())
     folder = write_features(scene, "toy", maps, NAMES, source="s", dtype="float32", **kw)
     return folder
 

@@ -6,19 +6,11 @@ import numpy as np
 import pytest
 
 from cusgs_jax.data.resize import resize_features
-
-
-def _maps(n=3, h=5, w=7, d=4, seed=0):
-    rng = np.random.default_rng(seed)
-    maps = rng.normal(size=(n, h, w, d)).astype(np.float32)
-    maps[0, 0, 0] = 0.0  # a "no target" pixel
-    if n > 1 and h > 2:
-        maps[1, 2, :] = 0.0  # a row without targets
-    return maps
+from cusgs_jax.testing.scenes import feature_maps
 
 
 def test_resize_identity_and_shapes():
-    maps = _maps()
+    maps = feature_maps()
     np.testing.assert_array_equal(resize_features(maps, (7, 5)), maps)
     assert resize_features(maps, (3, 2)).shape == (3, 2, 3, 4)
     assert resize_features(maps[0], (14, 10)).shape == (10, 14, 4)

@@ -8,26 +8,12 @@ import os
 
 import pytest
 
-from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.features import FeatureError, load_features
 from cusgs_jax.extract import extract
 from cusgs_jax.extract.pretrained import _INSTALL_HINT
 
-W, H, V = 40, 30, 4
+W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 _DEPS = {"clip": ("torch", "open_clip"), "dinov2": ("torch", "transformers")}
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """A tiny demo scene (module-wide; tests write features with overwrite=True)."""
-    return generate_demo_scene(tmp_path_factory.mktemp("demo"), num_views=V, width=W, height=H,
-                               num_points=1500)
-
-
-@pytest.fixture(scope="module")
-def names(demo):
-    return load_scene(demo, holdout_every=0).names
 
 
 def _have(*modules):

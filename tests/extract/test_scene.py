@@ -15,20 +15,8 @@ from cusgs_jax.data.features import FeatureError, feature_dir, load_features
 from cusgs_jax.extract import ensure_extracted, extract, semantic_features, semantic_palette
 from cusgs_jax.extract.scene import _model_lock
 
-W, H, V = 40, 30, 4
+W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 DIMS = {"daisy": 104, "hog": 36, "gabor": 18, "semantic": 32}
-
-
-@pytest.fixture(scope="module")
-def demo(tmp_path_factory):
-    """A tiny demo scene (module-wide; tests write features with overwrite=True)."""
-    return generate_demo_scene(tmp_path_factory.mktemp("demo"), num_views=V, width=W, height=H,
-                               num_points=1500)
-
-
-@pytest.fixture(scope="module")
-def names(demo):
-    return load_scene(demo, holdout_every=0).names
 
 
 def _files(scene, model, names):

@@ -10,6 +10,7 @@ import pytest
 
 from cusgs_jax.config import Config, FeatureConfig, FeatureModelConfig, GrowConfig, ModelConfig, TrainOptions
 from cusgs_jax.types import Camera
+from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 W, H = 32, 24
 K = jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
@@ -25,17 +26,8 @@ def _cfg(features=True, granularity="per_anchor"):
                   grow=GrowConfig(stats_start=0, start=1000, stop=1000))
 
 
-def _points():
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-1, 1, (400, 3))
-    pts[:, 2] += 3.0
-    return pts
-
-
 def _banks():
-    rng = np.random.default_rng(1)
-    return {"alpha": jnp.asarray(rng.normal(size=(23, 6)), jnp.float32),
-            "beta": jnp.asarray(rng.normal(size=(23, 9)), jnp.float32)}
+    return {name: jnp.asarray(b) for name, b in random_banks({"alpha": (23, 6), "beta": (23, 9)}).items()}
 
 
 def _batch(features=True, seed=0):
@@ -54,5 +46,5 @@ def _batch(features=True, seed=0):
 @pytest.fixture(scope="session")
 def feature_scene():
     """``cfg(features, granularity)``, ``points()``, ``banks()``, ``batch(features, seed)`` and the sizes."""
-    return types.SimpleNamespace(cfg=_cfg, points=_points, banks=_banks, batch=_batch, W=W, H=H, K=K,
+    return types.SimpleNamespace(cfg=_cfg, points=sfm_points, banks=_banks, batch=_batch, W=W, H=H, K=K,
                                  models=MODELS)

@@ -15,29 +15,21 @@ from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
 from cusgs_jax.model.anchors import AnchorState, voxelize
 from cusgs_jax.training.state import TrainState, init_nets, init_train_state
+from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 CFG = Config().replace(train=dict(iterations=50),
                        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
 FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
 
 
-def _points():
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-1, 1, (400, 3))
-    pts[:, 2] += 3.0
-    return pts
-
-
 def _banks():
-    rng = np.random.default_rng(1)
-    return {"a": jnp.asarray(rng.normal(size=(5, 3)), jnp.float32), "b": jnp.asarray(rng.normal(size=(7, 2)),
-                                                                                        jnp.float32)}
+    return {name: jnp.asarray(b) for name, b in random_banks({"a": (5, 3), "b": (7, 2)}).items()}
 
 
 def test_fresh_state_from_points():
     strategies = make_strategies(CFG)
-    state, tx = init_train_state(CFG, _points(), 3, 2.0, strategies)
-    initial = len(voxelize(_points(), CFG.model.voxel_size))
+    state, tx = init_train_state(CFG, sfm_points(), 3, 2.0, strategies)
+    initial = len(voxelize(sfm_points(), CFG.model.voxel_size))
     assert isinstance(state.anchors, AnchorState)
     assert state.anchors.capacity == math.ceil(CFG.model.capacity_factor * initial)
     assert int(np.sum(state.anchors.alive)) == initial and bool(np.all(np.asarray(state.anchors.alive)[:initial]))
@@ -58,11 +50,11 @@ def test_fresh_state_from_points():
 
 def test_same_seed_same_state_and_seed_changes_networks():
     strategies = make_strategies(CFG)
-    a, _ = init_train_state(CFG, _points(), 2, 2.0, strategies)
-    b, _ = init_train_state(CFG, _points(), 2, 2.0, strategies)
+    a, _ = init_train_state(CFG, sfm_points(), 2, 2.0, strategies)
+    b, _ = init_train_state(CFG, sfm_points(), 2, 2.0, strategies)
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
         np.testing.assert_array_equal(x, y)
-    c, _ = init_train_state(CFG.replace(train=dict(seed=1)), _points(), 2, 2.0, strategies)
+    c, _ = init_train_state(CFG.replace(train=dict(seed=1)), sfm_points(), 2, 2.0, strategies)
     differs = [not np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a.nets),
                                                          jax.tree_util.tree_leaves(c.nets))]
     assert any(differs)
@@ -70,7 +62,7 @@ def test_same_seed_same_state_and_seed_changes_networks():
 
 
 def test_trainable_round_trip_and_pytree():
-    state, _ = init_train_state(CFG, _points(), 2, 2.0, make_strategies(CFG))
+    state, _ = init_train_state(CFG, sfm_points(), 2, 2.0, make_strategies(CFG))
     trainable = state.trainable
     assert set(trainable) == {"anchor", "decoder", "appearance"}
     assert trainable["anchor"] is state.anchors.params
@@ -105,6 +97,6 @@ def test_feature_heads_need_one_bank_per_model():
 
 def test_per_gaussian_queries_live_in_the_anchor_table():
     cfg = CFG.replace(features=FEATURES, model=dict(query_granularity="per_gaussian"))
-    state, _ = init_train_state(cfg, _points(), 2, 2.0, make_strategies(cfg), _banks())
+    state, _ = init_train_state(cfg, sfm_points(), 2, 2.0, make_strategies(cfg), _banks())
     assert "queries" not in state.nets and set(state.nets["memory"]) == {"a", "b"}
     assert state.anchors.params.query_table.shape == (state.anchors.capacity, 4, 10)

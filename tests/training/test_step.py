@@ -17,6 +17,7 @@ from cusgs_jax.training.render import make_render_fn, render_gaussians
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
+from cusgs_jax.testing.scenes import sfm_points
 
 W, H = 32, 24
 K = jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
@@ -27,13 +28,6 @@ def _cfg(**grow):
         train=dict(iterations=50),
         model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8),
         grow={**dict(stats_start=0, start=5, stop=50, interval=5), **grow})
-
-
-def _points():
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-1, 1, (400, 3))
-    pts[:, 2] += 3.0
-    return pts
 
 
 def _batch(seed=0, nan=False):
@@ -48,7 +42,7 @@ def _batch(seed=0, nan=False):
 
 def _init(cfg):
     strategies = make_strategies(cfg)
-    state, tx = init_train_state(cfg, _points(), 2, 2.0, strategies)
+    state, tx = init_train_state(cfg, sfm_points(), 2, 2.0, strategies)
     return strategies, state, tx
 
 

@@ -18,6 +18,7 @@ from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, r
                                        view_queries)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.types import Camera
+from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 W, H = 32, 24
 CAMERA = Camera(jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]]), jnp.eye(4), W, H)
@@ -26,21 +27,12 @@ CFG = Config().replace(train=dict(iterations=10),
 FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
 
 
-def _points():
-    rng = np.random.default_rng(0)
-    pts = rng.uniform(-1, 1, (400, 3))
-    pts[:, 2] += 3.0
-    return pts
-
-
 def _banks():
-    rng = np.random.default_rng(1)
-    return {"a": jnp.asarray(rng.normal(size=(5, 3)), jnp.float32),
-            "b": jnp.asarray(rng.normal(size=(7, 2)), jnp.float32)}
+    return {name: jnp.asarray(b) for name, b in random_banks({"a": (5, 3), "b": (7, 2)}).items()}
 
 
 def _state(cfg, banks=None):
-    state, _ = init_train_state(cfg, _points(), 2, 2.0, make_strategies(cfg), banks)
+    state, _ = init_train_state(cfg, sfm_points(), 2, 2.0, make_strategies(cfg), banks)
     # non-zero latents and offsets, and a third of the anchors dead (as after pruning)
     key = jax.random.PRNGKey(3)
     params = state.anchors.params

@@ -67,12 +67,10 @@ in slot order. (Docstrings below write V for S.)
 from __future__ import annotations
 
 import dataclasses
-import math
 from fractions import Fraction
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from cusgs_jax.config import PruneConfig
 from cusgs_jax.model.anchors import AnchorState, PerAnchor

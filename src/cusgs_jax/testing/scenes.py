@@ -1,10 +1,11 @@
-"""Small random Gaussian scenes (float64 NumPy) for the splatting tests."""
+"""Small random inputs for the tests: Gaussian scenes (float64 NumPy) for the splatting tests,
+SfM-like point clouds and PSC banks for the training tests."""
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KEYS", "as_dtype", "make_scene"]
+__all__ = ["KEYS", "as_dtype", "feature_maps", "make_scene", "random_banks", "sfm_points"]
 
 KEYS = ("means", "quats", "scales", "opacities", "colors")
 """The Gaussian parameter keys of a scene, in rasteriser argument order."""
@@ -54,3 +55,26 @@ def make_scene(seed=0, num=120, width=40, height=28, channels=3, *, behind=0, of
 def as_dtype(scene, dtype):
     """Scene arrays cast to `dtype` (ints untouched)."""
     return {k: (np.asarray(v, dtype) if isinstance(v, np.ndarray) else v) for k, v in scene.items()}
+
+
+def sfm_points(num: int = 400, seed: int = 0) -> np.ndarray:
+    """[P, 3] float64 points uniform in the box [-1, 1]² × [2, 4] (in front of an identity camera)."""
+    points = np.random.default_rng(seed).uniform(-1, 1, (num, 3))
+    points[:, 2] += 3.0
+    return points
+
+
+def random_banks(shapes: dict[str, tuple[int, int]], seed: int = 1) -> dict[str, np.ndarray]:
+    """{model: [M, D] float32 standard-normal PSC entries}, drawn in the order of ``shapes``."""
+    rng = np.random.default_rng(seed)
+    return {name: rng.normal(size=shape).astype(np.float32) for name, shape in shapes.items()}
+
+
+def feature_maps(n: int = 3, h: int = 5, w: int = 7, d: int = 4, seed: int = 0) -> np.ndarray:
+    """[n, h, w, d] float32 standard-normal feature maps with a zero ("no target") pixel in
+    view 0 and, when n > 1 and h > 2, a zero row in view 1."""
+    maps = np.random.default_rng(seed).normal(size=(n, h, w, d)).astype(np.float32)
+    maps[0, 0, 0] = 0.0
+    if n > 1 and h > 2:
+        maps[1, 2, :] = 0.0
+    return maps
