@@ -14,7 +14,7 @@ C, D, S = 6, 10, 9
 
 
 def make(adapter="affine", seed=0, dtype=np.float32, log_t=None):
-    """Random head (non-trivial adapter), queries [4, 5, C], bank [S, D], mask [S]."""
+    """Random head (non-trivial adapter), queries [4, 5, C], bank [M, D], mask [M]."""
     rng = np.random.default_rng(seed)
     params = att.init_memory_head(jax.random.PRNGKey(seed), C, D, adapter=adapter, rank=3)
     ad = params["adapter"]

@@ -48,8 +48,8 @@ class SceneData:
     Attributes:
       path: the scene folder (``data.path``).
       names: image names as stored in the model, sorted.
-      images: [N, H, W, 3] uint8 RGB images at the loaded resolution.
-      viewmats: [N, 4, 4] float32 world→camera matrices (OpenCV axes, COLMAP cam_from_world).
+      images: [V, H, W, 3] uint8 RGB images at the loaded resolution.
+      viewmats: [V, 4, 4] float32 world→camera matrices (OpenCV axes, COLMAP cam_from_world).
       Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
       width, height: the loaded resolution, shared by all images.
       points: [P, 3] float32 SfM points (sorted by COLMAP point id).
@@ -74,7 +74,7 @@ class SceneData:
 
     @property
     def camera_centers(self) -> np.ndarray:
-        """[N, 3] camera centres in world coordinates (float32): -Rᵀt."""
+        """[V, 3] camera centres in world coordinates (float32): -Rᵀt."""
         rot = self.viewmats[:, :3, :3].astype(np.float64)
         trans = self.viewmats[:, :3, 3].astype(np.float64)
         return (-np.einsum("nji,nj->ni", rot, trans)).astype(np.float32)
@@ -185,7 +185,7 @@ def _registered_images(rec, files: dict[str, pathlib.Path]) -> list[tuple[str, i
 
 
 def _poses(entries, files: dict[str, pathlib.Path]) -> tuple[list[str], np.ndarray]:
-    """Names and [N, 4, 4] float64 world→camera matrices of ``entries``; SceneError on a
+    """Names and [V, 4, 4] float64 world→camera matrices of ``entries``; SceneError on a
     non-finite pose."""
     names, viewmats = [], []
     for name, _, image in entries:

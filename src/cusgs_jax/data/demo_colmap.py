@@ -31,7 +31,7 @@ def sample_points(poses, K, depths, face_maps, num_points, seed):
     face it came from.
 
     Returns:
-      (xyz [N, 3], face [N]).
+      (xyz [P, 3], face [P]).
     """
     rng = np.random.default_rng([seed, 1])
     fx, fy, cx, cy = K
@@ -57,7 +57,7 @@ def observe(scene, xyz, face, poses, K, width, height, depths, face_maps):
     camera ray towards it is the point itself (exact ray cast), and the centre ray of the pixel
     it falls in hits the same face at nearly the same depth (relative _OBS_DEPTH_RTOL), so every
     keypoint is consistent with the depth and object-id maps at its pixel.
-    Returns visible [V, N] bool and pixel coordinates xy [V, N, 2] (COLMAP convention).
+    Returns visible [V, P] bool and pixel coordinates xy [V, P, 2] (COLMAP convention).
     """
     fx, fy, cx, cy = K
     V, N = len(poses), xyz.shape[0]
@@ -93,8 +93,8 @@ def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visib
 
     One PINHOLE camera (``K``), image v (id v + 1, named ``names[v]``) with pose ``poses[v]``
     and as keypoints ``xy[v]`` of the points it sees (in point order), and every point p with
-    ``xyz[p]`` [N, 3], ``colours[p]`` uint8 [N, 3] and the track of views where ``visible``
-    [V, N] bool. Returns the pycolmap Reconstruction.
+    ``xyz[p]`` [P, 3], ``colours[p]`` uint8 [P, 3] and the track of views where ``visible``
+    [V, P] bool. Returns the pycolmap Reconstruction.
     """
     import pycolmap
 

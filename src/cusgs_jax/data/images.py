@@ -166,7 +166,7 @@ def load_images(folder: pathlib.Path, views: list[tuple[str, int]], cameras: dic
     with :func:`load_image` into one preallocated array.
 
     Returns:
-      [N, H, W, 3] uint8 RGB, N = len(views).
+      [V, H, W, 3] uint8 RGB, V = len(views).
     Raises:
       SceneError: a missing/unreadable/wrongly sized file, or images loading at different sizes.
     """

@@ -167,14 +167,14 @@ def accumulate_prune_stats(stats: PruneStats, slots: jax.Array, valid: jax.Array
 
     Args:
       stats: [A] statistics so far.
-      slots: [V] int32 anchor slot of each gathered entry.
-      valid: [V] bool, entry holds a decoded anchor (padding entries may
+      slots: [S] int32 anchor slot of each gathered entry.
+      valid: [S] bool, entry holds a decoded anchor (padding entries may
         repeat a slot; they are ignored).
-      latent_grad: [V, F] ∂L/∂z of the gathered latents (equivalently
+      latent_grad: [S, F] ∂L/∂z of the gathered latents (equivalently
         ``grads["anchor"].latent[slots]``).
-      significance: [V·N] ``RenderOutput.significance`` (Σ opacity·T).
-      scales: [V·N, 3] decoded scales of the view.
-      active: [V·N] bool, Gaussians switched on (``Gaussians.active``).
+      significance: [S·N] ``RenderOutput.significance`` (Σ opacity·T).
+      scales: [S·N, 3] decoded scales of the view.
+      active: [S·N] bool, Gaussians switched on (``Gaussians.active``).
       enabled: [] bool, e.g. ``stats_window(step) & finite``.
       cfg: closed over (volume power and percentile).
     Returns:
@@ -184,8 +184,8 @@ def accumulate_prune_stats(stats: PruneStats, slots: jax.Array, valid: jax.Array
     capacity = stats.contrib.shape[0]
     num_slots = slots.shape[0]
     n = significance.shape[0] // num_slots
-    on = valid & jnp.asarray(enabled, bool)  # [V]
-    gaussian_on = active & jnp.repeat(valid, n)  # [V·N]
+    on = valid & jnp.asarray(enabled, bool)  # [S]
+    gaussian_on = active & jnp.repeat(valid, n)  # [S·N]
     weight = gaussian_volume_weight(scales, gaussian_on, cfg)
     sig = jax.lax.stop_gradient(significance).astype(jnp.float32)
     per_gaussian = jnp.where(gaussian_on, sig * weight, 0.0)

@@ -24,7 +24,7 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB) 
 
     Args:
       pred, target: images of equal shape (e.g. [H, W, C]); the MSE runs over all
-        elements, so for a batch [N, H, W, C] this is the PSNR of the pooled MSE,
+        elements, so for a batch [V, H, W, C] this is the PSNR of the pooled MSE,
         not the mean per-view PSNR (use :func:`mean_and_per_view` for that).
       data_range: peak value R (1.0 for images in [0, 1]).
       max_db: cap. Identical images (MSE = 0) give exactly ``max_db`` (default
@@ -49,7 +49,7 @@ def mean_and_per_view(metric: Callable, preds: Sequence, targets: Sequence) -> d
 
     Args:
       metric: e.g. :func:`psnr` or :func:`ssim`; called on one [H, W, C] pair at a time.
-      preds, targets: equal-length sequences of images, or stacked [N, H, W, C] arrays.
+      preds, targets: equal-length sequences of images, or stacked [V, H, W, C] arrays.
     Returns:
       {"mean": float, "per_view": [float] * N} — the mean is the arithmetic mean of
       the per-view values (e.g. mean PSNR in dB, as reported by 3DGS papers).

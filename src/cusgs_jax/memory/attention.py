@@ -1,9 +1,9 @@
 """Memory attention: per-pixel retrieval of a model's feature from its PSC bank.
 
 For one foundation model with query slice ``q`` [c] (rendered per pixel) and PSC bank
-``M`` [S, D] (see :mod:`cusgs_jax.memory.psc`)::
+bank [M, D] of entries ``m_s`` (see :mod:`cusgs_jax.memory.psc`)::
 
-    k_s = normalize(P m_s)                  keys [S, c], P the key projection [c, D]
+    k_s = normalize(P m_s)                  keys [M, c], P the key projection [c, D]
     a_s = softmax_s(cos(q, k_s) / T)        masked entries get weight exactly 0
     f~  = sum_s a_s m_s                     [D], the bank's original vectors
     f   = adapter(f~)                       [D]
@@ -12,7 +12,7 @@ Choices (DESIGN.md section 1, "Ambiguity"): the paper's ``q^T m_k / sqrt(d)`` mi
 dimensions (``q`` has c, ``m_k`` has D). Like M3 we project the bank into query space
 and score by cosine similarity with a temperature; unlike M3's fixed random
 projection, ``P`` is learnable (init N(0, 1/D)). Keys are computed once per step
-(:func:`precompute_keys`), so per-pixel work is S x c. Cosine similarity makes the
+(:func:`precompute_keys`), so per-pixel work is M x c. Cosine similarity makes the
 score independent of the scale of queries, keys and ``P``; the temperature is
 learnable as ``log_temperature`` (init ``log(0.05)``, M3's fixed value; freeze it
 with an optimizer mask to reproduce M3). It is clipped to ``[-40, 40]`` in the
@@ -30,7 +30,7 @@ gradient. Rows whose every bank entry is masked return exactly zero features (th
 adapter bias is not added). Matmuls use ``Precision.HIGHEST`` unless told otherwise
 (pass ``precision=jax.lax.Precision.DEFAULT`` to allow TF32 on GPU).
 
-Shapes: ``...`` any batch shape (e.g. H, W), c query dim, S bank entries, D feature dim.
+Shapes: ``...`` any batch shape (e.g. H, W), c query dim, M bank entries, D feature dim.
 """
 
 from __future__ import annotations
@@ -132,11 +132,11 @@ def masked_softmax(logits, valid=None, axis: int = -1, *, scale=None):
     rounding residue when ``scale * logits`` is ~1e17.
 
     Args:
-      logits: [..., S] finite logits (any magnitude, e.g. +-1e30).
+      logits: [..., M] finite logits (any magnitude, e.g. +-1e30).
       valid: bool broadcastable to logits, or None (all valid).
       scale: optional positive scalar (e.g. 1 / temperature), differentiable; None = 1.
     Returns:
-      [..., S] weights; a row with no valid entry is all zeros. Value and gradient are
+      [..., M] weights; a row with no valid entry is all zeros. Value and gradient are
       finite for finite inputs.
     """
     logits = jnp.asarray(logits)
@@ -164,9 +164,9 @@ def precompute_keys(params: dict, bank, *, precision=_HIGHEST):
 
     Args:
       params: memory head (uses "key_proj" [c, D]).
-      bank: [S, D] PSC entries (original vectors).
+      bank: [M, D] PSC entries (original vectors).
     Returns:
-      keys [S, c] = normalize(bank @ P^T) along c (zero rows give zero keys, score 0).
+      keys [M, c] = normalize(bank @ P^T) along c (zero rows give zero keys, score 0).
       Normalising the bank rows first would change nothing (positive scale).
     """
     proj = params["key_proj"]
@@ -174,12 +174,12 @@ def precompute_keys(params: dict, bank, *, precision=_HIGHEST):
 
 
 def cosines(queries, keys, *, precision=_HIGHEST):
-    """cos(q, k_s): queries [..., c] (any scale; zero -> 0), keys [S, c] unit or zero -> [..., S]."""
+    """cos(q, k_s): queries [..., c] (any scale; zero -> 0), keys [M, c] unit or zero -> [..., M]."""
     return jnp.matmul(safe_normalize(queries), jnp.asarray(keys).T, precision=precision)
 
 
 def scores(params: dict, queries, keys, *, precision=_HIGHEST):
-    """Attention logits cos(q, k_s) / T: queries [..., c], keys [S, c] -> [..., S]."""
+    """Attention logits cos(q, k_s) / T: queries [..., c], keys [M, c] -> [..., M]."""
     cos = cosines(queries, keys, precision=precision)
     return cos * _inv_temperature(params).astype(cos.dtype)
 
@@ -188,9 +188,9 @@ def attention_weights(params: dict, queries, keys, valid=None, *, precision=_HIG
     """Memory attention weights a = softmax over valid s of cos(q, k_s) / T.
 
     Args:
-      queries: [..., c]; keys: [S, c]; valid: [S] bool (or broadcastable to [..., S]) or None.
+      queries: [..., c]; keys: [M, c]; valid: [M] bool (or broadcastable to [..., M]) or None.
     Returns:
-      [..., S] weights summing to 1 over valid entries (zeros where masked / no valid entry).
+      [..., M] weights summing to 1 over valid entries (zeros where masked / no valid entry).
     """
     cos = cosines(queries, keys, precision=precision)
     return masked_softmax(cos, valid, scale=_inv_temperature(params).astype(cos.dtype))
@@ -214,12 +214,12 @@ def attend(params: dict, queries, keys, bank, valid=None, *, block: int | None =
     Args:
       params: memory head from :func:`init_memory_head`.
       queries: [..., c] rendered queries.
-      keys: [S, c] from ``precompute_keys(params, bank)`` (recompute after each update of
+      keys: [M, c] from ``precompute_keys(params, bank)`` (recompute after each update of
         ``key_proj`` -- or inside the differentiated function to train ``key_proj``).
-      bank: [S, D] PSC entries.
-      valid: [S] bool mask of usable entries (e.g. a padded bank), or None.
+      bank: [M, D] PSC entries.
+      valid: [M] bool mask of usable entries (e.g. a padded bank), or None.
       block: if set, process the flattened queries in blocks of ``block`` rows with
-        ``lax.map`` and rematerialisation, so at most [block, S] weights exist at once
+        ``lax.map`` and rematerialisation, so at most [block, M] weights exist at once
         (also in the backward pass). None: one pass over all queries.
       precision: matmul precision.
     Returns:
@@ -231,9 +231,9 @@ def attend(params: dict, queries, keys, bank, valid=None, *, block: int | None =
     if valid is not None:
         valid = jnp.asarray(valid, bool)
         if valid.shape != keys.shape[:1]:
-            raise ValueError(f"valid must be [S] = {keys.shape[:1]}, got {valid.shape}")
+            raise ValueError(f"valid must be [M] = {keys.shape[:1]}, got {valid.shape}")
     if keys.shape[0] != bank.shape[0]:
-        raise ValueError(f"keys [S, c] and bank [S, D] disagree: {keys.shape} vs {bank.shape}")
+        raise ValueError(f"keys [M, c] and bank [M, D] disagree: {keys.shape} vs {bank.shape}")
 
     def run(q):
         a = attention_weights(params, q, keys, valid, precision=precision)

@@ -42,13 +42,13 @@ after float32 rounding; its cosine may round to 1.0 (rejected) or fall just belo
 
 Cost. Rows are processed in chunks of ``chunk``: (1) each chunk row's maximum
 float32 cosine to the bank, by a jitted loop over bank blocks (memory
-``chunk x block``, never ``chunk x S``); (2) the surviving candidates' float32 Gram
+``chunk x block``, never ``chunk x M``); (2) the surviving candidates' float32 Gram
 matrix and a short sequential pass (a candidate depends only on earlier kept
 candidates of the chunk, and rows with no near-or-above-threshold earlier
 candidate are kept without looking). The bank lives in preallocated host and
 device buffers whose capacity doubles outside jit, so appending is amortised
 O(1) per row; the screening kernel compiles once per (capacity, power-of-two block)
-pair, i.e. O(log S) times. Near-threshold pairs are decided exactly in vectorised
+pair, i.e. O(log M) times. Near-threshold pairs are decided exactly in vectorised
 batches (``math.fsum`` per pair); only data with very many near-parallel but not
 equal rows at ``gamma = 1.0`` spends noticeable time there.
 """
@@ -93,10 +93,10 @@ class PSCBank:
     """A model's memory bank of principal scene components.
 
     Attributes:
-      entries: [S, D] float32, the kept rows, original (unnormalised), in scan order.
-      count: S, the number of entries.
+      entries: [M, D] float32, the kept rows, original (unnormalised), in scan order.
+      count: M, the number of entries.
       gamma: the cosine threshold the bank was built with.
-      indices: [S] int64, each entry's row in the flattened input ``features.reshape(-1, D)``
+      indices: [M] int64, each entry's row in the flattened input ``features.reshape(-1, D)``
         (empty when unknown, e.g. a bank constructed by hand).
       truncated: True when ``max_entries`` stopped the scan while a further row would
         have been kept.
@@ -110,7 +110,7 @@ class PSCBank:
 
     def __post_init__(self):
         if self.entries.ndim != 2 or self.entries.dtype != np.float32:
-            raise ValueError(f"entries must be [S, D] float32, got {self.entries.shape} {self.entries.dtype}")
+            raise ValueError(f"entries must be [M, D] float32, got {self.entries.shape} {self.entries.dtype}")
         if self.count != self.entries.shape[0]:
             raise ValueError(f"count {self.count} != len(entries) {self.entries.shape[0]}")
         if self.indices.size and self.indices.shape != (self.count,):
@@ -394,12 +394,12 @@ def build(features, gamma: float, *, chunk: int = 4096, max_entries: int | None 
       gamma: cosine threshold (keep iff cosine to every kept entry < gamma; see the
         module docstring for the exact cosine and for gamma = 1.0).
       chunk: rows per chunk (memory ~ chunk^2 + chunk x 4096 float32 per step).
-      max_entries: optional cap on S; the scan stops (``truncated=True``) when a row
+      max_entries: optional cap on M; the scan stops (``truncated=True``) when a row
         would become entry number ``max_entries + 1``.
       initial_capacity: initial bank buffer rows (rounded up to a power of two);
         the buffer doubles as needed. Default ``2 * chunk``.
     Returns:
-      PSCBank(entries [S, D] float32, count S, gamma, indices [S], truncated).
+      PSCBank(entries [M, D] float32, count M, gamma, indices [M], truncated).
     """
     gamma, chunk, max_entries = _validate(gamma, chunk, max_entries)
     x = _as_rows(features)
@@ -438,7 +438,7 @@ def build_per_model(features_by_model: Mapping[str, object], gammas: Mapping[str
       gammas: model name -> threshold; default :data:`M3_GAMMAS`. Every model needs one.
       **kwargs: passed to :func:`build` (chunk, max_entries, initial_capacity).
     Returns:
-      model name -> PSCBank (entries [S_m, D_m]).
+      model name -> PSCBank (entries [M, D] of that model).
     """
     gammas = M3_GAMMAS if gammas is None else gammas
     missing = [name for name in features_by_model if name not in gammas]
