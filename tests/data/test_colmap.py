@@ -411,3 +411,113 @@ def test_multi_camera_rig(tmp_path):
     np.testing.assert_allclose(scene.viewmats[0, :3, 3], t_w, atol=1e-6)
     np.testing.assert_allclose(scene.viewmats[1, :3, :3], r_s @ r_w, atol=1e-6)
     np.testing.assert_allclose(scene.viewmats[1, :3, 3], r_s @ t_w + t_s, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------
+# Damaged binary models (exact structural walk) and duplicate image names
+# ------------------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def demo_copy(demo, tmp_path):
+    """A private copy (images/ + sparse/) of the tiny demo scene, to damage."""
+    for sub in ("images", "sparse"):
+        shutil.copytree(demo / sub, tmp_path / sub)
+    return tmp_path
+
+
+def test_demo_binary_model_loads(demo_copy):
+    """The intact pycolmap-written model passes the structural walk and loads."""
+    scene = load_scene(demo_copy, holdout_every=0)
+    assert scene.num_images == 4 and scene.points.shape[0] > 0
+
+
+@pytest.mark.parametrize("part,record", [("cameras", "camera record 1 of 1"),
+                                         ("images", "image record 4 of 4"),
+                                         ("points3D", r"point record (\d+) of \1")])
+@pytest.mark.parametrize("cut", [3, 8])
+def test_error_binary_model_truncated_mid_record(demo_copy, part, record, cut):
+    """Cutting a few bytes off the last record (cameras.bin minus 8 bytes used to load with
+    cy = garbage) names the file, the broken record and the fix."""
+    path = demo_copy / "sparse" / "0" / f"{part}.bin"
+    path.write_bytes(path.read_bytes()[:-cut])
+    with pytest.raises(SceneError, match=rf"{part}\.bin is truncated or corrupt: {record} "
+                                         rf".*runs {cut} bytes past the end.*model_converter"):
+        load_scene(demo_copy)
+
+
+@pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
+def test_error_binary_model_trailing_bytes(demo_copy, part):
+    path = demo_copy / "sparse" / "0" / f"{part}.bin"
+    size = path.stat().st_size
+    path.write_bytes(path.read_bytes() + b"\0" * 5)
+    with pytest.raises(SceneError, match=rf"{part}\.bin is truncated or corrupt: 5 trailing bytes"
+                                         rf".*end at byte {size} of {size + 5}.*rerun SfM"):
+        load_scene(demo_copy)
+
+
+def test_error_binary_camera_model_unknown(demo_copy):
+    path = demo_copy / "sparse" / "0" / "cameras.bin"
+    data = bytearray(path.read_bytes())
+    data[12:16] = (99).to_bytes(4, "little")  # count (8), camera_id (4), then model_id
+    path.write_bytes(bytes(data))
+    with pytest.raises(SceneError, match=r"cameras\.bin .*camera record 1 of 1 \(camera id 1.*"
+                                         r"unknown camera model id 99"):
+        load_scene(demo_copy)
+
+
+@pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
+def test_error_binary_model_implausible_count(demo_copy, part):
+    path = demo_copy / "sparse" / "0" / f"{part}.bin"
+    data = path.read_bytes()
+    path.write_bytes((10**12).to_bytes(8, "little") + data[8:])
+    with pytest.raises(SceneError, match=rf"{part}\.bin .*claims 1000000000000 .*can hold at most"):
+        load_scene(demo_copy)
+
+
+def test_error_binary_track_length_implausible(demo_copy):
+    """A corrupt track length in the first point stops the walk at that point."""
+    path = demo_copy / "sparse" / "0" / "points3D.bin"
+    data = bytearray(path.read_bytes())
+    data[8 + 43:8 + 51] = (2**40).to_bytes(8, "little")  # point 1: id, xyz, rgb, error, then it
+    path.write_bytes(bytes(data))
+    with pytest.raises(SceneError, match=r"points3D\.bin .*point record 1 of \d+ \(byte offset 8, "
+                                         r"point id \d+, track length 1099511627776\)"):
+        load_scene(demo_copy)
+
+
+def _write_text_model(root, images):
+    """A text COLMAP model in root/sparse/0 with one PINHOLE camera, ``images`` = [(id, name),
+    ...] (all posed, no keypoints) and one point, plus black images under root/images."""
+    model = root / "sparse" / "0"
+    model.mkdir(parents=True)
+    (model / "cameras.txt").write_text(f"1 PINHOLE {W} {H} {' '.join(map(str, PINHOLE))}\n")
+    lines = "".join(f"{iid} 1 0 0 0 {0.1 * iid} 0 4 1 {name}\n\n" for iid, name in images)
+    (model / "images.txt").write_text(lines)
+    (model / "points3D.txt").write_text("1 0.1 0.2 0.3 255 0 0 0.5\n")
+    (root / "images").mkdir()
+    for _, name in images:
+        iio.imwrite(root / "images" / name, np.zeros((H, W, 3), np.uint8))
+
+
+def test_error_duplicate_image_names(tmp_path):
+    _write_text_model(tmp_path, [(1, "a.png"), (5, "b.png"), (7, "a.png")])
+    with pytest.raises(SceneError, match=r"images\.txt has 2 registered images named 'a\.png' "
+                                         r"\(image ids 1, 7\).*unique name.*image_deleter"):
+        load_scene(tmp_path)
+    # Unique names load (the text model above is otherwise valid).
+    shutil.rmtree(tmp_path / "sparse")
+    shutil.rmtree(tmp_path / "images")
+    _write_text_model(tmp_path, [(1, "a.png"), (5, "b.png"), (7, "c.png")])
+    assert load_scene(tmp_path).names == ("a.png", "b.png", "c.png")
+
+
+def test_error_duplicate_image_names_binary(tmp_path):
+    """The same model converted to binary by pycolmap is rejected too."""
+    _write_text_model(tmp_path, [(1, "a.png"), (2, "a.png")])
+    model = tmp_path / "sparse" / "0"
+    pycolmap.Reconstruction(str(model)).write(str(model))
+    for part in ("cameras", "images", "points3D"):
+        (model / f"{part}.txt").unlink()
+    with pytest.raises(SceneError, match=r"images\.bin has 2 registered images named 'a\.png'"):
+        load_scene(tmp_path)
