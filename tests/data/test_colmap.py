@@ -188,9 +188,11 @@ def test_grey_and_rgba_images(tmp_path):
                                                                  3, -1))
     shutil.rmtree(tmp_path / "images")
     truth = make_scene(tmp_path, image_mode="RGBA")
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path)  # alpha composited onto the default black background
     for i, name in enumerate(scene.names):
-        np.testing.assert_array_equal(scene.images[i], truth["images"][name][..., :3])
+        rgba = truth["images"][name].astype(np.float64)
+        expect = np.round(rgba[..., :3] * (rgba[..., 3:] / 255.0)).astype(np.uint8)
+        np.testing.assert_array_equal(scene.images[i], expect)
 
 
 def test_downscale_from_images_folder(tmp_path):

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import image_dir, load_images, scaled_size
+from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
 
 __all__ = ["SceneError", "SceneData", "load_scene", "SUPPORTED_CAMERA_MODELS"]
 
@@ -49,7 +49,8 @@ class SceneData:
     Attributes:
       path: the scene folder (``data.path``).
       names: image names as stored in the model, sorted.
-      images: [V, H, W, 3] uint8 RGB images at the loaded resolution.
+      images: [V, H, W, 3] uint8 RGB images at the loaded resolution (any alpha channel
+        composited onto ``load_scene``'s ``background``).
       viewmats: [V, 4, 4] float32 world→camera matrices (OpenCV axes, COLMAP cam_from_world).
       Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
       width, height: the loaded resolution, shared by all images.
@@ -90,7 +91,8 @@ class SceneData:
 # --------------------------------------------------------------------------------------------
 
 
-def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8) -> SceneData:
+def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> SceneData:
     """Load a COLMAP scene folder.
 
     Args:
@@ -100,12 +102,16 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
         anti-aliasing; intrinsics are divided by ``d``.
       holdout_every: every ``holdout_every``-th image (index ``i % holdout_every == 0``) is a
         test view (``data.holdout_every``); 0 holds out none.
+      background: RGB in [0, 1] that images with an alpha channel (RGBA, grey+alpha) are
+        composited onto — the rendering background, ``splat.background``; a warning on the
+        ``cusgs_jax`` logger says how many images had one.
 
     Raises:
       SceneError: for any problem with the data or these settings.
     """
     downscale = _check_int_setting("data.downscale", downscale, minimum=1)
     holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
+    background = check_background(background)
     scene = _scene_folder(path)
 
     model_dir = _find_model_dir(scene)
@@ -124,7 +130,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     folder, from_prescaled = image_dir(scene, downscale)
     _check_common_size(entries, cameras, downscale, files)
     images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
-                         cameras, downscale, from_prescaled, scene)
+                         cameras, downscale, from_prescaled, scene, background=background)
     height, width = images.shape[1:3]
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
     train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)

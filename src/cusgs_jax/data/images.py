@@ -3,19 +3,26 @@
 Used by :func:`cusgs_jax.data.colmap.load_scene`. Images are read with imageio and returned as
 [H, W, 3] uint8 RGB; ``downscale`` d means the loaded size is the camera size / d rounded half
 up, taken from ``images_{d}/`` when that folder exists, else from ``images/`` downscaled with
-anti-aliasing. Every problem raises :class:`~cusgs_jax.data.errors.SceneError` naming the file.
+anti-aliasing. Images with an alpha channel (RGBA, grey+alpha) are composited onto the
+``background`` colour (the rendering background, ``splat.background``) as
+``rgb·a + 255·bg·(1−a)``, and one warning per scene says so. Every problem raises
+:class:`~cusgs_jax.data.errors.SceneError` naming the file.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import pathlib
+from typing import Any
 
 import numpy as np
 
 from cusgs_jax.data.errors import SceneError
 
-__all__ = ["image_dir", "load_image", "load_images", "scaled_size"]
+__all__ = ["check_background", "image_dir", "load_image", "load_images", "scaled_size"]
+
+log = logging.getLogger("cusgs_jax")
 
 _IMAGE_EXTENSIONS = (".png", ".PNG", ".jpg", ".JPG", ".jpeg", ".JPEG")
 
@@ -58,31 +65,70 @@ def _find_image_file(folder: pathlib.Path, name: str, allow_other_ext: bool) -> 
     return None
 
 
-def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path) -> np.ndarray:
-    """A decoded image ([H, W], [H, W, 1|2|3|4]; uint8/16, bool, int or float in [0, 1]) →
-    [H, W, 3] uint8 RGB (grey repeated, alpha dropped)."""
+def check_background(background: Any) -> tuple[float, float, float]:
+    """``background`` (``splat.background``) as an RGB tuple of 3 floats in [0, 1]; SceneError
+    otherwise."""
+    try:
+        values = tuple(float(v) for v in background)
+    except (TypeError, ValueError):
+        values = ()
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):  # also rejects NaN
+        raise SceneError(f"splat.background={background!r} must be an RGB colour of three floats "
+                         "in [0, 1], e.g. (0.0, 0.0, 0.0) for black or (1.0, 1.0, 1.0) for white")
+    return values
+
+
+def _split_channels(img: np.ndarray, path: pathlib.Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """A decoded image ([H, W] or [H, W, 1|2|3|4]) → (colour [H, W, 3] with grey repeated,
+    alpha [H, W] or None), both in the file's pixel type."""
     img = np.asarray(img)
     if img.ndim == 2:
         img = img[..., None]
     if img.ndim != 3 or img.shape[-1] not in (1, 2, 3, 4) or img.shape[0] == 0 or img.shape[1] == 0:
         raise SceneError(f"image {path} has an unsupported shape {img.shape} (expected a single "
                          "grey, RGB or RGBA picture); re-export it as a PNG or JPEG")
-    if img.shape[-1] in (1, 2):  # grey or grey+alpha
-        img = np.repeat(img[..., :1], 3, axis=-1)
-    else:  # RGB or RGBA
-        img = img[..., :3]
-    if img.dtype == np.uint8:
-        return np.ascontiguousarray(img)
-    if img.dtype == np.bool_:
-        return img.astype(np.uint8) * 255
-    if img.dtype == np.uint16:
-        return np.round(img.astype(np.float32) / 257.0).astype(np.uint8)
-    if np.issubdtype(img.dtype, np.floating):
-        return np.round(np.clip(np.nan_to_num(img.astype(np.float32)), 0, 1) * 255).astype(np.uint8)
-    if np.issubdtype(img.dtype, np.integer):
-        return np.clip(img, 0, 255).astype(np.uint8)
-    raise SceneError(f"image {path} has an unsupported pixel type {img.dtype}; re-export it as "
+    channels = img.shape[-1]
+    alpha = img[..., -1] if channels in (2, 4) else None
+    if channels in (1, 2):  # grey or grey+alpha
+        return np.repeat(img[..., :1], 3, axis=-1), alpha
+    return img[..., :3], alpha
+
+
+def _to_255(x: np.ndarray, path: pathlib.Path) -> np.ndarray:
+    """Pixel values of any supported type (uint8/16, bool, int, float in [0, 1]) → float64 on
+    the 8-bit scale [0, 255] (uint16 / 257, so 65535 → 255), same shape."""
+    if x.dtype == np.uint8:
+        return x.astype(np.float64)
+    if x.dtype == np.bool_:
+        return x.astype(np.float64) * 255.0
+    if x.dtype == np.uint16:
+        return x.astype(np.float64) / 257.0
+    if np.issubdtype(x.dtype, np.floating):
+        return np.clip(np.nan_to_num(x.astype(np.float64)), 0.0, 1.0) * 255.0
+    if np.issubdtype(x.dtype, np.integer):
+        return np.clip(x, 0, 255).astype(np.float64)
+    raise SceneError(f"image {path} has an unsupported pixel type {x.dtype}; re-export it as "
                      "an 8-bit PNG or JPEG")
+
+
+def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path,
+                  background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """A decoded image ([H, W], [H, W, 1|2|3|4]; uint8/16, bool, int or float in [0, 1]) →
+    ([H, W, 3] uint8 RGB, alpha [H, W] float64 in [0, 1] or None when it has none).
+
+    Grey is repeated; an alpha channel ``a`` is composited onto ``background`` (RGB in [0, 1]):
+    ``round(rgb·a + 255·bg·(1−a))`` in float64 on the 8-bit scale, so a fully opaque pixel
+    keeps exactly its colour."""
+    color, alpha = _split_channels(img, path)
+    if alpha is None:
+        if color.dtype == np.uint8:
+            return np.ascontiguousarray(color), None
+        return np.round(_to_255(color, path)).astype(np.uint8), None
+    a = _to_255(alpha, path)[..., None] / 255.0  # [H, W, 1]
+    bg = 255.0 * np.asarray(background, np.float64)
+    out = _to_255(color, path) * a + bg * (1.0 - a)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8), a[..., 0]
 
 
 def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
@@ -120,13 +166,23 @@ def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, fold
 
 
 def load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downscale: int,
-                from_prescaled: bool, scene: pathlib.Path) -> np.ndarray:
+               from_prescaled: bool, scene: pathlib.Path, *,
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Read image ``name`` of camera ``cam`` (intrinsics dict with width, height) from
-    ``folder``, check its size against the camera and downscale it when needed.
+    ``folder``, check its size against the camera and downscale it when needed. An alpha
+    channel is composited onto ``background`` (RGB in [0, 1], ``splat.background``).
 
     Returns:
       [h, w, 3] uint8 RGB, (h, w) = the camera size / ``downscale`` rounded half up.
     """
+    return _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
+                       check_background(background))[0]
+
+
+def _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
+                background) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`load_image`, also returning the image's alpha ([H, W] float64 in [0, 1], at the
+    file's size) or None when it has no alpha channel."""
     path = _find_image_file(folder, name, allow_other_ext=from_prescaled)
     if path is None:
         raise SceneError(
@@ -141,7 +197,7 @@ def load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downs
             f"cannot read image {path}: {type(e).__name__}: {e}. The file is corrupt or not an "
             "image — replace it with a valid copy or remove the image from the reconstruction"
         ) from e
-    img = _to_rgb_uint8(raw, path)
+    img, alpha = _to_rgb_uint8(raw, path, background)
     h, w = img.shape[:2]
 
     # Expected size of the file as read: the camera size, or the camera size / d for images_d.
@@ -157,23 +213,32 @@ def load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downs
         # Reduce the image to round(camera size / d) (anti-aliased).
         out_hw = (scaled_size(cam["height"], downscale), scaled_size(cam["width"], downscale))
         img = _downscale(img, downscale, out_hw)
-    return img
+    return img, alpha
 
 
 def load_images(folder: pathlib.Path, views: list[tuple[str, int]], cameras: dict[int, dict],
-                downscale: int, from_prescaled: bool, scene: pathlib.Path) -> np.ndarray:
+                downscale: int, from_prescaled: bool, scene: pathlib.Path, *,
+                background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
     """Read the images of ``views`` = [(name, camera id), ...] (cameras: id → intrinsics dict)
-    with :func:`load_image` into one preallocated array.
+    with :func:`load_image` into one preallocated array. Images with an alpha channel are
+    composited onto ``background`` (RGB in [0, 1], ``splat.background``), with one warning on
+    the ``cusgs_jax`` logger saying how many.
 
     Returns:
       [V, H, W, 3] uint8 RGB, V = len(views).
     Raises:
-      SceneError: a missing/unreadable/wrongly sized file, or images loading at different sizes.
+      SceneError: a missing/unreadable/wrongly sized file, images loading at different sizes,
+        or an invalid ``background``.
     """
+    background = check_background(background)
     images = None
+    with_alpha, transparent = [], 0
     for i, (name, camera_id) in enumerate(views):
-        img = load_image(folder, name, cameras[camera_id], camera_id, downscale, from_prescaled,
-                         scene)
+        img, alpha = _load_image(folder, name, cameras[camera_id], camera_id, downscale,
+                                 from_prescaled, scene, background)
+        if alpha is not None:
+            with_alpha.append(name)
+            transparent += bool(np.any(alpha < 1.0))
         if images is None:
             images = np.empty((len(views),) + img.shape, np.uint8)
         elif img.shape != images.shape[1:]:
@@ -185,4 +250,19 @@ def load_images(folder: pathlib.Path, views: list[tuple[str, int]], cameras: dic
                 "resize/crop them to a common size (and their cameras accordingly)")
         images[i] = img
     assert images is not None
+    if with_alpha:
+        _warn_alpha(folder, with_alpha, transparent, len(views), background)
     return images
+
+
+def _warn_alpha(folder: pathlib.Path, with_alpha: list[str], transparent: int, total: int,
+                background: tuple[float, float, float]) -> None:
+    """The one warning per scene about images with an alpha channel (names: ``with_alpha``, of
+    which ``transparent`` have a pixel with alpha < 1) composited onto ``background``."""
+    example = ", ".join(repr(n) for n in with_alpha[:3]) + (", ..." if len(with_alpha) > 3 else "")
+    bg = "(" + ", ".join(f"{v:g}" for v in background) + ")"
+    log.warning(
+        "%d of %d images in %s have an alpha channel (%s; %d with transparent pixels): they were "
+        "composited onto the background colour %s, the rendering background — set "
+        "splat.background to change it (e.g. (1.0, 1.0, 1.0) for images on white)",
+        len(with_alpha), total, folder, example, transparent, bg)
