@@ -19,12 +19,32 @@ Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Optional
+
+from cusgs_jax.errors import ConfigError
 
 # M3's split of its 160 query channels when all six models are present (DESIGN.md §1).
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+
+
+def require(ok: bool, option: str, value, requirement: str, fix: str = "") -> None:
+    """Raise :class:`ConfigError` ``"option=value: requirement; fix"`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{option}={value!r}: {requirement}" + (f"; {fix}" if fix else ""))
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _at_least(obj, prefix: str, minimum, *names: str) -> None:
+    """Every named field of ``obj`` is a finite number ≥ ``minimum``."""
+    for name in names:
+        value = getattr(obj, name)
+        require(_number(value) and value >= minimum, f"{prefix}.{name}", value, f"must be a number >= {minimum}")
 
 
 def _tuples(obj) -> None:
@@ -44,6 +64,9 @@ class DemoConfig:
     height: int = 120
     seed: int = 0
 
+    def __post_init__(self):
+        _at_least(self, "data.demo", 2, "views", "width", "height")
+
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
@@ -53,6 +76,10 @@ class DataConfig:
     downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
     holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
+
+    def __post_init__(self):
+        _at_least(self, "data", 1, "downscale")
+        _at_least(self, "data", 0, "holdout_every")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,19 +94,35 @@ class TrainOptions:
     log_every: int = 10
     progress: bool = True
 
+    def __post_init__(self):
+        require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
+                "must be a whole number of steps >= 1", "e.g. train.iterations=30000")
+        _at_least(self, "train", 0, "checkpoint_every")
+        _at_least(self, "train", 1, "log_every")
+
 
 @dataclasses.dataclass(frozen=True)
 class EvalConfig:
     every: int = 250  # held-out PSNR for the error-against-time curve
     save_renders: bool = True
 
+    def __post_init__(self):
+        _at_least(self, "eval", 0, "every")
+
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Scaffold-GS anchors (DESIGN.md §1). ``voxel_size`` is in scene units: the paper's
-    0.01 is for Mip-NeRF 360 scale; the demo room is ~6 units wide."""
+    """Scaffold-GS anchors (DESIGN.md §1).
 
-    voxel_size: float = 0.04
+    Lengths are in units of the scene extent: every run trains in the normalised
+    world frame of :mod:`cusgs_jax.data.normalize` (camera extent 1), so a
+    setting means the same for a COLMAP model at any scale. ``voxel_size``:
+    the cell ``l`` as a fraction of the extent, or ``"auto"``, Scaffold-GS's
+    rule for ``voxel_size <= 0``: the median spacing of the SfM points
+    (:func:`cusgs_jax.model.anchors.auto_voxel_size`).
+    """
+
+    voxel_size: Any = "auto"
     n_offsets: int = 10
     latent_dim: int = 32
     hidden: int = 32
@@ -96,9 +139,16 @@ class ModelConfig:
     query_granularity: str = "per_anchor"
 
     def __post_init__(self):
-        if self.query_granularity not in QUERY_GRANULARITIES:
-            raise ValueError(f"model.query_granularity must be one of {QUERY_GRANULARITIES}, "
-                             f"got {self.query_granularity!r}")
+        require(self.voxel_size == "auto" or (_number(self.voxel_size) and self.voxel_size > 0),
+                "model.voxel_size", self.voxel_size, "must be 'auto' or a cell size > 0 in units of the scene "
+                "extent", "e.g. model.voxel_size=0.01 (1 % of the extent) or model.voxel_size=auto")
+        _at_least(self, "model", 1, "n_offsets", "latent_dim", "hidden", "capacity_factor")
+        _at_least(self, "model", 0, "appearance_dim", "frustum_margin")
+        require(_number(self.visible_fraction) and 0 < self.visible_fraction <= 1, "model.visible_fraction",
+                self.visible_fraction, "must lie in (0, 1] (it only sets the first visible-slot capacity, "
+                "which grows when a view sees more)")
+        require(self.query_granularity in QUERY_GRANULARITIES, "model.query_granularity", self.query_granularity,
+                f"must be one of {QUERY_GRANULARITIES}")
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
@@ -121,12 +171,18 @@ class SplatConfig:
 
     tile_size: int = 8
     chunk_size: int = 16
-    max_pairs_per_gaussian: float = 3.0
+    max_pairs_per_gaussian: float = 3.0  # first tile-pair capacity; grows (and the step replays) when exceeded
     antialiased: bool = False
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def __post_init__(self):
         _tuples(self)
+        _at_least(self, "splat", 1, "tile_size", "chunk_size")
+        require(_number(self.max_pairs_per_gaussian) and self.max_pairs_per_gaussian > 0,
+                "splat.max_pairs_per_gaussian", self.max_pairs_per_gaussian, "must be > 0")
+        require(len(self.background) == 3 and all(_number(c) and 0 <= c <= 1 for c in self.background),
+                "splat.background", self.background, "must be three numbers in [0, 1]",
+                "e.g. splat.background=[1,1,1]")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -135,7 +191,10 @@ class LossConfig:
 
     l1_weight: float = 0.8
     ssim_weight: float = 0.2
-    volume_weight: float = 0.01
+    volume_weight: float = 0.01  # mean(prod(scale)) in units of the scene extent (data/normalize.py)
+
+    def __post_init__(self):
+        _at_least(self, "loss", 0, "l1_weight", "ssim_weight", "volume_weight")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -183,6 +242,11 @@ class GrowConfig:
     hierarchy_factor: int = 4  # update_hierachy_factor
     capacity_growth: float = 1.5
 
+    def __post_init__(self):
+        _at_least(self, "grow", 1, "interval", "levels", "init_factor", "hierarchy_factor")
+        require(_number(self.capacity_growth) and self.capacity_growth > 1, "grow.capacity_growth",
+                self.capacity_growth, "must be > 1")
+
 
 @dataclasses.dataclass(frozen=True)
 class PruneConfig:
@@ -215,14 +279,15 @@ class PruneConfig:
     min_visits: int = 1
 
     def __post_init__(self):
-        if self.strategy not in PRUNE_STRATEGIES:
-            raise ValueError(f"prune strategy must be one of {PRUNE_STRATEGIES}, got {self.strategy!r}")
-        if not 0.0 <= self.ratio <= 1.0:
-            raise ValueError(f"prune ratio must lie in [0, 1], got {self.ratio}")
-        if not 0.0 <= self.volume_percentile <= 100.0:
-            raise ValueError(f"volume_percentile must lie in [0, 100], got {self.volume_percentile}")
-        if self.interval < 1:
-            raise ValueError(f"prune interval must be ≥ 1, got {self.interval}")
+        require(self.strategy in PRUNE_STRATEGIES, "prune.strategy", self.strategy,
+                f"must be one of {PRUNE_STRATEGIES}")
+        require(_number(self.ratio) and 0.0 <= self.ratio < 1.0, "prune.ratio", self.ratio,
+                "is the fraction of alive anchors removed per pass and must lie in [0, 1) (1 would remove "
+                "every anchor)", "the paper uses prune.ratio=0.001; prune.ratio=0 or prune=none disables it")
+        require(_number(self.volume_percentile) and 0.0 <= self.volume_percentile <= 100.0,
+                "prune.volume_percentile", self.volume_percentile, "must lie in [0, 100]")
+        _at_least(self, "prune", 1, "interval")
+        _at_least(self, "prune", 0, "lambda_norm", "lambda_grad", "min_visits")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -237,6 +302,14 @@ class FeatureModelConfig:
     def __post_init__(self):
         if self.query_dim <= 0:
             object.__setattr__(self, "query_dim", M3_QUERY_DIMS.get(self.name, 16))
+
+
+def _feature_model(values) -> FeatureModelConfig:
+    known = [f.name for f in dataclasses.fields(FeatureModelConfig)]
+    values = dict(values)
+    unknown = sorted(set(values) - set(known))
+    require(not unknown, "features.models", values, f"unknown key(s) {unknown}; each model takes {known}")
+    return FeatureModelConfig(**values)
 
 
 # The demo scene's two stand-in models (features=auto on the demo scene, features=demo).
@@ -264,9 +337,9 @@ class FeatureConfig:
         if self.models == "auto":
             return
         if isinstance(self.models, str) or not isinstance(self.models, (list, tuple)):
-            raise ValueError(f"features.models must be 'auto' or a list of models, got {self.models!r}")
-        models = tuple(m if isinstance(m, FeatureModelConfig) else FeatureModelConfig(**dict(m))
-                       for m in self.models)
+            raise ConfigError(f"features.models={self.models!r}: must be 'auto' or a list of models, "
+                              "e.g. 'features.models=[{name: daisy}]'")
+        models = tuple(m if isinstance(m, FeatureModelConfig) else _feature_model(m) for m in self.models)
         object.__setattr__(self, "models", models)
 
     def resolve(self, demo_scene: bool) -> FeatureConfig:
@@ -374,7 +447,7 @@ def _build(cls, values: dict, prefix: str):
             value = _build(sub, value, f"{prefix}{field.name}.")
         kwargs[field.name] = value
     if values:
-        raise ValueError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
+        raise ConfigError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
                          f"valid: {[prefix + f.name for f in dataclasses.fields(cls)]}")
     return cls(**kwargs)
 

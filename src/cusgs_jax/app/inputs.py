@@ -12,8 +12,14 @@ log = logging.getLogger("cusgs_jax")
 
 
 def load_data(cfg: Config):
-    """:class:`cusgs_jax.data.colmap.SceneData` from ``data.path``, or the built-in demo scene when it is None."""
+    """The scene of ``data.path`` (or the built-in demo scene when it is None) in the normalised frame.
+
+    Returns:
+      (:class:`cusgs_jax.data.colmap.SceneData` with extent 1, :class:`cusgs_jax.data.normalize.WorldTransform`
+      from the COLMAP frame to it). Images with an alpha channel are composited on ``splat.background``.
+    """
     from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.normalize import normalize_scene
 
     data = cfg.data
     path = data.path
@@ -23,7 +29,9 @@ def load_data(cfg: Config):
         demo = data.demo
         path = demo_scene_path(seed=demo.seed, num_views=demo.views, width=demo.width, height=demo.height)
         log.info("using the built-in demo scene at %s", path)
-    return load_scene(path, downscale=data.downscale, holdout_every=data.holdout_every)
+    scene = load_scene(path, downscale=data.downscale, holdout_every=data.holdout_every,
+                       background=cfg.splat.background)
+    return normalize_scene(scene)
 
 
 def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
@@ -58,6 +66,29 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
         log.info("PSC %s: %d entries from %d pixels (gamma %.2f)", model.name, bank.count, len(rows), model.gamma)
         maps[model.name], banks[model.name] = fs, np.asarray(bank.entries, np.float32)
     return maps, banks
+
+
+FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65504
+
+
+def feature_targets(feature_sets: dict, views: np.ndarray) -> dict:
+    """{model: [V, h, w, D] device array} of the training views' feature maps.
+
+    Stored as float16 (half the memory) unless a map holds values beyond
+    float16's range (±65504), which would become inf: that model stays float32.
+    """
+    import jax.numpy as jnp
+
+    targets = {}
+    for name, fs in feature_sets.items():
+        maps = fs.maps[views]
+        peak = float(np.max(np.abs(maps))) if maps.size else 0.0
+        if peak > FLOAT16_MAX:
+            log.info("feature model %s has values up to %.4g, beyond float16: its targets stay float32", name, peak)
+            targets[name] = jnp.asarray(maps.astype(np.float32))
+        else:
+            targets[name] = jnp.asarray(maps.astype(np.float16))
+    return targets
 
 
 def view_order(seed: int, num_train: int, step: int) -> int:

@@ -2,8 +2,10 @@
 
 ``run(cfg, output_dir)`` takes a :class:`cusgs_jax.config.Config` and writes into ``output_dir``:
 
-* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, …
-  (a resumed run first drops the rows after the restored step, so steps stay unique and increasing)
+* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors`` and
+  ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
+  capacities, :mod:`cusgs_jax.training.capacity`), … (a resumed run first drops the rows after the
+  restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
 * ``eval.json`` — per-view and mean PSNR/SSIM, model size, times, pruning summary
 * ``renders/`` — held-out renders beside ground truth (PNG)
@@ -12,6 +14,10 @@
 
 The learning curve and the final evaluation use the same renderer: the model
 compacted to its alive anchors (:func:`cusgs_jax.model.anchors.compact`), every slot decoded.
+
+The run trains in the normalised world frame of :mod:`cusgs_jax.data.normalize`
+(``eval.json`` records the transform as ``world_transform``), so lengths in the
+configuration are in units of the scene extent.
 """
 
 from __future__ import annotations
@@ -28,20 +34,23 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.app.clock import Clock
-from cusgs_jax.app.inputs import load_data, load_feature_targets, view_order
-from cusgs_jax.config import Config
+from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, view_order
+from cusgs_jax.config import Config, require
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
 from cusgs_jax.eval.views import count_parameters, evaluate_views
 from cusgs_jax.model.anchors import compact
+from cusgs_jax.model.decode import num_visible_slots
 from cusgs_jax.training.checkpoint import Checkpointer
+from cusgs_jax.training import capacity
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
-from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 
 log = logging.getLogger("cusgs_jax")
+LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
 
 
 @dataclasses.dataclass
@@ -51,8 +60,9 @@ class Session:
     cfg: Config
     out: pathlib.Path
     scene: object
+    world: object  # data.normalize.WorldTransform: COLMAP frame → the normalised training frame
     train_idx: np.ndarray
-    test_idx: np.ndarray
+    test_idx: np.ndarray  # the evaluated views: held-out ones, or training views when there are none
     feature_sets: dict
     banks: dict | None
     targets: dict
@@ -63,9 +73,15 @@ class Session:
     clock: Clock
     curve: list
     prune: dict  # {"passes", "pruned", "render_ms_before_prune"}
-    recompilations: int = 0
+    recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
+    replays: int = 0  # steps replayed because a capacity was too small
+    step_fn: object = None
     render: object = None
     feature_render: object = None
+
+    @property
+    def evaluated_on(self) -> str:
+        return "held_out" if len(self.scene.test_indices) else "train"
 
 
 # --- setup ----------------------------------------------------------------------------------
@@ -73,44 +89,73 @@ class Session:
 
 def setup(cfg: Config, output_dir) -> Session:
     """Scene, feature targets, fresh (or resumed) state, step and renderers."""
-    out = pathlib.Path(output_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = _output_folder(output_dir)
+    ckpt = Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints")
+    require(not cfg.train.resume or ckpt.latest_step() is not None, "train.resume", True,
+            f"there is no checkpoint to resume in {ckpt.directory}",
+            "point hydra.run.dir (or train.checkpoint_dir) at the folder of the run to continue, "
+            "or drop train.resume to start afresh")
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
-    scene = load_data(cfg)
+    scene, world = load_data(cfg)
+    cfg = resolve_voxel_size(cfg, scene.points)
     train_idx = scene.train_indices
-    test_idx = scene.test_indices if len(scene.test_indices) else scene.train_indices[:1]
-    log.info("scene %s: %d train / %d held-out views at %dx%d, %d points, extent %.3f", scene.path, len(train_idx),
-             len(scene.test_indices), scene.width, scene.height, len(scene.points), scene.extent)
+    test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
+    log.info("scene %s: %d train / %d held-out views at %dx%d, %d points; COLMAP extent %.4g (trained in units "
+             "of it), voxel size %.4g", scene.path, len(train_idx), len(scene.test_indices), scene.width,
+             scene.height, len(scene.points), 1.0 / world.scale, cfg.model.voxel_size)
+    if not len(scene.test_indices):
+        log.warning("no held-out views (data.holdout_every=%d): the reported PSNR/SSIM are measured on "
+                    "training views and say nothing about novel views", cfg.data.holdout_every)
     feature_sets, banks, targets = {}, None, {}
     if cfg.features.enabled:
         feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed)
-        targets = {name: jnp.asarray(fs.maps[train_idx].astype(np.float16)) for name, fs in feature_sets.items()}
+        targets = feature_targets(feature_sets, train_idx)
         banks = {name: jnp.asarray(b) for name, b in banks.items()}
     strategies = make_strategies(cfg)
     state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
-    session = Session(cfg=cfg, out=out, scene=scene, train_idx=train_idx, test_idx=test_idx,
+    session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
-                      state=state, ckpt=Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints"), clock=Clock(),
-                      curve=[], prune=dict(passes=0, pruned=0, render_ms_before_prune=None))
-    if cfg.train.resume and session.ckpt.latest_step() is not None:
+                      state=state, ckpt=ckpt, clock=Clock(), curve=[],
+                      prune=dict(passes=0, pruned=0, render_ms_before_prune=None))
+    if cfg.train.resume:
         _resume(session)
-    session.render = make_render_fn(cfg)
-    session.feature_render = make_feature_render_fn(cfg) if cfg.features.enabled else None
+    session.render = make_render_fn(session.cfg)
+    session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
     return session
+
+
+def _output_folder(output_dir) -> pathlib.Path:
+    out = pathlib.Path(output_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ".write_test").touch()
+        (out / ".write_test").unlink()
+    except OSError as error:
+        require(False, "hydra.run.dir", str(out), f"the output folder cannot be written ({error.strerror})",
+                "run from a writable folder or set hydra.run.dir=<a writable folder>")
+    return out
+
+
+def _spread(indices: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` entries of ``indices`` spread evenly over it."""
+    return indices[np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))]
 
 
 def _resume(session: Session) -> None:
     """Restore the newest checkpoint (its metadata read once) and trim the logs to its step."""
     template = session.state
-    capacity = int(session.ckpt.metadata()["capacity"])
-    if capacity != template.anchors.capacity:
-        template = ops.grow_capacity(template, session.tx, capacity)
+    meta = session.ckpt.metadata()
+    capacity_now = int(meta["capacity"])
+    if capacity_now != template.anchors.capacity:
+        template = ops.grow_capacity(template, session.tx, capacity_now)
     session.state, meta = session.ckpt.restore(template)
     step = int(session.state.step)
+    session.cfg = capacity.with_capacities(session.cfg, meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
     session.prune = dict(session.prune, **meta.get("prune", {}))
     session.recompilations = int(meta.get("recompilations", 0))
+    session.replays = int(meta.get("replays", 0))
     _trim_jsonl(session.out / "metrics.jsonl", step)
     _trim_jsonl(session.out / "eval_curve.jsonl", step)
     log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
@@ -132,7 +177,6 @@ def train(session: Session, progress_label: str = "train") -> None:
     """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint."""
     cfg = session.cfg
     iterations, start = cfg.train.iterations, int(session.state.step)
-    step_fn = make_train_step(cfg, session.tx, session.strategies)
     batches = _batches(session)
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
@@ -141,8 +185,7 @@ def train(session: Session, progress_label: str = "train") -> None:
             open(session.out / "eval_curve.jsonl", "a") as curve_file:
         for step in bar:
             with session.clock:
-                session.state, metrics = step_fn(session.state, batches(step))
-                jax.block_until_ready(metrics)  # charge the step's real compute time to the clock
+                metrics = _exact_step(session, batches(step))
                 _densify(session, step + 1)
             done = step + 1
             if done % cfg.train.log_every == 0 or done == iterations:
@@ -156,11 +199,31 @@ def train(session: Session, progress_label: str = "train") -> None:
                 point = _curve_point(session, done)
                 curve_file.write(json.dumps(point) + "\n")
                 curve_file.flush()
-                bar.write(f"step {done}: held-out PSNR {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
+                bar.write(f"step {done}: {_psnr_label(session)} {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 _save(session, done)
     bar.close()
     _save(session, iterations)
+
+
+def _exact_step(session: Session, batch: dict) -> dict:
+    """One training step on ``batch`` that dropped no work; returns its metrics (host values).
+
+    A step that reported dropped anchors or tile pairs changed nothing; the
+    capacity is grown (:func:`cusgs_jax.training.capacity.grow_for`), the step
+    rebuilt and the same batch replayed.
+    """
+    while True:
+        if session.step_fn is None:
+            session.step_fn = make_train_step(session.cfg, session.tx, session.strategies)
+        session.state, metrics = session.step_fn(session.state, batch)
+        metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
+        if not (metrics["dropped_anchors"] or metrics["dropped_pairs"]):
+            return metrics
+        model = session.cfg.model
+        num_gaussians = num_visible_slots(session.state.anchors.capacity, model.visible_fraction) * model.n_offsets
+        session.cfg = capacity.grow_for(session.cfg, metrics, session.state.anchors.capacity, num_gaussians)
+        session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
 
 
 def _batches(session: Session):
@@ -192,25 +255,25 @@ def _densify(session: Session, step: int) -> None:
                 session.prune["render_ms_before_prune"] = _evaluate(session, time_renders=True)["render_ms_per_view"]
         session.state, info = strategy.update(session.state, session.tx, step)
         if info.get("capacity_grew"):
-            session.recompilations += 1
+            session.recompilations += 1  # new shapes: the jitted step retraces
         if is_prune:
             session.prune["passes"] += 1
             session.prune["pruned"] += int(info["pruned"])
 
 
 def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
-    metrics = jax.device_get(metrics)
     state = session.state
     row = dict(step=step, wall_s=round(session.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
                visible_anchors=int(metrics["visible_anchors"]), pruned=session.prune["pruned"],
-               skipped=int(state.skipped), visible_overflow=int(metrics["visible_overflow"]),
-               overflow=int(metrics["overflow"]), step_s=round(step_s, 4))
-    if row["visible_overflow"] or row["overflow"]:
-        log.warning("step %d: %d visible anchors did not fit model.visible_fraction and %d tile pairs "
-                    "overflowed splat.max_pairs_per_gaussian; raise them if this persists",
-                    step, row["visible_overflow"], row["overflow"])
+               skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
+               dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
+               recompilations=session.recompilations, step_s=round(step_s, 4))
+    if step == session.cfg.train.log_every and row["loss"] > LOSS_ALARM:
+        log.warning("step %d: loss %.4g is far above the normal range (< %g for images in [0, 1]): check the "
+                    "scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of the "
+                    "scene extent", step, row["loss"], LOSS_ALARM)
     return row
 
 
@@ -240,9 +303,14 @@ def _curve_point(session: Session, step: int) -> dict:
     return point
 
 
+def _psnr_label(session: Session) -> str:
+    return "held-out PSNR" if session.evaluated_on == "held_out" else "training-view PSNR (no held-out views)"
+
+
 def _save(session: Session, step: int) -> None:
     meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
-                prune=session.prune, recompilations=session.recompilations)
+                prune=session.prune, recompilations=session.recompilations, replays=session.replays,
+                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size)
     session.ckpt.save(step, session.state, meta)
 
 
@@ -266,9 +334,13 @@ def finalise(session: Session) -> dict:
         render_ms_before_prune=session.prune["render_ms_before_prune"],
         prune=dict(strategy=prune_cfg.strategy, ratio=prune_cfg.ratio, lambda_norm=prune_cfg.lambda_norm,
                    lambda_grad=prune_cfg.lambda_grad, passes=session.prune["passes"], pruned=session.prune["pruned"]),
-        skipped_updates=int(state.skipped), recompilations=session.recompilations,
-        iterations=cfg.train.iterations, width=session.scene.width, height=session.scene.height,
-        held_out_views=len(session.test_idx), curve=session.curve,
+        skipped_updates=int(state.skipped), dropped_anchors=0, dropped_pairs=0, replayed_steps=session.replays,
+        recompilations=session.recompilations + session.render.growths
+        + (session.feature_render.growths if session.feature_render else 0),
+        capacities=capacity.capacities(session.cfg), voxel_size=cfg.model.voxel_size,
+        world_transform=session.world.as_dict(), iterations=cfg.train.iterations, width=session.scene.width,
+        height=session.scene.height, held_out_views=len(session.scene.test_indices),
+        evaluated_on=session.evaluated_on, curve=session.curve,
     )
     if session.banks is not None:
         result["features"] = _evaluate_features(session, out_dir=out / "features" if save else None)
@@ -277,8 +349,8 @@ def finalise(session: Session) -> dict:
     plot_error_vs_time(session.curve, out / "error_vs_time.png",
                        title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
     session.ckpt.close()
-    log.info("held-out PSNR %.2f dB, SSIM %.4f, %d anchors, %.0f s training", result["psnr"], result["ssim"],
-             result["alive_anchors"], result["train_wall_s"])
+    log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
+             result["ssim"], result["alive_anchors"], result["train_wall_s"])
     return result
 
 

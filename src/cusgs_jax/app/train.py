@@ -2,9 +2,15 @@
 
 Single runs: ``cusgs-train model.voxel_size=0.02``. Sweeps:
 ``cusgs-train -m experiment=voxel_size`` (the ready sweeps are in ``conf/experiment``;
-they run side by side with Hydra's joblib launcher). In a sweep a job that raises
-writes ``failed.json`` (error and traceback) into its own folder, is logged, and
-the other jobs go on; ``cusgs-report <multirun folder>`` lists it as failed.
+they run side by side with Hydra's joblib launcher).
+
+Exit codes: 0 success; 2 a bad setting or bad input (one line on stderr naming
+the option or file and the fix — checked before any work where possible,
+:mod:`cusgs_jax.app.overrides`); 1 a bug (traceback). In a sweep a job that
+raises writes ``failed.json`` (error and traceback) into its own folder, is
+logged, and the other jobs go on; when the sweep ends, :class:`FailedJobs`
+lists the failed jobs and the command exits 2 (all of them bad settings or
+input) or 1, never 0. ``cusgs-report <multirun folder>`` lists them too.
 """
 
 from __future__ import annotations
@@ -13,33 +19,49 @@ import json
 import logging
 import math
 import pathlib
+import sys
 import traceback
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.config import from_omegaconf, register_configs
-from cusgs_jax.data.colmap import SceneError
+from cusgs_jax.errors import UserError
 
 log = logging.getLogger("cusgs_jax")
 register_configs()  # config.Config is the schema and the defaults of conf/config.yaml
+PROG = "cusgs-train"
 
 
 def record_failure(output_dir: str | pathlib.Path, error: BaseException) -> pathlib.Path:
-    """Write ``failed.json`` ({"error": "Type: message", "traceback": ...}) into a job folder."""
+    """Write ``failed.json`` ({"error": "Type: message", "user_error": bool, "traceback": ...}) into a job folder."""
     path = pathlib.Path(output_dir) / "failed.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({
         "error": f"{type(error).__name__}: {error}",
+        "user_error": isinstance(error, UserError),
         "traceback": "".join(traceback.format_exception(type(error), error, error.__traceback__)),
     }, indent=1))
     return path
 
 
+class FailedJobs(Callback):
+    """Hydra callback: after a sweep, collect the jobs that wrote ``failed.json`` (read by :func:`main`)."""
+
+    found: list[dict] = []
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = pathlib.Path(str(config.hydra.sweep.dir))
+        FailedJobs.found = [dict(json.loads(path.read_text()), path=str(path))
+                            for path in sorted(sweep_dir.glob("*/failed.json"))]
+
+
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
-def main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float:
     from cusgs_jax.app.run import run
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
@@ -50,11 +72,12 @@ def main(cfg: DictConfig) -> float:
     try:
         result = run(from_omegaconf(cfg), output_dir,
                      progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")
-    except SceneError as error:
+    except UserError as error:
         record_failure(output_dir, error)
-        log.error("%s", error)
         if sweeping:
+            log.error("job %s: %s", hydra_cfg.job.num, error)
             return math.nan
+        log.error("%s", error)
         raise SystemExit(2) from None
     except Exception as error:  # noqa: BLE001 - a sweep must outlive one bad job
         if not sweeping:
@@ -63,6 +86,23 @@ def main(cfg: DictConfig) -> float:
         log.exception("job %s failed (details in %s); the other jobs go on", hydra_cfg.job.num, path)
         return math.nan
     return float(result["psnr"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``cusgs-train [overrides]``: check the command line, run Hydra, report failed sweep jobs."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    problem = check_command_line(argv)
+    if problem:
+        print(f"{PROG}: error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
+    sys.argv = [sys.argv[0] or PROG] + argv
+    FailedJobs.found = []
+    _hydra_main()
+    if FailedJobs.found:
+        for job in FailedJobs.found:
+            print(f"{PROG}: job failed: {job['error'].splitlines()[0]} ({job['path']})", file=sys.stderr)
+        print(f"{PROG}: error: {len(FailedJobs.found)} sweep job(s) failed; the others finished", file=sys.stderr)
+        raise SystemExit(2 if all(job.get("user_error") for job in FailedJobs.found) else 1)
 
 
 if __name__ == "__main__":

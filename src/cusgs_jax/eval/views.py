@@ -29,16 +29,16 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
     """PSNR and SSIM of ``views`` (indices into the scene).
 
     Args:
-      render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3], overflow)``
-        (:func:`cusgs_jax.training.render.make_render_fn`).
+      render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3],)``
+        (:func:`cusgs_jax.training.render.make_render_fn`, which never drops work).
       scene: :class:`cusgs_jax.data.colmap.SceneData`.
       out_dir: if given, writes ``<name>.png`` with render | ground truth side by side.
       time_renders: also measure the median render time (after one warm-up).
     Returns:
       {"per_view": [{name, psnr, ssim}], "psnr": mean, "ssim": mean,
-       "render_ms_per_view": median or None, "overflow": total}.
+       "render_ms_per_view": median or None}.
     """
-    per_view, times, overflow = [], [], 0
+    per_view, times = [], []
     centers = scene.camera_centers
     for view in views:
         app = nearest_train_view(centers, scene.train_indices, view)
@@ -46,11 +46,10 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
         if time_renders and not times:
             jax.block_until_ready(render(*args))
         start = time.perf_counter()
-        image, ovf = jax.block_until_ready(render(*args))
+        (image,) = jax.block_until_ready(render(*args))
         times.append(time.perf_counter() - start)
         image = np.asarray(image)
         target = scene.images[view].astype(np.float32) / 255.0
-        overflow += int(ovf)
         row = dict(name=scene.names[view], psnr=float(metrics.psnr(image, target)),
                    ssim=float(metrics.ssim(image, target)))
         per_view.append(row)
@@ -64,7 +63,6 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
         psnr=float(np.mean([r["psnr"] for r in per_view])) if per_view else float("nan"),
         ssim=float(np.mean([r["ssim"] for r in per_view])) if per_view else float("nan"),
         render_ms_per_view=float(np.median(times) * 1e3) if time_renders and times else None,
-        overflow=overflow,
     )
 
 

@@ -145,26 +145,42 @@ def voxelize(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return (cells * voxel_size).astype(np.float32)
 
 
-def nearest_neighbour_sq_dist(points: np.ndarray, k: int = 3, block: int = 2048) -> np.ndarray:
-    """Mean squared distance to the ``k`` nearest other points (3DGS ``distCUDA2``).
+def nearest_neighbour_sq_dist(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """Mean squared distance to the ``k`` nearest other points (3DGS ``distCUDA2``), by k-d tree.
 
     Args:
       points: [A0, 3].
     Returns:
-      [A0] float64, clamped below at 1e-7.
+      [A0] float64, clamped below at 1e-7 (1.0 for a single point).
     """
+    from scipy.spatial import cKDTree
+
     pts = np.asarray(points, np.float64)
-    out = np.empty(len(pts))
-    k_eff = min(k, max(len(pts) - 1, 1))
-    for start in range(0, len(pts), block):
-        chunk = pts[start:start + block]
-        d2 = np.sum((chunk[:, None, :] - pts[None, :, :]) ** 2, axis=-1)
-        d2[np.arange(len(chunk)), np.arange(start, start + len(chunk))] = np.inf
-        if len(pts) == 1:
-            out[start:start + len(chunk)] = 1.0
-            continue
-        out[start:start + len(chunk)] = np.mean(np.partition(d2, k_eff - 1, axis=1)[:, :k_eff], axis=1)
-    return np.maximum(out, 1e-7)
+    if len(pts) < 2:
+        return np.ones(len(pts))
+    k_eff = min(k, len(pts) - 1)
+    dist, _ = cKDTree(pts).query(pts, k=k_eff + 1)  # column 0 is the point itself
+    return np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), 1e-7)
+
+
+def auto_voxel_size(points: np.ndarray) -> float:
+    """``model.voxel_size=auto``: the median distance from an SfM point to its nearest neighbour.
+
+    Scaffold-GS (``voxel_size <= 0``) takes the median of ``distCUDA2`` — a mean
+    *squared* distance to 3 neighbours — as a length, which does not scale with
+    the scene; we take a length (the nearest-neighbour spacing), so the rule is
+    invariant to the scale of the model. Duplicate points are ignored.
+
+    Args:
+      points: [P, 3].
+    """
+    from scipy.spatial import cKDTree
+
+    pts = np.unique(np.asarray(points, np.float64), axis=0)
+    if len(pts) < 2:
+        raise ValueError("model.voxel_size=auto needs at least two distinct SfM points")
+    dist, _ = cKDTree(pts).query(pts, k=2)
+    return float(np.median(dist[:, 1]))
 
 
 def fresh_queries(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:

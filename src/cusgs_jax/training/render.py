@@ -16,6 +16,7 @@ from cusgs_jax.model.decode import Gaussians, VisibleSlots, decode_view
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import RenderOutput, rasterize
+from cusgs_jax.training.capacity import ExactRender, max_pairs
 from cusgs_jax.types import Camera
 
 
@@ -35,7 +36,7 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, mea
     return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, colors,
                      camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
                      antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                     max_pairs=int(cfg.max_pairs_per_gaussian * num) + 4096, means2d_delta=means2d_delta)
+                     max_pairs=max_pairs(cfg.max_pairs_per_gaussian, num), means2d_delta=means2d_delta)
 
 
 def view_queries(nets: dict, anchors: AnchorState, view: VisibleSlots, camera: Camera, appearance_index,
@@ -53,35 +54,44 @@ def render_config(cfg: Config) -> Config:
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, visible_fraction=1.0))
 
 
-def make_render_fn(cfg: Config):
-    """Jitted ``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1], overflow [])``.
+def make_render_fn(cfg: Config) -> ExactRender:
+    """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1],)``.
 
-    Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`): every slot is decoded.
+    Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`): every
+    slot is decoded, and a render whose tile pairs would overflow is redone with
+    a larger capacity (:class:`~cusgs_jax.training.capacity.ExactRender`), so the
+    image is always exact.
     """
-    cfg = render_config(cfg)
+    def build(cfg: Config):
+        cfg = render_config(cfg)
 
-    @jax.jit
-    def render(anchors, nets, camera, appearance_index):
-        gaussians, _ = decode_view(nets, anchors, camera, appearance_index, cfg.model)
-        out = render_gaussians(gaussians, camera, cfg.splat)
-        return jnp.clip(out.image, 0.0, 1.0), out.overflow
+        @jax.jit
+        def render(anchors, nets, camera, appearance_index):
+            gaussians, _ = decode_view(nets, anchors, camera, appearance_index, cfg.model)
+            out = render_gaussians(gaussians, camera, cfg.splat)
+            return jnp.clip(out.image, 0.0, 1.0), out.overflow, out.num_pairs
 
-    return render
+        return render
+
+    return ExactRender(build, cfg)
 
 
-def make_feature_render_fn(cfg: Config):
-    """Jitted ``render(anchors, nets, camera, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``.
+def make_feature_render_fn(cfg: Config) -> ExactRender:
+    """``render(anchors, nets, camera, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``.
 
-    Like :func:`make_render_fn`, every slot is decoded (for compacted anchors).
+    Like :func:`make_render_fn`: every slot decoded, never a truncated render.
     """
-    cfg = render_config(cfg)
+    def build(cfg: Config):
+        cfg = render_config(cfg)
 
-    @jax.jit
-    def render(anchors, nets, camera, appearance_index, banks):
-        gaussians, view = decode_view(nets, anchors, camera, appearance_index, cfg.model)
-        queries = view_queries(nets, anchors, view, camera, appearance_index, cfg)
-        out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
-        features = retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
-        return jnp.clip(out.image[..., :3], 0.0, 1.0), features
+        @jax.jit
+        def render(anchors, nets, camera, appearance_index, banks):
+            gaussians, view = decode_view(nets, anchors, camera, appearance_index, cfg.model)
+            queries = view_queries(nets, anchors, view, camera, appearance_index, cfg)
+            out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
+            features = retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
+            return jnp.clip(out.image[..., :3], 0.0, 1.0), features, out.overflow, out.num_pairs
 
-    return render
+        return render
+
+    return ExactRender(build, cfg)

@@ -6,6 +6,7 @@ Naming (:mod:`cusgs_jax.types`): A anchor capacity, V training views, E appearan
 from __future__ import annotations
 
 import dataclasses
+import logging
 from typing import Any
 
 import jax
@@ -13,13 +14,38 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from cusgs_jax.config import Config
+from cusgs_jax.config import Config, require
 from cusgs_jax.densify.base import Strategy
-from cusgs_jax.model.anchors import AnchorState, init_anchors
+from cusgs_jax.model.anchors import AnchorState, auto_voxel_size, init_anchors
 from cusgs_jax.model.decode import init_decoder
 from cusgs_jax.model.field import init_memory_heads
 from cusgs_jax.model.queries import init_query_heads
 from cusgs_jax.training.optim import make_optimizer
+
+log = logging.getLogger("cusgs_jax")
+MIN_ANCHORS = 4  # fewer cannot represent a scene: refused
+FEW_ANCHORS = 64  # fewer is allowed but warned about
+
+
+def resolve_voxel_size(cfg: Config, points: np.ndarray) -> Config:
+    """``cfg`` with ``model.voxel_size="auto"`` replaced by :func:`auto_voxel_size` of ``points`` [P, 3]."""
+    if cfg.model.voxel_size != "auto":
+        return cfg
+    size = auto_voxel_size(points)
+    log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of %d SfM points)", size, len(points))
+    return cfg.replace(model=dict(voxel_size=size))
+
+
+def _check_scaffold(anchors: AnchorState, voxel_size: float, points: np.ndarray) -> None:
+    """Refuse a scaffold too coarse to mean anything; warn when it is merely coarse."""
+    count = int(np.sum(np.asarray(anchors.alive)))
+    hint = f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell"
+    require(count >= MIN_ANCHORS, "model.voxel_size", voxel_size,
+            f"leaves only {count} anchor(s) for {len(points)} SfM points (the cell is about as large as the "
+            "scene, whose extent is 1 in these units)", hint)
+    if count < FEW_ANCHORS:
+        log.warning("only %d anchors from %d SfM points at model.voxel_size=%g: the model will be very coarse; %s",
+                    count, len(points), voxel_size, hint)
 
 
 @jax.tree_util.register_dataclass
@@ -80,18 +106,21 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     """Fresh state and optimiser from an SfM point cloud.
 
     Args:
-      points: [P, 3] SfM points.
-      extent: scene extent (scales the offsets' learning rate).
+      points: [P, 3] SfM points (in the normalised frame of :mod:`cusgs_jax.data.normalize`).
+      extent: scene extent (scales the offsets' learning rate; 1 in the normalised frame).
       strategies: the densification strategies (:func:`cusgs_jax.densify.base.make_strategies`).
       banks: {model: [M, D] PSC entries} when feature models are configured.
     Returns:
       (TrainState, optax transformation).
     """
     model, key = cfg.model, jax.random.PRNGKey(cfg.train.seed)
+    require(model.voxel_size != "auto", "model.voxel_size", model.voxel_size,
+            "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
     anchors = init_anchors(points, model.voxel_size, n_offsets=model.n_offsets, latent_dim=model.latent_dim,
                            capacity_factor=model.capacity_factor,
                            query_dim=cfg.features.query_dim if table else 0, key=jax.random.fold_in(key, 2))
+    _check_scaffold(anchors, model.voxel_size, points)
     nets = init_nets(key, cfg, num_train_views, banks)
     state = TrainState(anchors=anchors, nets=nets, opt_state=None,
                        densify={s.name: s.init_state(anchors.capacity) for s in strategies},

@@ -55,6 +55,13 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
     ``(state, metrics)``. A non-finite loss or gradient leaves the parameters
     and optimiser state untouched and increments ``state.skipped``. Every
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
+
+    **No truncated step.** When the view has more visible anchors than the
+    static visible slots or more tile pairs than the pair capacity, the step
+    changes nothing at all (not even ``state.step``) and reports the shortfall
+    in ``metrics["dropped_anchors"]`` / ``metrics["dropped_pairs"]``; the caller
+    grows the capacity and replays the same batch
+    (:mod:`cusgs_jax.training.capacity`).
     """
     loss_fn = _loss_fn(cfg)
 
@@ -69,23 +76,26 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
             loss_fn, argnums=(0, 1), has_aux=True)(trainable, delta, state.anchors, batch, key)
         finite = jnp.isfinite(loss) & jnp.all(jnp.array(
             [jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
+        complete = (view.overflow == 0) & (out.overflow == 0)  # nothing was left out of this view
+        apply = finite & complete
         updates, new_opt = tx.update(grads, state.opt_state, trainable)
         # dead anchor slots never move (their Adam moments may still be non-zero)
         alive = state.anchors.alive
         updates["anchor"] = jax.tree_util.tree_map(
             lambda u: jnp.where(alive.reshape((-1,) + (1,) * (u.ndim - 1)), u, 0.0), updates["anchor"])
         new_trainable = jax.tree_util.tree_map(lambda p, u: p + u, trainable, updates)
-        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(finite, a, b), new, old)  # noqa: E731
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(apply, a, b), new, old)  # noqa: E731
         record = ViewRecord(slots=view, gaussians=gaussians, render=out, grad2d=grad2d,
                             latent_grad=grads["anchor"].latent[view.slots], capacity=capacity,
-                            width=camera.width, height=camera.height, step=state.step, finite=finite)
-        densify = {s.name: s.accumulate(state.densify[s.name], record) for s in strategies}
+                            width=camera.width, height=camera.height, step=state.step, finite=apply)
+        densify = {s.name: s.accumulate(state.densify[s.name], record) for s in strategies}  # gated by record.finite
         mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
         new_state = state.with_trainable(keep(new_trainable, trainable)).replace(
-            opt_state=keep(new_opt, state.opt_state), densify=densify, step=state.step + 1,
-            skipped=state.skipped + (~finite).astype(jnp.int32))
+            opt_state=keep(new_opt, state.opt_state), densify=densify, step=state.step + complete.astype(jnp.int32),
+            skipped=state.skipped + (complete & ~finite).astype(jnp.int32))
         metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
-                       visible_anchors=jnp.sum(view.valid), visible_overflow=view.overflow, overflow=out.overflow,
+                       visible_anchors=jnp.sum(view.valid), dropped_anchors=view.overflow,
+                       pairs=out.num_pairs, dropped_pairs=out.overflow,
                        **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
         return new_state, metrics
 
