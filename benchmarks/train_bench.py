@@ -25,19 +25,21 @@ import numpy as np
 from cusgs_jax.app.inputs import load_feature_targets
 from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
 from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.densify.base import make_strategies
-from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 
 
-def bench(width: int, height: int, steps: int, views: int, voxel_size: float, features: bool) -> dict:
+def bench(width: int, height: int, steps: int, views: int, voxel_size, features: bool) -> dict:
     cfg = Config().replace(train=dict(iterations=30_000), model=dict(voxel_size=voxel_size),
                            features=dict(models=DEMO_FEATURE_MODELS if features else ()))
     with tempfile.TemporaryDirectory() as tmp:
-        scene = load_scene(generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width,
-                                               height=height), holdout_every=0)
+        scene, _ = normalize_scene(load_scene(generate_demo_scene(os.path.join(tmp, "demo"), num_views=views,
+                                                                  width=width, height=height), holdout_every=0))
+        cfg = resolve_voxel_size(cfg, scene.points)
         banks, targets = None, {}
         if features:
             maps, banks = load_feature_targets(cfg.features, scene, 0)
@@ -76,7 +78,8 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--views", type=int, default=12)
-    parser.add_argument("--voxel-size", type=float, default=0.04)
+    parser.add_argument("--voxel-size", type=lambda v: v if v == "auto" else float(v), default="auto",
+                        help="in units of the scene extent, or auto")
     parser.add_argument("--features", action="store_true", help="also time the step with the demo feature field")
     args = parser.parse_args(argv)
     rows = []

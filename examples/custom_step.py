@@ -28,9 +28,9 @@ def main(argv=None) -> float:
     args = parser.parse_args(argv)
 
     path = args.scene or cg.demo_scene_path(num_views=args.views, width=args.size[0], height=args.size[1])
-    scene = cg.load_scene(path, holdout_every=0)
+    scene, _ = cg.normalize_scene(cg.load_scene(path, holdout_every=0))  # camera extent 1, any COLMAP scale
     decoder_cfg = cg.DecoderConfig(n_offsets=5, latent_dim=16, hidden=32, appearance_dim=0)
-    anchors = cg.init_anchors(scene.points, voxel_size=0.1, n_offsets=5, latent_dim=16)  # an AnchorState
+    anchors = cg.init_anchors(scene.points, voxel_size=0.04, n_offsets=5, latent_dim=16)  # an AnchorState
     # learnable: the per-anchor arrays (offsets, scaling, latents) and the decoder MLPs; the
     # anchor centres and the alive mask stay fixed (this toy never grows or prunes)
     params = {"anchor": anchors.params, "decoder": cg.init_decoder(jax.random.PRNGKey(0), decoder_cfg)}

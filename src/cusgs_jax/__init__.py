@@ -24,6 +24,8 @@ _EXPORTS = {
     "Camera": "types",
     # data
     "SceneData": "data.colmap", "SceneError": "data.colmap", "load_scene": "data.colmap",
+    "normalize_scene": "data.normalize", "WorldTransform": "data.normalize",
+    "UserError": "errors", "ConfigError": "errors", "CheckpointError": "errors",
     "demo_scene_path": "data.demo", "generate_demo_scene": "data.demo",
     # model
     "AnchorParams": "model.anchors", "AnchorState": "model.anchors", "init_anchors": "model.anchors",

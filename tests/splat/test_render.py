@@ -215,3 +215,22 @@ def test_check_inputs_accepts_valid_scene():
     scene = as_dtype(make_scene(12, num=10), np.float32)
     check_inputs(*(scene[k] for k in KEYS), scene["viewmat"], scene["K"], scene["width"], scene["height"],
                  background=scene["background"])
+
+
+def test_zero_gaussians_render_the_background_with_empty_per_gaussian_fields():
+    from cusgs_jax.splat import check_inputs, rasterize
+
+    empty = lambda *shape: jnp.zeros((0,) + shape, jnp.float32)  # noqa: E731
+    viewmat, K = jnp.eye(4), jnp.array([[20.0, 0, 16], [0, 20.0, 12], [0, 0, 1]])
+    background = jnp.array([0.2, 0.4, 0.6])
+    args = (empty(3), empty(4), empty(3), empty(), empty(3), viewmat, K, 32, 24)
+    check_inputs(*args, background=background)  # G = 0 is a valid scene
+    out = rasterize(*args, background=background)
+    np.testing.assert_array_equal(np.asarray(out.image), np.broadcast_to(np.asarray(background), (24, 32, 3)))
+    assert float(jnp.max(out.alpha)) == 0.0 and out.radii.shape == (0, 2) and out.significance.shape == (0,)
+    assert int(out.overflow) == 0
+    grads = jax.grad(lambda m, c, b: jnp.sum(rasterize(m, args[1], args[2], args[3], c, viewmat, K, 32, 24,
+                                                         background=b).image), argnums=(0, 1, 2))(
+        args[0], args[4], background)
+    assert grads[0].shape == (0, 3) and grads[1].shape == (0, 3)
+    np.testing.assert_allclose(np.asarray(grads[2]), 32 * 24, rtol=1e-6)  # d image / d background = T = 1

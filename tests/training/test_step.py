@@ -229,9 +229,9 @@ def test_prune_pass_honours_ratio_and_pruned_anchors_are_inert(prune_setup):
     compact_anchors = compact(state.anchors)
     assert compact_anchors.capacity < state.anchors.capacity
     render = make_render_fn(cfg)  # every slot decoded
-    compact_image, _ = render(compact_anchors, state.nets, camera, index)
+    (compact_image,) = render(compact_anchors, state.nets, camera, index)
     np.testing.assert_allclose(np.asarray(image), np.asarray(compact_image), atol=1e-6)
-    full_image, _ = render(state.anchors, state.nets, camera, index)
+    (full_image,) = render(state.anchors, state.nets, camera, index)
     np.testing.assert_allclose(np.asarray(full_image), np.asarray(compact_image), atol=1e-6)
 
     # ... their parameters get exactly zero gradient and do not move in later steps

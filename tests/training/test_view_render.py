@@ -54,11 +54,11 @@ def test_compact_render_equals_the_full_model_and_the_direct_path():
     render = make_render_fn(CFG)
     anchors = compact(state.anchors)
     assert anchors.capacity < state.anchors.capacity
-    image, overflow = render(anchors, state.nets, CAMERA, jnp.int32(1))
+    (image,) = render(anchors, state.nets, CAMERA, jnp.int32(1))
     image = np.asarray(image)
-    assert image.shape == (H, W, 3) and int(overflow) == 0
+    assert image.shape == (H, W, 3) and render.growths == 0
     assert image.min() >= 0.0 and image.max() <= 1.0 and image.std() > 0.01  # something was drawn
-    full, _ = render(state.anchors, state.nets, CAMERA, jnp.int32(1))
+    (full,) = render(state.anchors, state.nets, CAMERA, jnp.int32(1))
     np.testing.assert_allclose(np.asarray(full), image, atol=1e-6)
     # the train step's path at visible_fraction < 1 (no visible anchor dropped here) agrees
     gaussians, view = decode_view(state.nets, state.anchors, CAMERA, jnp.int32(1), CFG.model)
@@ -66,7 +66,7 @@ def test_compact_render_equals_the_full_model_and_the_direct_path():
     direct = np.clip(np.asarray(render_gaussians(gaussians, CAMERA, CFG.splat).image), 0, 1)
     np.testing.assert_allclose(direct, image, atol=1e-6)
     # the appearance embedding matters
-    other, _ = render(anchors, state.nets, CAMERA, jnp.int32(0))
+    (other,) = render(anchors, state.nets, CAMERA, jnp.int32(0))
     assert not np.allclose(np.asarray(other), image)
 
 
@@ -77,7 +77,7 @@ def test_feature_render_matches_rgb_and_retrieves_every_model(granularity):
     state = _state(cfg, banks)
     anchors = compact(state.anchors)
     rgb, features = make_feature_render_fn(cfg)(anchors, state.nets, CAMERA, jnp.int32(1), banks)
-    image, _ = make_render_fn(cfg)(anchors, state.nets, CAMERA, jnp.int32(1))
+    (image,) = make_render_fn(cfg)(anchors, state.nets, CAMERA, jnp.int32(1))
     np.testing.assert_allclose(np.asarray(rgb), np.asarray(image), atol=1e-6)  # extra channels leave RGB alone
     assert set(features) == {"a", "b"}
     assert features["a"].shape == (H, W, 3) and features["b"].shape == (H, W, 2)
@@ -91,3 +91,19 @@ def test_feature_render_matches_rgb_and_retrieves_every_model(granularity):
     for name in ("a", "b"):
         assert np.all(np.isfinite(np.asarray(features[name])))
         np.testing.assert_allclose(np.asarray(features[name]), np.asarray(expected[name]), atol=1e-5)
+
+
+def test_a_render_that_would_drop_tile_pairs_grows_its_capacity_and_is_exact(monkeypatch):
+    from cusgs_jax.training import capacity
+
+    monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # the fixed slack alone holds this tiny view's pairs
+    state = _state(CFG)
+    anchors = compact(state.anchors)
+    (exact,) = make_render_fn(CFG)(anchors, state.nets, CAMERA, jnp.int32(1))
+    tight = make_render_fn(CFG.replace(splat=dict(max_pairs_per_gaussian=0.01)))
+    # the first capacity cannot hold this view's pairs: the raw jitted render would drop some
+    raw = tight.build(tight.cfg)(anchors, state.nets, CAMERA, jnp.int32(1))
+    assert int(raw[-2]) > 0
+    (image,) = tight(anchors, state.nets, CAMERA, jnp.int32(1))
+    assert tight.growths >= 1 and tight.cfg.splat.max_pairs_per_gaussian > 0.01
+    np.testing.assert_allclose(np.asarray(image), np.asarray(exact), atol=1e-6)

@@ -72,11 +72,21 @@ def _compose(overrides: list[str]) -> None:
         compose_config(overrides)
     except MissingConfigException as error:
         first = str(error).split("\n\n")[0]
-        listing = str(error).split("Available options")[-1].split("\n\n")[0] if "Available options" in str(error) else ""
-        options = [line.strip() for line in listing.splitlines()[1:] if line.strip()]
+        options = _listed_options(str(error))
         raise UserError(f"{first}; choose one of {options}" if options else first) from None
     except ConfigCompositionException as error:
         raise UserError(_composition_message(error)) from None
+
+
+def _listed_options(message: str) -> list[str]:
+    """The tab-indented names under Hydra's "Available options in 'group':" line."""
+    lines = message.split("Available options", 1)[-1].splitlines()[1:] if "Available options" in message else []
+    options = []
+    for line in lines:
+        if not line.startswith("\t"):
+            break
+        options.append(line.strip())
+    return options
 
 
 def _composition_message(error: Exception) -> str:

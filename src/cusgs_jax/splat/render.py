@@ -136,6 +136,11 @@ def rasterize(
       scales, opacities, colors, background (and viewmat, K).
     """
     num_gaussians, channels = colors.shape
+    if num_gaussians == 0:  # nothing to draw: the background (one invisible Gaussian keeps every shape non-empty)
+        return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
+                                  far=far, background=background, antialiased=antialiased, eps2d=eps2d,
+                                  tile_size=tile_size, max_pairs=max_pairs, chunk_size=chunk_size,
+                                  means2d_delta=means2d_delta, lanes=lanes)
     grid = TileGrid(int(width), int(height), int(tile_size))
     if max_pairs is None:
         max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
@@ -177,6 +182,20 @@ def rasterize(
         overflow=isect.overflow,
         num_pairs=isect.num_pairs,
     )
+
+
+def _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, *, means2d_delta,
+                       **kwargs) -> RenderOutput:
+    """:func:`rasterize` of G = 0 Gaussians: one fully transparent Gaussian is drawn, and the
+    per-Gaussian fields come back with G = 0 rows (so gradients keep the inputs' empty shapes)."""
+    def one_more(x, value):
+        return jnp.concatenate([x, jnp.full((1,) + x.shape[1:], value, x.dtype)])
+
+    delta = None if means2d_delta is None else one_more(means2d_delta, 0.0)
+    out = rasterize(one_more(means, 0.0), one_more(quats, 1.0), one_more(scales, 1e-3), one_more(opacities, 0.0),
+                    one_more(colors, 0.0), viewmat, K, width, height, means2d_delta=delta, **kwargs)
+    return out._replace(means2d=out.means2d[:0], radii=out.radii[:0], visible=out.visible[:0],
+                        significance=out.significance[:0], hits=out.hits[:0])
 
 
 def rasterize_batch(
