@@ -19,7 +19,7 @@ from cusgs_jax.training.checkpoint import Checkpointer
 TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
         "grow.stats_start=2", "grow.start=10", "grow.stop=30", "grow.interval=10",
         "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
-        "model.voxel_size=0.15", "prune.start=10", "prune.interval=10", "prune.ratio=0.05"]
+        "model.voxel_size=0.06", "prune.start=10", "prune.interval=10", "prune.ratio=0.05"]
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false"
         "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2",
         "prune.start=2", "prune.interval=2", "prune.ratio=0.05", "eval.save_renders=false",
         "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
-        "model.voxel_size=0.15"]
+        "model.voxel_size=0.06"]
 
 
 @pytest.fixture(scope="module")

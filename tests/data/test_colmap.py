@@ -92,7 +92,7 @@ def _check_matches_truth(scene: SceneData, truth, *, downscale=1):
     n = len(names)
     assert scene.images.shape == (n, scene.height, scene.width, 3)
     assert scene.images.dtype == np.uint8
-    assert scene.viewmats.shape == (n, 4, 4) and scene.viewmats.dtype == np.float32
+    assert scene.viewmats.shape == (n, 4, 4) and scene.viewmats.dtype == np.float64
     assert scene.Ks.shape == (n, 3, 3) and scene.Ks.dtype == np.float32
     rng = np.random.default_rng(1)
     world = np.concatenate([rng.normal(size=(6, 3)), np.ones((6, 1))], -1)
@@ -105,7 +105,7 @@ def _check_matches_truth(scene: SceneData, truth, *, downscale=1):
     # Points: written in id order = sorted by id.
     np.testing.assert_allclose(scene.points, truth["points"], atol=1e-6)
     np.testing.assert_array_equal(scene.point_colors, truth["colors"])
-    assert scene.points.dtype == np.float32 and scene.point_colors.dtype == np.uint8
+    assert scene.points.dtype == np.float64 and scene.point_colors.dtype == np.uint8
 
 
 @pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])

@@ -285,3 +285,31 @@ def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     state, info = prune.update(state, tx, 3)
     assert int(info["pruned"]) == 0
     np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)
+
+
+def test_a_step_that_would_drop_work_changes_nothing_and_the_grown_replay_is_exact():
+    """Too few visible slots and tile pairs: the step reports the shortfall and leaves the state as it was;
+    replayed with the capacities grown by the shell's rule it equals a step that never lacked room."""
+    from cusgs_jax.model.decode import num_visible_slots
+    from cusgs_jax.training import capacity
+
+    cfg = _cfg().replace(model=dict(visible_fraction=0.05), splat=dict(max_pairs_per_gaussian=0.05))
+    strategies, state, tx = _init(cfg)
+    batch = _batch(3)
+    before = _copy(state)
+    after, metrics = make_train_step(cfg, tx, strategies)(_copy(state), batch)
+    assert int(metrics["dropped_anchors"]) > 0
+    for old, new in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after)):
+        np.testing.assert_array_equal(np.asarray(old), np.asarray(new))  # not even state.step moved
+    grown, replays = cfg, 0
+    while int(metrics["dropped_anchors"]) or int(metrics["dropped_pairs"]):
+        gaussians = num_visible_slots(state.anchors.capacity, grown.model.visible_fraction) * grown.model.n_offsets
+        grown = capacity.grow_for(grown, jax.device_get(metrics), state.anchors.capacity, gaussians)
+        replayed, metrics = make_train_step(grown, tx, strategies)(_copy(state), batch)
+        replays += 1
+    assert replays <= 4 and int(replayed.step) == 1 and int(replayed.skipped) == 0
+    roomy = cfg.replace(model=dict(visible_fraction=1.0), splat=dict(max_pairs_per_gaussian=50.0))
+    reference, ref_metrics = make_train_step(roomy, tx, strategies)(_copy(state), batch)
+    np.testing.assert_allclose(float(metrics["loss"]), float(ref_metrics["loss"]), rtol=1e-5)
+    for a, b in zip(jax.tree_util.tree_leaves(replayed.anchors.params), jax.tree_util.tree_leaves(reference.anchors.params)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-5)

@@ -51,10 +51,12 @@ class SceneData:
       names: image names as stored in the model, sorted.
       images: [V, H, W, 3] uint8 RGB images at the loaded resolution (any alpha channel
         composited onto ``load_scene``'s ``background``).
-      viewmats: [V, 4, 4] float32 world→camera matrices (OpenCV axes, COLMAP cam_from_world).
+      viewmats: [V, 4, 4] float64 world→camera matrices (OpenCV axes, COLMAP cam_from_world; double precision
+        as COLMAP stores them, since a far-off origin loses float32 precision; float32 after
+        :func:`cusgs_jax.data.normalize.normalize_scene`).
       Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
       width, height: the loaded resolution, shared by all images.
-      points: [P, 3] float32 SfM points (sorted by COLMAP point id).
+      points: [P, 3] float64 SfM points (sorted by COLMAP point id; float32 once normalised).
       point_colors: [P, 3] uint8 colours of those points.
       train_indices, test_indices: int32 indices into ``names``; test views are every
         ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
@@ -76,10 +78,10 @@ class SceneData:
 
     @property
     def camera_centers(self) -> np.ndarray:
-        """[V, 3] camera centres in world coordinates (float32): -Rᵀt."""
+        """[V, 3] camera centres in world coordinates (float64): -Rᵀt."""
         rot = self.viewmats[:, :3, :3].astype(np.float64)
         trans = self.viewmats[:, :3, 3].astype(np.float64)
-        return (-np.einsum("nji,nj->ni", rot, trans)).astype(np.float32)
+        return -np.einsum("nji,nj->ni", rot, trans)
 
     @property
     def num_images(self) -> int:
@@ -142,7 +144,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
         path=scene,
         names=tuple(names),
         images=images,
-        viewmats=viewmats.astype(np.float32),
+        viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32),
         width=int(width),
         height=int(height),
@@ -571,4 +573,4 @@ def _points(rec, points_file: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
             f"all {len(ids)} points in {points_file} are non-finite (NaN/Inf); rerun SfM or "
             "point triangulation")
     xyz, rgb = xyz[keep], rgb[keep]
-    return xyz.astype(np.float32), np.clip(rgb, 0, 255).astype(np.uint8)
+    return xyz.astype(np.float64), np.clip(rgb, 0, 255).astype(np.uint8)

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["KEYS", "as_dtype", "feature_maps", "make_scene", "random_banks", "sfm_points"]
+__all__ = ["KEYS", "as_dtype", "feature_maps", "make_scene", "object_scene", "random_banks", "sfm_points",
+           "transformed_scene"]
 
 KEYS = ("means", "quats", "scales", "opacities", "colors")
 """The Gaussian parameter keys of a scene, in rasteriser argument order."""
@@ -78,3 +79,74 @@ def feature_maps(n: int = 3, h: int = 5, w: int = 7, d: int = 4, seed: int = 0) 
     if n > 1 and h > 2:
         maps[1, 2, :] = 0.0
     return maps
+
+
+def transformed_scene(src, dst, *, scale: float, translation=(0.0, 0.0, 0.0), rotation_xyzw=(0.0, 0.0, 0.0, 1.0)):
+    """A copy of the COLMAP scene ``src`` (images and model) under the similarity ``x → s·R·x + t``.
+
+    The same capture as another SfM run might have reconstructed it (pycolmap's
+    ``Reconstruction.transform``). Returns the new scene folder ``dst``.
+    """
+    import pathlib
+    import shutil
+
+    import pycolmap
+
+    src, dst = pathlib.Path(src), pathlib.Path(dst)
+    shutil.copytree(src / "images", dst / "images")
+    rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
+    rotation = np.asarray(rotation_xyzw, np.float64) / np.linalg.norm(rotation_xyzw)
+    rec.transform(pycolmap.Sim3d(float(scale), pycolmap.Rotation3d(rotation), np.asarray(translation, np.float64)))
+    (dst / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(dst / "sparse" / "0"))
+    return dst
+
+
+def object_scene(dst, *, views: int = 8, width: int = 32, height: int = 24, num_points: int = 300,
+                 seed: int = 0):
+    """A small object seen whole by every camera: a COLMAP text model plus images.
+
+    ``num_points`` SfM points fill a ball of radius 0.5 at the origin; ``views``
+    cameras on a ring of radius 4 (height 1) look at it with a focal length that
+    keeps the ball inside every image, so every anchor is visible in every view
+    (the 360° case where a frustum gather can skip nothing). Each image paints
+    the points' colours over grey. Returns the scene folder ``dst``.
+    """
+    import pathlib
+
+    import imageio.v3 as iio
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(seed)
+    dst = pathlib.Path(dst)
+    model, images = dst / "sparse" / "0", dst / "images"
+    model.mkdir(parents=True)
+    images.mkdir(parents=True)
+    direction = rng.normal(size=(num_points, 3))
+    points = 0.5 * direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(0, 1, (num_points, 1))
+    colors = rng.integers(0, 256, (num_points, 3))
+    focal = 0.8 * width
+    (model / "cameras.txt").write_text(f"1 PINHOLE {width} {height} {focal} {focal} {width / 2} {height / 2}\n")
+    lines = []
+    for v in range(views):
+        angle = 2 * np.pi * v / views
+        eye = np.array([4 * np.cos(angle), 4 * np.sin(angle), 1.0])
+        forward = -eye / np.linalg.norm(eye)
+        right = np.cross(forward, [0.0, 0.0, 1.0])
+        right /= np.linalg.norm(right)
+        rot = np.stack([right, np.cross(forward, right), forward])  # OpenCV: x right, y down, z forward
+        trans = -rot @ eye
+        x, y, z, w = Rotation.from_matrix(rot).as_quat()
+        name = f"view_{v:03d}.png"
+        lines.append(f"{v + 1} {w} {x} {y} {z} {trans[0]} {trans[1]} {trans[2]} 1 {name}\n\n")
+        cam = points @ rot.T + trans
+        u = np.clip((focal * cam[:, 0] / cam[:, 2] + width / 2).astype(int), 0, width - 1)
+        r = np.clip((focal * cam[:, 1] / cam[:, 2] + height / 2).astype(int), 0, height - 1)
+        image = np.full((height, width, 3), 128, np.uint8)
+        order = np.argsort(-cam[:, 2])  # far to near: nearer points paint over
+        image[r[order], u[order]] = colors[order]
+        iio.imwrite(images / name, image)
+    (model / "images.txt").write_text("".join(lines))
+    (model / "points3D.txt").write_text("".join(
+        f"{i + 1} {p[0]} {p[1]} {p[2]} {c[0]} {c[1]} {c[2]} 0.5\n" for i, (p, c) in enumerate(zip(points, colors))))
+    return dst
