@@ -173,3 +173,57 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     assert params["query_heads"] > 0 and params["memory_banks"] > 0 and params["adapters"] > 0
     rows = _jsonl(tmp_path / "metrics.jsonl")
     assert np.isfinite(rows[-1]["feature_loss"])
+
+
+def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_scene, tmp_path):
+    """The same capture reconstructed 1000× larger somewhere else trains the same (normalised frame)."""
+    from cusgs_jax.testing.scenes import transformed_scene
+
+    moved = transformed_scene(tiny_scene, tmp_path / "moved", scale=1000.0, translation=(5e4, -3e4, 2e4))
+    short = ["train.iterations=10", "train.checkpoint_every=0", "eval.every=0", "model.voxel_size=auto",
+             "eval.save_renders=false"]
+    base = run(_cfg(tiny_scene, *short), tmp_path / "base")
+    big = run(_cfg(moved, *short), tmp_path / "big")
+    assert big["voxel_size"] == pytest.approx(base["voxel_size"], rel=1e-4)  # in units of the extent
+    assert big["world_transform"]["scale"] == pytest.approx(base["world_transform"]["scale"] / 1000, rel=1e-4)
+    assert abs(big["alive_anchors"] - base["alive_anchors"]) <= 0.01 * base["alive_anchors"]
+    losses = [[row["loss"] for row in _jsonl(folder / "metrics.jsonl")] for folder in (tmp_path / "base", tmp_path / "big")]
+    np.testing.assert_allclose(losses[1], losses[0], rtol=1e-2)
+    assert big["psnr"] == pytest.approx(base["psnr"], abs=0.1)
+
+
+def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_path, monkeypatch):
+    """360° case: every anchor is in every view. Tiny first capacities grow, steps replay, nothing is dropped."""
+    from cusgs_jax.testing.scenes import object_scene
+    from cusgs_jax.training import capacity
+
+    monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # else the fixed slack alone holds this tiny scene's pairs
+    scene = object_scene(tmp_path / "object", views=6, width=32, height=24, num_points=300)
+    out = tmp_path / "run"
+    result = run(_cfg(scene, "train.iterations=6", "train.log_every=1", "train.checkpoint_every=0", "eval.every=0",
+                      "data.holdout_every=0", "model.voxel_size=auto", "model.visible_fraction=0.05",
+                      "splat.max_pairs_per_gaussian=0.05", "eval.save_renders=false"), out)
+    rows = _jsonl(out / "metrics.jsonl")
+    assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
+    assert all(row["dropped_anchors"] == 0 and row["dropped_pairs"] == 0 for row in rows)
+    assert all(row["visible_anchors"] == row["alive_anchors"] for row in rows)  # every anchor in every view
+    assert result["replayed_steps"] >= 2 and result["recompilations"] >= result["replayed_steps"]
+    assert result["capacities"]["visible_fraction"] > 0.05 and result["capacities"]["max_pairs_per_gaussian"] > 0.05
+    assert result["dropped_anchors"] == result["dropped_pairs"] == 0
+    # no held-out views (data.holdout_every=0): the evaluation says it measured training views
+    assert result["evaluated_on"] == "train" and result["held_out_views"] == 0
+
+
+def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
+    from cusgs_jax.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"train\.resume=True: there is no checkpoint to resume in .*fresh"):
+        setup(_cfg(tiny_scene, "train.resume=true"), tmp_path / "fresh")
+
+
+def test_an_output_folder_that_cannot_be_written_is_refused(tiny_scene, tmp_path):
+    from cusgs_jax.errors import ConfigError
+
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(ConfigError, match=r"hydra\.run\.dir=.*a_file.*cannot be written"):
+        setup(_cfg(tiny_scene), tmp_path / "a_file" / "run")

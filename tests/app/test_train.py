@@ -90,11 +90,14 @@ def test_hydra_app_runs_and_reports_bad_paths(tiny_scene, tmp_path):
     assert str(missing) in json.loads((tmp_path / "bad" / "failed.json").read_text())["error"]
 
 
-def test_unknown_option_is_rejected(tmp_path):
-    done = subprocess.run([*APP, "model.no_such_option=1", f"hydra.run.dir={tmp_path / 'x'}"],
+@pytest.mark.parametrize("override", ["model.no_such_option=1", "+model.foo=1", "train.iterations=abc",
+                                      "prune.ratio=1.0", "model.voxel_size=0"])
+def test_bad_settings_exit_2_with_one_line_before_any_work(tmp_path, override):
+    done = subprocess.run([*APP, override, f"hydra.run.dir={tmp_path / 'x'}"],
                           capture_output=True, text=True, timeout=300)
-    assert done.returncode != 0 and "no_such_option" in done.stderr + done.stdout
-    assert not (tmp_path / "x" / "eval.json").exists()
+    assert done.returncode == 2 and override.split("=")[0].lstrip("+") in done.stderr
+    assert done.stderr.startswith("cusgs-train: error: ") and len(done.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in done.stderr and not (tmp_path / "x").exists()
 
 
 def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
@@ -103,7 +106,9 @@ def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     cmd = [*APP, "-m", f"data.path={tiny_scene},{missing}", *TINY,
            "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr[-3000:]
+    # the good job finished; the sweep still fails (2: the failed job was a bad setting/input), naming the job
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert "1 sweep job(s) failed" in done.stderr and str(sweep / "1" / "failed.json") in done.stderr
     good, bad = sweep / "0", sweep / "1"
     result = json.loads((good / "eval.json").read_text())
     assert result["prune"]["passes"] == 3 and result["prune"]["pruned"] > 0

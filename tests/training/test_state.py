@@ -100,3 +100,30 @@ def test_per_gaussian_queries_live_in_the_anchor_table():
     state, _ = init_train_state(cfg, sfm_points(), 2, 2.0, make_strategies(cfg), _banks())
     assert "queries" not in state.nets and set(state.nets["memory"]) == {"a", "b"}
     assert state.anchors.params.query_table.shape == (state.anchors.capacity, 4, 10)
+
+
+def test_a_scaffold_of_a_few_anchors_is_refused_and_a_coarse_one_warned_about(caplog):
+    from cusgs_jax.errors import ConfigError
+
+    points = sfm_points()
+    with pytest.raises(ConfigError, match=r"model\.voxel_size=1000\.0: leaves only 1 anchor\(s\) for 400 SfM points.*"
+                                          r"model\.voxel_size=auto \(here "):
+        init_train_state(CFG.replace(model=dict(voxel_size=1000.0)), points, 2, 1.0, ())
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        state, _ = init_train_state(CFG.replace(model=dict(voxel_size=1.0)), points, 2, 1.0, ())
+    assert 4 <= int(np.sum(state.anchors.alive)) < 64 and "the model will be very coarse" in caplog.text
+    with pytest.raises(ConfigError, match="resolve_voxel_size"):
+        init_train_state(CFG.replace(model=dict(voxel_size="auto")), points, 2, 1.0, ())
+
+
+def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():
+    from cusgs_jax.model.anchors import auto_voxel_size
+    from cusgs_jax.training.state import resolve_voxel_size
+
+    points = sfm_points()
+    cfg = resolve_voxel_size(CFG.replace(model=dict(voxel_size="auto")), points)
+    assert cfg.model.voxel_size == pytest.approx(auto_voxel_size(points))
+    assert auto_voxel_size(1000.0 * points + 7.0) == pytest.approx(1000.0 * auto_voxel_size(points), rel=1e-9)
+    grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3), -1).reshape(-1, 3) * 0.3  # spacing 0.3
+    assert auto_voxel_size(np.concatenate([grid, grid])) == pytest.approx(0.3)  # duplicates ignored
+    assert resolve_voxel_size(CFG, points) is CFG  # an explicit size is kept

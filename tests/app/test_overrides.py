@@ -1,0 +1,48 @@
+"""Command-line checks before Hydra runs (app/overrides.py): one line naming the option and the fix."""
+
+from __future__ import annotations
+
+import pytest
+
+from cusgs_jax.app.overrides import check_command_line
+
+
+@pytest.mark.parametrize("argv, expected", [
+    (["model.voxel_size=0"], r"model\.voxel_size=0: must be 'auto' or a cell size > 0.*model\.voxel_size=auto"),
+    (["model.voxel_size=-1"], r"model\.voxel_size=-1"),
+    (["train.iterations=abc"], r"train\.iterations=abc.*could not be converted to Integer.*option train\.iterations"),
+    (["train.iterations=-5"], r"train\.iterations=-5: must be a whole number of steps >= 1"),
+    (["+model.foo=1"], r"unknown option\(s\) \['model\.foo'\]; valid: \['model\.voxel_size'"),
+    (["model.foo=1"], r"unknown option model\.foo.*cusgs-train --cfg job"),
+    (["prune.ratio=1.5"], r"prune\.ratio=1\.5: .*must lie in \[0, 1\)"),
+    (["prune.ratio=1.0"], r"prune\.ratio=1\.0: .*1 would remove every anchor"),
+    (["prune.ratio=-0.1"], r"prune\.ratio=-0\.1"),
+    (["model.n_offsets=0"], r"model\.n_offsets=0: must be a number >= 1"),
+    (["experiment=nope"], r"Could not find 'experiment/nope'; choose one of \['prune_ratio'"),
+    (["data.path=/my", "scenes/garden"], r"'scenes/garden'.*a path with spaces must be quoted.*data\.path="),
+    (["-m", "model.voxel_size=0.01,0"], r"model\.voxel_size=0: "),  # every swept value is checked
+])
+def test_bad_command_lines_are_named_with_the_fix(argv, expected, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    problem = check_command_line(argv)
+    assert problem is not None and "\n" not in problem
+    import re
+
+    assert re.search(expected, problem), problem
+
+
+def test_good_command_lines_pass(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert check_command_line([]) is None
+    assert check_command_line(["model.voxel_size=0.01", "prune.ratio=0.01", 'data.path="/my scenes/x"']) is None
+    assert check_command_line(["-m", "experiment=voxel_size"]) is None
+    assert check_command_line(["--cfg", "job"]) is None
+    assert not any(tmp_path.iterdir())  # checking writes nothing
+
+
+def test_an_output_folder_that_cannot_be_created_is_refused(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a_file").write_text("x")
+    problem = check_command_line([f"hydra.run.dir={tmp_path / 'a_file' / 'run'}"])
+    assert problem is not None and "a_file is a file" in problem and "hydra.run.dir=" in problem
+    assert check_command_line([f"hydra.run.dir={tmp_path / 'new' / 'run'}"]) is None
