@@ -9,7 +9,8 @@ orbiting the table 360°), cached under ``--cache``:
 * pixels: ~25k points, 30 views, 160×120, 320×240, 640×480, 1280×960;
 * ``--target`` adds one point: 60 views, 640×480, ~100k points.
 
-Every grid point runs in a fresh subprocess (the script calls itself with
+A scene on both axes (160×120 with 25k points) is measured once. Every grid
+point runs in a fresh subprocess (the script calls itself with
 ``--one SPEC``), so its peak RSS is its own. A point:
 
 1. trains a short run through the app (``app.run.setup`` → ``train`` →
@@ -30,7 +31,9 @@ Every grid point runs in a fresh subprocess (the script calls itself with
    ``loss_rest_fwd`` (forward loss minus those three: gathers, SSIM, …),
    ``backward`` (``value_and_grad`` of the step loss minus its forward) and
    ``update_rest`` (the whole step minus ``value_and_grad``: Adam, statistics);
-   the six add up to the step time;
+   the six add up to the step time (``loss_rest_fwd`` and ``update_rest`` are
+   differences, clipped at 0: separately jitted stages can sum to more than the
+   fused forward; ``forward_s`` and ``value_and_grad_s`` keep the raw numbers);
 4. reports process peak RSS (``VmHWM`` and ``ru_maxrss``) and the RSS after
    importing JAX (baseline).
 
@@ -98,7 +101,7 @@ def build_grid(args) -> list[dict]:
     if args.quick:
         pts = dict(views=8, width=80, height=60)
         grid = [dict(axis="points", points_target=p, **pts) for p in (1000, 3000)]
-        grid += [dict(axis="pixels", points_target=2000, views=8, width=w, height=h) for w, h in ((64, 48), (128, 96))]
+        grid += [dict(axis="pixels", points_target=3000, views=8, width=w, height=h) for w, h in ((80, 60), (128, 96))]
         if "target" in args.axes:
             grid.append(dict(axis="target", points_target=4000, views=12, width=96, height=72))
     else:
@@ -165,6 +168,7 @@ def summarise(rows: list[dict]) -> dict:
             exponent_step_time=slope(xs, [r["median_step_s"] for r in pts]),
             exponent_peak_rss=slope(xs, [r["peak_rss_bytes"] for r in pts]),
             exponent_peak_rss_above_baseline=slope(xs, [r["peak_rss_bytes"] - r["baseline_rss_bytes"] for r in pts]),
+            exponent_rss_after_steps=slope(xs, [r.get("rss_after_steps_bytes") for r in pts]),
             exponent_xla_bytes=slope(xs, [r["xla_bytes"] for r in pts]),
             exponent_render_ms=slope(xs, [r["render_ms_per_view"] for r in pts]),
             smallest=dict({xkey: xs[0]}, dominant=dominant(pts[0])),
@@ -189,8 +193,10 @@ def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
             xs = [r[xkey] for r in pts]
             ax.loglog(xs, [r["median_step_s"] for r in pts], "o-", color="C0",
                       label=f"step time (slope {_fmt(fit.get('exponent_step_time'))})")
-            ax.loglog(xs, [r["stages_s"]["composite_fwd"] + r["stages_s"]["backward"] for r in pts], "^--",
-                      color="C2", alpha=0.7, label="composite fwd + backward")
+            comp = [(x, r["stages_s"]["composite_fwd"] + r["stages_s"]["backward"])
+                    for x, r in zip(xs, pts) if r.get("stages_s")]
+            if comp:
+                ax.loglog(*zip(*comp), "^--", color="C2", alpha=0.7, label="composite fwd + backward")
             ax.set_ylabel("seconds")
             ax2 = ax.twinx()
             ax2.set_yscale("log")
@@ -207,7 +213,8 @@ def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
         ax.set_title(f"{axis} axis")
         ax.grid(True, which="both", alpha=0.3)
     ax = axes[2]
-    bars = sorted(ok, key=lambda r: (min(_AXIS_ORDER.get(a, 9) for a in r["axes"]), r["anchors"], r["pixels"]))
+    bars = sorted((r for r in ok if r.get("stages_s")),
+                  key=lambda r: (min(_AXIS_ORDER.get(a, 9) for a in r["axes"]), r["anchors"], r["pixels"]))
     bottom = np.zeros(len(bars))
     for i, stage in enumerate(STAGES):
         vals = np.array([r["stages_s"][stage] for r in bars])
@@ -218,8 +225,10 @@ def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
     ax.set_xticklabels([f"{r['anchors'] / 1000:.1f}k a\n{r['width']}x{r['height']}\n{r['views']}v" for r in bars],
                        fontsize=7)
     ax.set_ylabel("seconds per step")
-    ax.set_yscale("log" if len(bars) and max(bottom) > 20 * max(min(bottom), 1e-9) else "linear")
     ax.set_title("one step by stage")
+    ax.set_yscale("log" if len(bars) and max(bottom) > 20 * max(min(bottom), 1e-9) else "linear")
+    if ax.get_yscale() == "log":
+        ax.set_title("one step by stage (log scale: bar heights are totals)")
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
@@ -248,13 +257,14 @@ def main(argv=None):
     parser.add_argument("--run-steps", type=int, default=100,
                         help="short training run before timing (growing/pruning compressed into it)")
     parser.add_argument("--stage-repeats", type=int, default=5)
-    parser.add_argument("--voxel-size", type=float, default=0.04)
+    parser.add_argument("--voxel-size", type=float, default=None,
+                        help="model.voxel_size (units of the scene extent); default: the config's (auto)")
     parser.add_argument("--quick", action="store_true", help="two tiny points per axis, few steps (smoke test)")
     parser.add_argument("--cache", type=pathlib.Path,
                         default=pathlib.Path.home() / ".cache" / "cusgs_jax" / "scale_bench")
     parser.add_argument("--out-dir", type=pathlib.Path, default=REPO / "benchmarks" / "results" / "scale")
     parser.add_argument("--out", type=pathlib.Path, default=None, help="JSON path (default <out-dir>/scale.json)")
-    parser.add_argument("--point-timeout", type=float, default=3600.0, help="seconds per grid point")
+    parser.add_argument("--point-timeout", type=float, default=7200.0, help="seconds per grid point")
     parser.add_argument("--one", metavar="SPEC", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.one:
@@ -270,9 +280,13 @@ def main(argv=None):
     rows = []
     for spec in grid:
         num_points = int(math.ceil(spec["points_target"] * args.oversample))
-        path = scene_dir(args.cache, spec["views"], spec["width"], spec["height"], num_points)
-        spec = dict(spec, scene=str(path), num_points_sampled=num_points, steps=args.steps, warmup=args.warmup,
+        spec = dict(spec, num_points_sampled=num_points, steps=args.steps, warmup=args.warmup,
                     run_steps=args.run_steps, stage_repeats=args.stage_repeats, voxel_size=args.voxel_size)
+        try:
+            spec["scene"] = str(scene_dir(args.cache, spec["views"], spec["width"], spec["height"], num_points))
+        except Exception as exc:  # noqa: BLE001 - record it and go on with the other points
+            rows.append(dict(spec, error=f"scene generation failed: {type(exc).__name__}: {exc}"))
+            continue
         row = run_point(spec, args.point_timeout)
         rows.append(row)
         brief = {k: row.get(k) for k in ("axes", "views", "width", "height", "kept_points", "anchors",
@@ -334,7 +348,7 @@ def short_run(spec: dict, workdir: str):
         data=dict(path=spec["scene"]),
         train=dict(iterations=n, progress=False, checkpoint_every=0, log_every=max(1, min(10, n))),
         eval=dict(every=0, save_renders=False), features=dict(models=()),
-        model=dict(voxel_size=float(spec["voxel_size"])),
+        **({"model": dict(voxel_size=float(spec["voxel_size"]))} if spec.get("voxel_size") else {}),
         grow=dict(stats_start=0, start=2 * every, interval=every, stop=n),
         prune=dict(start=3 * every, interval=every, stop=n))
     session = app_run.setup(cfg, workdir)
@@ -366,6 +380,15 @@ def _image_loss_fn(cfg):
         return loss, terms
 
     return loss_fn
+
+
+def _max_pairs(per_gaussian: float, num_gaussians: int) -> int:
+    """The tile-pair capacity training.render gives the splatter."""
+    try:
+        from cusgs_jax.training.capacity import max_pairs
+    except ImportError:
+        return int(per_gaussian * num_gaussians) + 4096
+    return max_pairs(per_gaussian, num_gaussians)
 
 
 def _timed(fn, *args, repeats: int):
@@ -401,7 +424,7 @@ def stage_breakdown(cfg, state, batch, loss_fn, repeats: int) -> tuple[dict, dic
     decode = jax.jit(lambda nets, anchors, camera, index: decode_view(nets, anchors, camera, index, cfg.model)[0])
 
     def project_sort(g, camera):  # as splat.render.rasterize, with training.render's max_pairs
-        max_pairs = int(splat.max_pairs_per_gaussian * g.means.shape[0]) + 4096
+        max_pairs = _max_pairs(splat.max_pairs_per_gaussian, g.means.shape[0])
         proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera.astype(g.means.dtype),
                                  camera.K.astype(g.means.dtype), camera.width, camera.height,
                                  antialiased=splat.antialiased)
@@ -436,7 +459,7 @@ def stage_breakdown(cfg, state, batch, loss_fn, repeats: int) -> tuple[dict, dic
     seconds["backward"] = max(0.0, fwd_bwd - fwd)
     extra = dict(forward_s=fwd, value_and_grad_s=fwd_bwd, gaussians=int(gaussians.means.shape[0]),
                  active_gaussians=int(jnp.sum(gaussians.active)), tile_pairs=int(sorted_inputs[6][-1]))
-    return seconds, dict(compile_s=compile_s, **extra)
+    return seconds, dict(stage_compile_s=compile_s, **extra)
 
 
 def measure_point(spec: dict) -> dict:
@@ -460,13 +483,14 @@ def measure_point(spec: dict) -> dict:
     for i in range(spec["warmup"]):
         state, metrics = step_fn(state, batches(1 + i))
         jax.block_until_ready(metrics)
-    times = []
+    times, dropped = [], 0
     for i in range(spec["steps"]):
         batch = batches(1 + spec["warmup"] + i)
         start = time.perf_counter()
         state, metrics = step_fn(state, batch)
         jax.block_until_ready(metrics)
         times.append(time.perf_counter() - start)
+        dropped += sum(int(metrics.get(k, 0)) for k in _DROPPED)
     step_s = float(np.median(times))
     after_steps = _rss()
 
@@ -478,9 +502,16 @@ def measure_point(spec: dict) -> dict:
         xla = dict(argument=int(mem.argument_size_in_bytes), output=int(mem.output_size_in_bytes),
                    temp=int(mem.temp_size_in_bytes), alias=int(getattr(mem, "alias_size_in_bytes", 0)))
 
-    batch = batches(0)
-    stages, stage_info = stage_breakdown(session.cfg, state, batch, loss_fn, int(spec["stage_repeats"]))
-    stages["update_rest"] = max(0.0, step_s - stage_info["value_and_grad_s"])
+    start = time.perf_counter()
+    try:
+        stages, stage_info = stage_breakdown(session.cfg, state, batches(0), loss_fn, int(spec["stage_repeats"]))
+        stages["update_rest"] = max(0.0, step_s - stage_info["value_and_grad_s"])
+    except Exception as exc:  # keep the step numbers of this point
+        import traceback
+
+        traceback.print_exc()
+        stages, stage_info = None, dict(stages_error=f"{type(exc).__name__}: {exc}")
+    stages_wall_s = time.perf_counter() - start
     final = _rss()
 
     anchors = int(np.sum(state.anchors.alive))
@@ -496,8 +527,15 @@ def measure_point(spec: dict) -> dict:
         xla=xla, xla_bytes=(xla["argument"] + xla["output"] + xla["temp"]) if xla else None,
         peak_rss_bytes=final["hwm"], ru_maxrss_bytes=final["maxrss"], baseline_rss_bytes=baseline["rss"],
         peak_rss_after_run_bytes=after_run["hwm"], peak_rss_after_steps_bytes=after_steps["hwm"],
-        stages_s=stages, stage_sum_s=sum(stages[s] for s in STAGES), **stage_info,
-        overflow=int(metrics["overflow"]), visible_overflow=int(metrics["visible_overflow"]))
+        rss_after_steps_bytes=after_steps["rss"],
+        stages_s=stages, stage_sum_s=sum(stages[s] for s in STAGES) if stages else None,
+        stages_wall_s=stages_wall_s, **stage_info,
+        voxel_size=float(session.cfg.model.voxel_size), replayed_steps=result.get("replayed_steps"),
+        dropped_in_timed_steps=dropped)
+
+
+# names of the step metrics that count work a step dropped (old and new spellings)
+_DROPPED = ("dropped_anchors", "dropped_pairs", "overflow", "visible_overflow")
 
 
 if __name__ == "__main__":
