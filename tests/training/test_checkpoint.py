@@ -2,6 +2,15 @@
 
 from __future__ import annotations
 
+import errno
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +19,7 @@ import pytest
 from cusgs_jax.config import Config
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.errors import CheckpointError
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training.state import TrainState, init_train_state
 
@@ -100,3 +110,284 @@ def test_restore_into_a_grown_capacity(fresh, tmp_path):
     ckpt.close()
     assert restored.anchors.capacity == template.anchors.capacity + 17
     _assert_same(restored, grown)
+
+
+# --- robustness: damaged checkpoints, changed model, full disk, unwritable folder --------------
+
+
+@pytest.fixture(scope="module")
+def saved_pair(fresh, tmp_path_factory):
+    """A pristine folder with checkpoints 1 and 2 (copied by each test before damaging it)."""
+    template, _ = fresh
+    folder = tmp_path_factory.mktemp("pair") / "ckpt"
+    states = {step: _perturbed(template, step) for step in (1, 2)}
+    ckpt = Checkpointer(folder)
+    for step, state in states.items():
+        ckpt.save(step, state, {"step": step})
+    ckpt.close()
+    return folder, states
+
+
+def _copy(saved_pair, tmp_path):
+    folder, states = saved_pair
+    shutil.copytree(folder, tmp_path / "ckpt")
+    return tmp_path / "ckpt", states
+
+
+def _largest_data_file(step_folder):
+    """The biggest array data file (TensorStore/OCDBT keeps them in ``d/`` folders)."""
+    return max((f for f in (step_folder / "state").rglob("*") if f.is_file() and f.parent.name == "d"),
+               key=lambda f: f.stat().st_size)
+
+
+def _truncate(path):
+    with open(path, "r+b") as f:
+        f.truncate(path.stat().st_size // 2)
+
+
+DAMAGE = {
+    "truncated array file": lambda step: _truncate(_largest_data_file(step)),
+    "deleted array file": lambda step: _largest_data_file(step).unlink(),
+    "corrupt metadata json": lambda step: (step / "meta" / "metadata").write_text("{not json"),
+    "corrupt tree metadata": lambda step: (step / "state" / "_METADATA").write_text("{not json"),
+    "deleted state folder": lambda step: shutil.rmtree(step / "state"),
+}
+
+
+def _warnings(caplog):
+    return [r.getMessage() for r in caplog.records if r.name == "cusgs_jax" and r.levelno == logging.WARNING]
+
+
+@pytest.mark.parametrize("damage", list(DAMAGE))
+def test_damaged_newest_checkpoint_falls_back_to_the_previous_one(fresh, saved_pair, tmp_path, caplog, damage):
+    template, _ = fresh
+    folder, states = _copy(saved_pair, tmp_path)
+    DAMAGE[damage](folder / "2")
+    ckpt = Checkpointer(folder)
+    asked = []
+
+    def make_template(meta):
+        asked.append(meta["step"])
+        return template
+
+    with caplog.at_level(logging.WARNING):
+        restored, meta = ckpt.restore_latest(make_template)
+    _assert_same(restored, states[1])
+    assert meta == {"step": 1}
+    assert asked[-1] == 1  # the template is built from the metadata of the checkpoint it restores
+    warned = _warnings(caplog)
+    assert any(str(folder / "2") in w and "trying checkpoint 1" in w for w in warned), warned
+    assert all("\n" not in w and len(w) < 600 for w in warned)
+    assert not [r for r in caplog.records if r.name == "absl" and r.levelno >= logging.WARNING]
+    # the damaged one is moved aside, so the resumed run can write its step again
+    assert ckpt.latest_step() == 1 and (folder / "2.damaged").is_dir()
+    ckpt.save(2, states[2], {"step": 2})
+    _assert_same(ckpt.restore(template)[0], states[2])
+    ckpt.close()
+
+
+def test_old_interface_falls_back_too(fresh, saved_pair, tmp_path, caplog):
+    """``metadata()`` then ``restore(template)`` (no step) skip a checkpoint with corrupt metadata."""
+    template, _ = fresh
+    folder, states = _copy(saved_pair, tmp_path)
+    DAMAGE["corrupt metadata json"](folder / "2")
+    ckpt = Checkpointer(folder)
+    with caplog.at_level(logging.WARNING):
+        assert ckpt.metadata() == {"step": 1}
+        restored, meta = ckpt.restore(template)
+    _assert_same(restored, states[1])
+    assert meta == {"step": 1} and any(str(folder / "2") in w for w in _warnings(caplog))
+    with pytest.raises(CheckpointError, match=re.escape(f"checkpoint {folder / '2'} cannot be restored (")):
+        ckpt.metadata(2)
+    ckpt.close()
+
+
+def test_no_restorable_checkpoint_is_a_checkpoint_error(fresh, saved_pair, tmp_path, caplog):
+    template, _ = fresh
+    folder, _ = _copy(saved_pair, tmp_path)
+    for step in (1, 2):
+        DAMAGE["corrupt metadata json"](folder / str(step))
+    ckpt = Checkpointer(folder)
+    with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError) as info:
+        ckpt.restore_latest(lambda meta: template)
+    message = str(info.value)
+    assert str(folder) in message and "tried 2: JSONDecodeError" in message and "; 1: JSONDecodeError" in message
+    assert "hydra.run.dir" in message and "\n" not in message
+    assert len(_warnings(caplog)) == 2
+    assert sorted(p.name for p in folder.iterdir()) == ["1", "2"]  # nothing moved when nothing restored
+    ckpt.close()
+    with pytest.raises(CheckpointError, match="no checkpoint in .* to restore"):
+        Checkpointer(tmp_path / "empty").restore_latest(lambda meta: template)
+
+
+def test_changed_model_shape_is_an_error_without_fallback(fresh, saved_pair, tmp_path, caplog):
+    folder, _ = _copy(saved_pair, tmp_path)
+    cfg = CFG.replace(model=dict(hidden=32))
+    pts = np.random.default_rng(0).uniform(-1, 1, (300, 3))
+    wider, _ = init_train_state(cfg, pts, 2, 2.0, make_strategies(cfg))
+    ckpt = Checkpointer(folder)
+    with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError) as info:
+        ckpt.restore_latest(lambda meta: wider)
+    message = str(info.value)
+    assert message.startswith(f"checkpoint {folder / '2'} does not fit this model: ")
+    assert re.search(r"nets\.decoder\.\w+\.\w+ stored \(\d+(, \d+)?\), expected \(\d+(, \d+)?\)", message), message
+    assert message.count(", expected (") == 3 and re.search(r"\(and \d+ more\)", message)
+    assert "different model settings" in message and "hydra.run.dir" in message and "strict" not in message
+    assert not _warnings(caplog)  # no fallback tried
+    assert ckpt.latest_step() == 2 and sorted(p.name for p in folder.iterdir()) == ["1", "2"]
+    with pytest.raises(CheckpointError, match="does not fit this model"):
+        ckpt.restore(wider, step=1)
+    ckpt.close()
+
+
+def test_changed_tree_structure_names_missing_and_extra_leaves(tmp_path):
+    ckpt = Checkpointer(tmp_path / "ckpt")
+    ckpt.save(1, {"a": jnp.zeros(3), "b": jnp.zeros(2), "same": jnp.zeros((2, 2))}, {"step": 1})
+    with pytest.raises(CheckpointError) as info:
+        ckpt.restore({"a": jnp.zeros(4), "c": jnp.zeros(2), "same": jnp.zeros((2, 2))})
+    message = str(info.value)
+    assert "a stored (3,), expected (4,)" in message
+    assert "c missing from the checkpoint, expected (2,)" in message
+    assert "b stored (2,), not in this model" in message
+    assert "same" not in message and "more)" not in message
+    ckpt.close()
+
+
+def _fail_tmp_writes(monkeypatch, code):
+    """Make orbax's Python-side file writes into an unfinished checkpoint fail with OS error ``code``."""
+    from orbax.checkpoint._src.path import async_path
+
+    real = async_path.write_text
+
+    async def write_text(path, text, *args, **kwargs):
+        if ".orbax-checkpoint-tmp" in str(path):
+            raise OSError(code, os.strerror(code), str(path))
+        return await real(path, text, *args, **kwargs)
+
+    monkeypatch.setattr(async_path, "write_text", write_text)
+
+
+@pytest.mark.parametrize("code, expected", [
+    (errno.ENOSPC, "disk full while writing checkpoint 2 into {dir}: free space or point train.checkpoint_dir at a "
+                   "disk with room; the last complete checkpoint is 1 (resume with train.resume=true)"),
+    (errno.EDQUOT, "disk quota exceeded while writing checkpoint 2 into {dir}: "),
+    (errno.EACCES, "cannot write checkpoint 2 into {dir} (Permission denied): set train.checkpoint_dir (or "
+                   "hydra.run.dir) to a writable folder; the last complete checkpoint is 1"),
+])
+def test_failed_save_removes_the_partial_checkpoint(fresh, tmp_path, monkeypatch, caplog, code, expected):
+    template, _ = fresh
+    folder = tmp_path / "ckpt"
+    states = {step: _perturbed(template, step) for step in (1, 2)}
+    ckpt = Checkpointer(folder)
+    ckpt.save(1, states[1], {"step": 1})
+    _fail_tmp_writes(monkeypatch, code)
+    with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError) as info:
+        ckpt.save(2, states[2], {"step": 2})
+    assert str(info.value).startswith(expected.format(dir=folder)), str(info.value)
+    assert not [r for r in caplog.records if r.name in ("absl", "asyncio") and r.levelno >= logging.WARNING]
+    assert sorted(p.name for p in folder.iterdir()) == ["1"]
+    assert ckpt.latest_step() == 1
+    _assert_same(Checkpointer(folder).restore(template)[0], states[1])
+    monkeypatch.undo()  # room again: the same Checkpointer saves
+    ckpt.save(2, states[2], {"step": 2})
+    _assert_same(ckpt.restore(template)[0], states[2])
+    ckpt.close()
+
+
+def test_saving_an_existing_step_is_a_checkpoint_error(fresh, tmp_path):
+    template, _ = fresh
+    ckpt = Checkpointer(tmp_path / "ckpt")
+    ckpt.save(3, template, {"step": 3})
+    with pytest.raises(CheckpointError, match=r"checkpoint 3 already exists in .*train\.resume=true"):
+        ckpt.save(3, template, {"step": 3})
+    ckpt.close()
+
+
+DISK_FULL_SCRIPT = """
+import json, os, pathlib, sys
+import jax, jax.numpy as jnp
+from cusgs_jax.errors import CheckpointError
+from cusgs_jax.training.checkpoint import Checkpointer
+mount = pathlib.Path(sys.argv[1])
+state = {"w": jax.random.normal(jax.random.PRNGKey(0), (200, 256)), "n": jnp.int32(1)}
+ckpt = Checkpointer(mount / "ckpt")
+ckpt.save(1, state, {"step": 1})
+with open(mount / "filler", "wb", buffering=0) as f:  # fill the disk, then leave 60 KiB: too little for step 2
+    try:
+        while True:
+            f.write(b"x" * 4096)
+    except OSError:
+        pass
+os.truncate(mount / "filler", os.path.getsize(mount / "filler") - 60 * 1024)
+try:
+    ckpt.save(2, jax.tree_util.tree_map(lambda x: x + 1, state), {"step": 2})
+    error = None
+except CheckpointError as e:
+    error = str(e)
+restored, meta = Checkpointer(mount / "ckpt").restore(state)
+print(json.dumps(dict(error=error, entries=sorted(p.name for p in (mount / "ckpt").iterdir()), meta=meta,
+                      same=bool(jnp.array_equal(restored["w"], state["w"])))))
+"""
+
+
+def test_real_full_disk(tmp_path):
+    """A save into a 1 MiB tmpfs that fills up (in a private mount namespace; skipped where unavailable)."""
+    mount = tmp_path / "disk"
+    mount.mkdir()
+    mount_cmd = f"mount -t tmpfs -o size=1m tmpfs {mount}"
+    if shutil.which("unshare") is None or subprocess.run(
+            ["unshare", "-Urm", "sh", "-c", mount_cmd], capture_output=True).returncode != 0:
+        pytest.skip("cannot mount a small tmpfs in a user namespace here")
+    script = tmp_path / "fill.py"
+    script.write_text(DISK_FULL_SCRIPT)
+    run = subprocess.run(["unshare", "-Urm", "sh", "-c", f'{mount_cmd} && exec "$0" "$1" "$2"', sys.executable,
+                          str(script), str(mount)], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    out = json.loads(run.stdout.strip().splitlines()[-1])
+    assert out["error"] == (f"disk full while writing checkpoint 2 into {mount / 'ckpt'}: free space or point "
+                            f"train.checkpoint_dir at a disk with room; the last complete checkpoint is 1 "
+                            f"(resume with train.resume=true)")
+    assert out["entries"] == ["1"] and out["meta"] == {"step": 1} and out["same"]
+    assert "Traceback" not in run.stderr and "absl" not in run.stderr, run.stderr[-3000:]
+
+
+def test_os_error_is_found_anywhere_in_the_chain():
+    from cusgs_jax.training.checkpoint import _os_error
+
+    tensorstore = ValueError('RESOURCE_EXHAUSTED: Error writing local file "x": Failed to write 10 bytes: '
+                             "No space left on device [os_error_code='28']")
+    assert _os_error(tensorstore)[0] == errno.ENOSPC
+    group = ExceptionGroup("writes", [ValueError("other"), OSError(errno.EDQUOT, "Disk quota exceeded")])
+    try:
+        raise RuntimeError("commit failed") from group
+    except RuntimeError as e:
+        assert _os_error(e)[0] == errno.EDQUOT
+    try:
+        try:
+            raise PermissionError(errno.EACCES, "Permission denied")
+        except PermissionError:
+            raise ValueError("while committing")  # implicit __context__
+    except ValueError as e:
+        assert _os_error(e) == (errno.EACCES, "Permission denied")
+    assert _os_error(ValueError("Requested shape (32,) is not compatible")) is None
+
+
+def test_unwritable_checkpoint_folder_fails_at_construction(tmp_path, monkeypatch):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    for target in (blocker / "ckpt", blocker):
+        with pytest.raises(CheckpointError) as info:
+            Checkpointer(target)
+        message = str(info.value)
+        assert message.startswith(f"checkpoint folder {target} is not writable (")
+        assert "set train.checkpoint_dir or hydra.run.dir to a writable folder" in message
+    # a folder that exists but refuses files (read-only mount, no permission): the probe write fails
+    import cusgs_jax.training.checkpoint as checkpoint
+
+    def refuse(*args, **kwargs):
+        raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "ro"))
+
+    monkeypatch.setattr(checkpoint.tempfile, "mkstemp", refuse)
+    with pytest.raises(CheckpointError, match=re.escape(f"checkpoint folder {tmp_path / 'ro'} is not writable "
+                                                        "(Permission denied)")):
+        Checkpointer(tmp_path / "ro")
