@@ -16,7 +16,12 @@ On top of that, :class:`Checkpointer` turns the failures a user can fix into one
   ``<step>.damaged`` and falls back to the next older one;
 * a template whose tree or leaf shapes differ from the stored state (the run
   folder was trained with other model settings): named leaf by leaf, with no
-  fallback, since every older checkpoint would differ the same way.
+  fallback, since every older checkpoint would differ the same way;
+* saving a step that already exists (a fresh run pointed at an old folder).
+
+After a failed read or write orbax's abandoned threads keep reporting the same
+error (absl and asyncio logs, unraisable "Event loop is closed"); a narrow filter
+(:class:`_Aftermath`, installed once per process) drops those.
 """
 
 from __future__ import annotations
