@@ -227,3 +227,20 @@ def test_an_output_folder_that_cannot_be_written_is_refused(tiny_scene, tmp_path
     (tmp_path / "a_file").write_text("x")
     with pytest.raises(ConfigError, match=r"hydra\.run\.dir=.*a_file.*cannot be written"):
         setup(_cfg(tiny_scene), tmp_path / "a_file" / "run")
+
+
+def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, tiny_scene, tmp_path, caplog):
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)  # checkpoints 20 and 30
+    damaged = max((p for p in (out / "checkpoints" / "30" / "state").rglob("*") if p.is_file()),
+                  key=lambda p: p.stat().st_size)  # the array data
+    damaged.write_bytes(damaged.read_bytes()[:16])  # truncated, as a crash during a copy would leave it
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        session = setup(_cfg(tiny_scene, "train.resume=true"), out)
+    assert int(session.state.step) == 20 and "trying checkpoint 20" in caplog.text
+    train(session)
+    step, leaves = _final_state_leaves(out)
+    step_ref, leaves_ref = _final_state_leaves(straight[0])
+    assert step == step_ref == 30
+    for a, b in zip(leaves, leaves_ref):
+        np.testing.assert_array_equal(a, b)  # replaying steps 21-30 gives the uninterrupted run's state

@@ -142,13 +142,12 @@ def _spread(indices: np.ndarray, count: int) -> np.ndarray:
 
 
 def _resume(session: Session) -> None:
-    """Restore the newest checkpoint (its metadata read once) and trim the logs to its step."""
-    template = session.state
-    meta = session.ckpt.metadata()
-    capacity_now = int(meta["capacity"])
-    if capacity_now != template.anchors.capacity:
-        template = ops.grow_capacity(template, session.tx, capacity_now)
-    session.state, meta = session.ckpt.restore(template)
+    """Restore the newest checkpoint that restores cleanly and trim the logs to its step."""
+    def template(meta: dict):
+        fresh, saved = session.state, int(meta["capacity"])
+        return fresh if saved == fresh.anchors.capacity else ops.grow_capacity(fresh, session.tx, saved)
+
+    session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
     session.cfg = capacity.with_capacities(session.cfg, meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))

@@ -106,4 +106,7 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # run the imported module's main, so FailedJobs (which Hydra instantiates from cusgs_jax.app.train) is one class
+    from cusgs_jax.app.train import main as _main
+
+    _main()
