@@ -131,9 +131,9 @@ class ModelConfig:
     capacity_factor: float = 2.0
     frustum_margin: float = 0.15
     # Anchors in the view frustum are gathered into ceil(visible_fraction · A)
-    # slots before decoding, so culled anchors cost nothing; more visible
-    # anchors than that are dropped for the step and counted in
-    # ``visible_overflow``. 1.0 decodes every slot (never drops).
+    # slots before decoding, so culled anchors cost nothing. This is only the
+    # first capacity: a view that sees more grows it and the step is replayed
+    # (training/capacity.py), so no anchor is ever left out. 1.0 decodes every slot.
     visible_fraction: float = 0.6
     # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
     query_granularity: str = "per_anchor"

@@ -27,8 +27,9 @@ def test_cli(tmp_path, capsys):
     cam = next(iter(rec.cameras.values()))
     assert rec.num_images() == 4 and (cam.width, cam.height) == (32, 24)
     assert iio.imread(out / "images" / "view_000.png").shape == (24, 32, 3)
-    with pytest.raises(SystemExit):  # refuses to overwrite without --overwrite
+    with pytest.raises(SystemExit) as e:  # refuses to overwrite without --overwrite
         main([str(out), "--views", "4", "--width", "32", "--height", "24"])
+    assert e.value.code == 2
     assert main([str(out), "--views", "4", "--width", "32", "--height", "24", "--seed", "1",
                  "--overwrite"]) == 0
     assert json.loads((out / "scene.json").read_text())["seed"] == 1

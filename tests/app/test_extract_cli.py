@@ -27,12 +27,12 @@ def test_cli(demo, names, capsys):
 def test_cli_errors(demo, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([str(tmp_path / "nowhere"), "--model", "daisy", "--quiet"])
-    assert e.value.code == 1
+    assert e.value.code == 2  # bad input: exit 2 with one line, like every CLI
     assert "cusgs-extract: error:" in capsys.readouterr().err
     main([str(demo), "--model", "hog", "--overwrite", "--quiet"])
     with pytest.raises(SystemExit) as e:
         main([str(demo), "--model", "hog", "--quiet"])
-    assert e.value.code == 1 and "--overwrite" in capsys.readouterr().err
+    assert e.value.code == 2 and "--overwrite" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:
         main([str(demo), "--model", "semantic", "--lab"])
     assert e.value.code == 2 and "--lab applies to" in capsys.readouterr().err

@@ -31,7 +31,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   width=args.width, height=args.height, num_points=args.points,
                                   overwrite=args.overwrite)
     except (FileExistsError, ValueError) as e:
-        ap.exit(1, f"cusgs-demo-scene: error: {e}\n")
+        ap.exit(2, f"cusgs-demo-scene: error: {e}\n")  # bad settings: exit 2, as every CLI
     info = json.loads((out / "scene.json").read_text())
     num_objects = len(json.loads((out / "objects.json").read_text()))
     print(f"demo scene -> {out}\n"

@@ -9,7 +9,7 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
-from cusgs_jax.data.colmap import SceneError
+from cusgs_jax.errors import UserError
 from cusgs_jax.extract import MODELS, extract
 
 __all__ = ["main"]
@@ -58,8 +58,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         s = extract(args.scene, args.model, resolution=args.resolution, downscale=args.downscale,
                     dtype=args.dtype, overwrite=args.overwrite, progress=not args.quiet,
                     **options)
-    except SceneError as e:
-        ap.exit(1, f"cusgs-extract: error: {e}\n")
+    except UserError as e:  # bad scene, features or options: one line, exit 2 (as cusgs-train)
+        ap.exit(2, f"cusgs-extract: error: {e}\n")
     print(f"{s.model} features -> {s.folder}\n"
           f"  {s.num_views} views, {s.resolution[0]}x{s.resolution[1]}x{s.dim} {s.dtype}, "
           f"{100 * s.valid_fraction:.1f}% pixels with a target\n"
