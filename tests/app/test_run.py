@@ -244,3 +244,16 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, ti
     assert step == step_ref == 30
     for a, b in zip(leaves, leaves_ref):
         np.testing.assert_array_equal(a, b)  # replaying steps 21-30 gives the uninterrupted run's state
+
+
+def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_resumes_to_itself(straight,
+                                                                                                 tiny_scene, tmp_path):
+    from cusgs_jax.errors import ConfigError
+
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)
+    with pytest.raises(ConfigError, match=r"already holds checkpoints of an earlier run \(newest: step 30\).*"
+                                          r"train\.resume=true"):
+        setup(_cfg(tiny_scene), out)
+    result = run(_cfg(tiny_scene, "train.resume=true"), out)  # nothing left to train: evaluates again
+    assert result["psnr"] == straight[1]["psnr"] and _latest_checkpoint(out) == 30

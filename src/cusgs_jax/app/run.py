@@ -95,6 +95,9 @@ def setup(cfg: Config, output_dir) -> Session:
             f"there is no checkpoint to resume in {ckpt.directory}",
             "point hydra.run.dir (or train.checkpoint_dir) at the folder of the run to continue, "
             "or drop train.resume to start afresh")
+    require(cfg.train.resume or ckpt.latest_step() is None, "train.resume", False,
+            f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {ckpt.latest_step()})",
+            "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)
     cfg = resolve_voxel_size(cfg, scene.points)
@@ -202,7 +205,8 @@ def train(session: Session, progress_label: str = "train") -> None:
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 _save(session, done)
     bar.close()
-    _save(session, iterations)
+    if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
+        _save(session, iterations)
 
 
 def _exact_step(session: Session, batch: dict) -> dict:
