@@ -257,3 +257,21 @@ def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_
         setup(_cfg(tiny_scene), out)
     result = run(_cfg(tiny_scene, "train.resume=true"), out)  # nothing left to train: evaluates again
     assert result["psnr"] == straight[1]["psnr"] and _latest_checkpoint(out) == 30
+
+
+def test_a_first_image_loss_far_outside_the_normal_range_is_warned_about(caplog):
+    from types import SimpleNamespace
+
+    from cusgs_jax.app.run import _log_row
+    from cusgs_jax.config import Config
+
+    cfg = Config()
+    state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
+    session = SimpleNamespace(cfg=cfg, state=state, banks=None, clock=SimpleNamespace(total=1.0),
+                              prune=dict(pruned=0), replays=0, recompilations=0)
+    metrics = dict(loss=720.0, loss_image=720.0, psnr=9.8, visible_anchors=5, dropped_anchors=0, dropped_pairs=0)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        row = _log_row(session, cfg.train.log_every, metrics, 0.1)
+        _log_row(session, cfg.train.log_every, dict(metrics, loss=0.3, loss_image=0.3), 0.1)
+    assert row["dropped_anchors"] == row["dropped_pairs"] == 0
+    assert caplog.text.count("far above the normal range") == 1 and "model.voxel_size" in caplog.text

@@ -273,10 +273,10 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
                recompilations=session.recompilations, step_s=round(step_s, 4))
-    if step == session.cfg.train.log_every and row["loss"] > LOSS_ALARM:
-        log.warning("step %d: loss %.4g is far above the normal range (< %g for images in [0, 1]): check the "
+    if step == session.cfg.train.log_every and float(metrics["loss_image"]) > LOSS_ALARM:
+        log.warning("step %d: image loss %.4g is far above the normal range (< %g for images in [0, 1]): check the "
                     "scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of the "
-                    "scene extent", step, row["loss"], LOSS_ALARM)
+                    "scene extent", step, float(metrics["loss_image"]), LOSS_ALARM)
     return row
 
 

@@ -96,7 +96,7 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
         metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
                        visible_anchors=jnp.sum(view.valid), dropped_anchors=view.overflow,
                        pairs=out.num_pairs, dropped_pairs=out.overflow,
-                       **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
+                       loss_image=terms["loss"], **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
         return new_state, metrics
 
     return jax.jit(step, donate_argnums=0)
