@@ -215,21 +215,22 @@ def plot(rows: list[dict], fits: dict, path: pathlib.Path) -> None:
     ax = axes[2]
     bars = sorted((r for r in ok if r.get("stages_s")),
                   key=lambda r: (min(_AXIS_ORDER.get(a, 9) for a in r["axes"]), r["anchors"], r["pixels"]))
+    # shares of each step (linear 0-100 %), the step time written above each bar
+    totals = np.array([max(r["stage_sum_s"], 1e-12) for r in bars])
     bottom = np.zeros(len(bars))
     for i, stage in enumerate(STAGES):
-        vals = np.array([r["stages_s"][stage] for r in bars])
-        ax.bar(range(len(bars)), vals, bottom=bottom, label=stage, color=f"C{i}")
-        bottom += vals
-    ax.plot(range(len(bars)), [r["median_step_s"] for r in bars], "k_", markersize=18, label="measured step")
+        share = 100.0 * np.array([r["stages_s"][stage] for r in bars]) / totals
+        ax.bar(range(len(bars)), share, bottom=bottom, label=stage, color=f"C{i}")
+        bottom += share
+    for x, r in enumerate(bars):
+        ax.text(x, 101, f"{r['median_step_s']:.2g} s", ha="center", va="bottom", fontsize=7)
     ax.set_xticks(range(len(bars)))
     ax.set_xticklabels([f"{r['anchors'] / 1000:.1f}k a\n{r['width']}x{r['height']}\n{r['views']}v" for r in bars],
                        fontsize=7)
-    ax.set_ylabel("seconds per step")
-    ax.set_title("one step by stage")
-    ax.set_yscale("log" if len(bars) and max(bottom) > 20 * max(min(bottom), 1e-9) else "linear")
-    if ax.get_yscale() == "log":
-        ax.set_title("one step by stage (log scale: bar heights are totals)")
-    ax.legend(fontsize=7)
+    ax.set_ylim(0, 112)
+    ax.set_ylabel("share of one step (%)")
+    ax.set_title("one step by stage (step time above each bar)")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
