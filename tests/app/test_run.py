@@ -12,7 +12,7 @@ import pytest
 
 from cusgs_jax.app.inputs import view_order
 from cusgs_jax.app.run import finalise, run, setup, train
-from cusgs_jax.config import compose_config
+from cusgs_jax.config import compose_config, demo_feature_models
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.training.checkpoint import Checkpointer
@@ -168,12 +168,13 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
     feats = result["features"]
-    assert set(feats["models"]) == {"daisy", "semantic"}
+    models = {m.name for m in demo_feature_models()}  # daisy, semantic (+ vgg16 with the lpips extra)
+    assert set(feats["models"]) == models
     for row in feats["models"].values():
         assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
     assert {"rendered", "ground_truth"} <= set(feats["retrieval"])
     assert (tmp_path / "features.md").read_text().count("|") > 10
-    assert len(list((tmp_path / "features").glob("*.png"))) == 4  # 2 models × 2 held-out views
+    assert len(list((tmp_path / "features").glob("*.png"))) == 2 * len(models)  # per model and held-out view
     params = json.loads((tmp_path / "eval.json").read_text())["params"]
     assert params["query_heads"] > 0 and params["memory_banks"] > 0 and params["adapters"] > 0
     rows = _jsonl(tmp_path / "metrics.jsonl")

