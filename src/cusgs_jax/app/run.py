@@ -314,7 +314,9 @@ def _psnr_label(session: Session) -> str:
 def _save(session: Session, step: int) -> None:
     meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
                 prune=session.prune, recompilations=session.recompilations, replays=session.replays,
-                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size)
+                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
+                # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
+                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg))
     session.ckpt.save(step, session.state, meta)
 
 
