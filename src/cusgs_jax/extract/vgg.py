@@ -21,7 +21,7 @@ pixel's 256-vector is divided by its L2 norm + 1e-10 (LPIPS's ``normalize_tensor
 covers the whole image (a stretch of at most 2 pixels when W or H is not a multiple of 4). When
 that rounding would change the aspect ratio by more than 2 % (tiny images: 40×30 would give
 10×8), the map is made 2×, 4×, … denser until it does not (40×30 → 20×15, the image upsampled
-2×), at most the image size (:func:`default_size`).
+2×), at most the image size (:func:`default_size`, :func:`~cusgs_jax.extract.base.fit_aspect`).
 
 Why relu3_3 at 1/4 resolution, 256-D (measured on the 30-view 160×120 demo scene, 2-core CPU):
 
@@ -64,7 +64,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax import convnets
-from cusgs_jax.extract.base import View, pop_options, resized_image
+from cusgs_jax.extract.base import View, fit_aspect, pop_options, resized_image
 
 __all__ = ["LAYERS", "Vgg16", "default_size", "vgg16_features"]
 
@@ -82,14 +82,10 @@ def _features(convs: list, image: jnp.ndarray, taps: int) -> jnp.ndarray:
     return feat / (jnp.sqrt(jnp.sum(feat * feat, axis=-1, keepdims=True)) + _EPS)
 
 
-def default_size(width: int, height: int, stride: int = 4, tolerance: float = 0.02) -> tuple[int, int]:
-    """Default map size (w, h) of a ``width``×``height`` image for a tap of ``stride`` (module docstring)."""
-    scale = 1.0 / stride
-    while True:
-        w, h = max(1, round(width * scale)), max(1, round(height * scale))
-        if scale >= 1.0 or abs((w / h) / (width / height) - 1.0) <= tolerance:
-            return w, h
-        scale = min(2.0 * scale, 1.0)
+def default_size(width: int, height: int, stride: int = 4) -> tuple[int, int]:
+    """Default map size (w, h) of a ``width``×``height`` image for a tap of ``stride``: W/s × H/s,
+    rounded, denser for tiny images whose rounding would change the aspect (:func:`fit_aspect`)."""
+    return fit_aspect(width, height, 1.0 / stride)
 
 
 def vgg16_features(image: np.ndarray, layer: str = "relu3_3", size: tuple[int, int] | None = None) -> np.ndarray:
