@@ -45,14 +45,19 @@ less), and running on an upsampled image costs 7–9× for no clear gain. relu3_
 middle LPIPS tap (perceptual mid-level features), and 1/4 resolution matches the ViT patch grids
 of the foundation models this stands in for (M3: DINOv2/CLIP tokens at 1/14–1/16).
 
+(ms/view: the jitted trunk alone, CPU shared with other work; the whole extractor took 52 ms a
+view with the CPU under a load of 3 on its 2 cores.)
+
 We keep all 256 channels rather than reducing them by a scene PCA: the train step's cost grows
 with the query slice and the bank size, hardly with D (adding the model with D = 256 or with a
-64-D PCA cost the same within noise, step × 1.23 vs × 1.20, M ≈ 860 entries each), while
-64 uncentred principal components keep only 73 % of the energy (32: 58 %) and would need a
-second pass over the scene. The PSC threshold follows from the features' geometry: random
-pixels have cosine 0.14, the same point in two views 0.59, so γ = 0.45 (config.py's
-``DEMO_FEATURE_MODELS``) keeps a bank of ≈ 840 entries on the demo (γ 0.5: 1480, above the
-1024 cap).
+64-D PCA cost the same within noise, step × 1.23 vs × 1.20, M ≈ 860 entries each; a 32-channel
+query slice instead of 16 cost × 1.35), while 64 uncentred principal components keep only 73 %
+of the energy (32: 58 %) and would need a second pass over the scene. The PSC threshold follows
+from the features' geometry: random pixels have cosine 0.14, the same point in two views 0.59,
+so γ = 0.45 (config.py's ``DEMO_FEATURE_MODELS``) keeps 838 entries from the demo's 26 training
+views (γ 0.4: 446; 0.5: 1479, above the 1024 cap). Adding vgg16 (query 16, γ 0.45) to daisy +
+semantic makes the demo's train step 1.19–1.25× slower (``benchmarks/train_bench.py
+--feature-sets daisy,semantic daisy,semantic,vgg16``, three runs, steps interleaved).
 """
 
 from __future__ import annotations
