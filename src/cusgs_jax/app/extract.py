@@ -34,8 +34,8 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--layer", default=None,
                     help="vgg16: the VGG16 tap, relu1_2|relu2_2|relu3_3|relu4_3|relu5_3 (relu3_3)")
     ap.add_argument("--weights", default=None,
-                    help="clip/dinov2: LOCAL weights (file for clip, HF snapshot folder for "
-                         "dinov2); nothing is downloaded")
+                    help="clip/dinov2: LOCAL weights, a checkpoint file or the folder holding it "
+                         "(open_clip for clip, timm for dinov2); nothing is downloaded")
     ap.add_argument("--arch", default=None, help="clip: open_clip architecture (ViT-B-16); "
                                                  "dinov2: timm architecture (vit_small_patch14_dinov2)")
     ap.add_argument("--device", default=None, help="clip/dinov2: torch device (cpu)")
