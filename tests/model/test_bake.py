@@ -133,6 +133,41 @@ def test_direction_dependent_opacity_is_the_mean_over_all_directions():
     np.testing.assert_allclose(np.asarray(baked.max_opacity), np.tanh(z.max()), rtol=1e-5)
 
 
+def test_with_cameras_opacity_and_shape_average_the_cameras_that_see_the_anchor():
+    """tanh(d_z) opacity: a camera in front (looking +z) sees the anchors; one behind them does not count."""
+    rng = np.random.default_rng(7)
+    num = 4
+    params = AnchorParams(offsets=jnp.asarray(rng.normal(size=(num, N, 3)), jnp.float32),
+                          log_scaling=jnp.asarray(rng.normal(-2, 0.3, (num, 6)), jnp.float32),
+                          latent=jnp.asarray(rng.normal(size=(num, F)), jnp.float32))
+    centers = np.concatenate([rng.uniform(-0.1, 0.1, (num - 1, 3)), [[100.0, 0.0, 0.0]]]).astype(np.float32)
+    anchors = AnchorState(jnp.asarray(centers), jnp.ones(num, bool), params)  # the last one: seen by no camera
+    cfg = DecoderConfig(n_offsets=N, latent_dim=F, hidden=HID, appearance_dim=0)
+    nets = {"decoder": _decoder(np.zeros(N), direction_opacity=True)}
+    nets["decoder"]["color"] = init_decoder(jax.random.PRNGKey(4), cfg)["color"]
+    positions = np.array([[0.0, 0.0, -3.0], [0.0, 0.0, 3.0]])  # both look down +z: the second sees nothing
+    viewmats = np.tile(np.eye(4), (2, 1, 1))
+    viewmats[:, :3, 3] = -positions
+    K = np.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]])
+    cams = Camera(jnp.asarray(np.stack([K, K]), jnp.float32), jnp.asarray(viewmats, jnp.float32), 32, 24)
+    model, summary = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16, cameras=cams)
+    assert summary.cameras == 2 and summary.gaussians == num * N
+
+    def on(camera):
+        d = centers - camera
+        return np.maximum(np.tanh(d[:, 2] / np.linalg.norm(d, axis=1)), 0.0)
+
+    expected = on(positions[0])  # the front camera only
+    expected[-1] = 0.5 * (on(positions[0])[-1] + on(positions[1])[-1])  # seen by none: both count
+    np.testing.assert_allclose(np.asarray(model.opacities).reshape(num, N), np.repeat(expected[:, None], N, 1),
+                               rtol=1e-4)
+    sphere, _ = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16)
+    np.testing.assert_array_equal(np.asarray(model.sh), np.asarray(sphere.sh))  # colours: the sphere either way
+    # max_cameras keeps an evenly spread subset
+    _, summary = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16, cameras=cams, max_cameras=1)
+    assert summary.cameras == 1
+
+
 def test_constant_colour_bakes_to_dc_only_with_the_mean_appearance():
     anchors = _anchors(2)
     nets = {"decoder": _decoder(np.full(N, 0.5), color_dc=[0.2, 0.5, 0.9]),

@@ -68,10 +68,14 @@ def _parser() -> argparse.ArgumentParser:
                     help="view directions per anchor (Fibonacci sphere), at least (D+1)^2 (default 64)")
     ap.add_argument("--min-opacity", type=_fraction, default=0.005, metavar="O",
                     help="drop Gaussians whose opacity is <= O from every direction (default 0.005)")
+    ap.add_argument("--views", choices=("auto", "cameras", "sphere"), default="auto",
+                    help="average opacity and shape over the training cameras that see each anchor, or over the "
+                         "sphere directions; auto: cameras when the run (or its scene) gives them (default)")
     ap.add_argument("--step", type=_int_at_least(0), default=None, metavar="S",
                     help="export checkpoint S instead of the newest")
-    ap.add_argument("--chunk", type=_int_at_least(1), default=2048, metavar="A",
-                    help="anchors baked per batch (memory grows with A x offsets x directions; default 2048)")
+    ap.add_argument("--chunk", type=_int_at_least(1), default=1024, metavar="A",
+                    help="anchors baked per batch (memory grows with A x offsets x (directions + cameras); "
+                         "default 1024)")
     frame = ap.add_mutually_exclusive_group()
     frame.add_argument("--colmap-frame", dest="colmap_frame", action="store_true", default=True,
                        help="write in the scene's COLMAP frame (default)")
@@ -82,14 +86,16 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_opacity: float = 0.005,
-               colmap_frame: bool = True, step: int | None = None, chunk_anchors: int = 2048,
+               colmap_frame: bool = True, views: str = "auto", step: int | None = None, chunk_anchors: int = 1024,
                progress: bool = True) -> dict:
     """Bake the run's newest (or ``step``) checkpoint into the standard PLY ``out``.
 
     Returns:
       {"ply", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
        opacity ≤ min_opacity from every direction), "considered" (alive anchors × N), "anchors", "sh_degree", "directions",
-       "min_opacity", "appearance": "mean"|"none", "file_mb", "checkpoint_mb", "seconds"}.
+       "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
+       the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
+       splatter settings), "file_mb", "checkpoint_mb", "seconds"}.
     Raises:
       UserError: not a run folder, no or damaged checkpoint, no world transform for
         the COLMAP frame, a bad setting, or an unwritable output.
@@ -115,12 +121,17 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     except OSError as e:
         raise UserError(f"cannot create the folder of {out} ({e.strerror or e})") from e
     model = load_trained(run_dir, step=step)
+    if views == "cameras" and model.cameras is None:
+        raise UserError(f"{model.run_dir}: neither its checkpoint nor its scene ({model.cfg.data.path or 'the demo'}) "
+                        "gives the training cameras; export with --views sphere")
+    cameras = model.cameras if views != "sphere" else None
     if colmap_frame and model.world is None:
         raise UserError(f"{model.run_dir} records no world transform (eval.json or checkpoint metadata): the COLMAP "
                         "frame is unknown; export with --normalised-frame")
     with tqdm(total=model.num_anchors, desc="bake", unit="anchor", disable=not progress) as bar:
         splats, summary = bake_splats(model.anchors, model.nets, model.cfg.model.decoder(), sh_degree=sh_degree,
                                       directions=directions, min_opacity=min_opacity, chunk_anchors=chunk_anchors,
+                                      cameras=cameras, frustum_margin=model.cfg.model.frustum_margin,
                                       progress=bar.update)
     if colmap_frame:
         means, log_scales = to_colmap_frame(np.asarray(splats.means), np.asarray(splats.log_scales), model.world)
@@ -130,7 +141,10 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     return dict(
         ply=str(path), run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
         gaussians=summary.gaussians, dropped=dropped, considered=summary.considered, anchors=model.num_anchors, sh_degree=sh_degree, directions=directions,
-        min_opacity=min_opacity, appearance="mean" if "appearance" in model.nets else "none",
+        min_opacity=min_opacity, views="cameras" if cameras is not None else "sphere", cameras=summary.cameras,
+        cameras_from=model.cameras_from if cameras is not None else None, appearance="mean" if "appearance" in model.nets else "none",
+        # how the run rendered (cusgs-render-ply --background R G B [--antialiased] to score it the same way)
+        background=[float(c) for c in model.cfg.splat.background], antialiased=bool(model.cfg.splat.antialiased),
         file_mb=round(pathlib.Path(path).stat().st_size / 2**20, 3),
         checkpoint_mb=round(model.checkpoint_bytes / 2**20, 3), seconds=round(time.perf_counter() - start, 3))
 
@@ -159,14 +173,15 @@ class _WarningLines:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-export RUN_DIR OUT.ply [--sh-degree D] [--directions N] [--min-opacity O] [--step S]
+    """CLI: ``cusgs-export RUN_DIR OUT.ply [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
     [--chunk A] [--colmap-frame | --normalised-frame] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
     try:
         with _WarningLines():
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,
-                                min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, step=args.step,
+                                min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, views=args.views,
+                                step=args.step,
                                 chunk_anchors=args.chunk, progress=not args.quiet)
     except UserError as e:  # a bad run folder, checkpoint or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")

@@ -15,7 +15,14 @@ A run folder (``cusgs-train`` or :func:`cusgs_jax.app.run.run`) holds:
   written since the exporter exists record both in their metadata as well, so an
   unfinished run loads too.
 
-Nothing reads the images, the COLMAP model or the feature targets.
+The training cameras (:attr:`TrainedModel.cameras`; the exporter bakes
+opacities and shapes over them) come from the checkpoint metadata
+(``train_cameras``, written since the exporter exists); for an older run they are
+read from the scene's COLMAP model at ``data.path`` (the demo scene's cache
+folder when it is unset) if it is still there — poses and intrinsics only, no
+image is read and nothing is generated. Otherwise they are None.
+
+Nothing reads the images or the feature targets.
 
 Naming (:mod:`cusgs_jax.types`): A anchor capacity, N offsets per anchor, F
 latent size, V training views, E appearance size.
@@ -58,6 +65,10 @@ class TrainedModel:
       run_dir: the run folder; checkpoint_dir: the folder of the checkpoints.
       checkpoint_bytes: size on disk of the checkpoint read (optimiser state included).
       evaluation: the run's ``eval.json`` as a dict, or None (unfinished run).
+      cameras: the V training cameras in the normalised frame as one batched
+        :class:`~cusgs_jax.types.Camera` (K [V, 3, 3], world_to_camera [V, 4, 4], static
+        width/height), or None when neither the checkpoint nor the scene gives them.
+      cameras_from: "checkpoint", the scene folder they were read from, or None.
     """
 
     cfg: Config
@@ -69,6 +80,8 @@ class TrainedModel:
     checkpoint_dir: pathlib.Path
     checkpoint_bytes: int
     evaluation: dict | None
+    cameras: object = None
+    cameras_from: str | None = None
 
     @property
     def num_anchors(self) -> int:
@@ -140,8 +153,10 @@ def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
     world = None if world is None else WorldTransform(float(world["scale"]), tuple(float(c) for c in world["center"]))
     folder = ckpt_dir / str(step)
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    cameras, cameras_from = _train_cameras(meta, cfg, world)
     return TrainedModel(cfg=cfg, anchors=compact(anchors), nets=nets, world=world, step=int(step), run_dir=run,
-                        checkpoint_dir=ckpt_dir, checkpoint_bytes=int(size), evaluation=evaluation)
+                        checkpoint_dir=ckpt_dir, checkpoint_bytes=int(size), evaluation=evaluation,
+                        cameras=cameras, cameras_from=cameras_from)
 
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -213,15 +228,17 @@ def _config(run: pathlib.Path, cfg_file, meta: dict, shape: dict) -> Config:
     source = None
     try:
         if cfg_file is not None:
-            cfg, source = from_omegaconf(cfg_file), run / ".hydra" / "config.yaml"
+            source = run / ".hydra" / "config.yaml"
+            cfg = from_omegaconf(cfg_file)
         elif isinstance(meta.get("config"), dict):
-            cfg, source = from_dict(meta["config"]), "the checkpoint metadata"
+            source = f"the checkpoint metadata of {run}"
+            cfg = from_dict(meta["config"])
         else:
             cfg = Config()
             log.warning("%s records no configuration (no .hydra/config.yaml): using the defaults, with the "
                         "decoder shape read off the checkpoint", run)
-    except UserError:
-        raise
+    except UserError as e:  # a setting the config schema refuses: name where it came from
+        raise UserError(f"the configuration in {source} is refused: {e}") from e
     except Exception as e:
         raise UserError(f"the configuration in {source} cannot be read ({type(e).__name__}: {e})") from e
     differs = {k: (getattr(cfg.model, k), v) for k, v in shape.items() if getattr(cfg.model, k) != v}
@@ -229,3 +246,43 @@ def _config(run: pathlib.Path, cfg_file, meta: dict, shape: dict) -> Config:
         log.warning("the configuration in %s does not match the checkpoint's arrays (%s); using the arrays' shape",
                     source, ", ".join(f"model.{k}={a} vs stored {b}" for k, (a, b) in differs.items()))
     return cfg.replace(model=shape) if differs else cfg
+
+
+def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
+    """(batched Camera of the training views in the normalised frame, where from) or (None, None)."""
+    import jax.numpy as jnp
+
+    from cusgs_jax.types import Camera
+
+    stored = meta.get("train_cameras")
+    if isinstance(stored, dict):
+        try:
+            viewmats, Ks = np.asarray(stored["viewmats"], np.float32), np.asarray(stored["Ks"], np.float32)
+            if viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4) and Ks.shape == (len(viewmats), 3, 3) and len(Ks):
+                return (Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"])),
+                        "checkpoint")
+        except (KeyError, TypeError, ValueError):
+            pass
+        log.warning("the checkpoint's train_cameras cannot be read; looking for the scene instead")
+    if world is None:
+        return None, None
+    from cusgs_jax.data.colmap import load_cameras
+
+    data = cfg.data
+    if data.path:
+        path = pathlib.Path(str(data.path)).expanduser()
+    else:
+        from cusgs_jax.data.demo import demo_scene_folder
+
+        path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
+                                 height=data.demo.height)
+    if not path.is_dir():
+        return None, None
+    try:
+        viewmats, Ks, width, height, train = load_cameras(path, downscale=data.downscale,
+                                                          holdout_every=data.holdout_every)
+    except UserError as e:
+        log.warning("the run's scene %s cannot give the training cameras (%s)", path, e)
+        return None, None
+    viewmats = world.viewmats(viewmats[train]).astype(np.float32)
+    return Camera(jnp.asarray(Ks[train]), jnp.asarray(viewmats), int(width), int(height)), str(path)

@@ -316,8 +316,16 @@ def _save(session: Session, step: int) -> None:
                 prune=session.prune, recompilations=session.recompilations, replays=session.replays,
                 capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
                 # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
-                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg))
+                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
+                train_cameras=_train_cameras(session))
     session.ckpt.save(step, session.state, meta)
+
+
+def _train_cameras(session: Session) -> dict:
+    """The training views in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
+    scene, idx = session.scene, session.train_idx
+    return dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
+                Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
 
 
 # --- finalise -------------------------------------------------------------------------------
