@@ -1,17 +1,18 @@
 """``cusgs-export``: bake a trained run into a standard 3DGS PLY that every viewer reads.
 
 ``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
-[--colmap-frame | --normalised-frame]`` loads the newest checkpoint of a run
-folder (:func:`cusgs_jax.app.load_run.load_trained`; no scene images needed),
-decodes every anchor from ``--directions`` view directions and bakes each
-Gaussian into SH colours, one opacity and one covariance
-(:mod:`cusgs_jax.model.bake`, whose docstring gives every choice), drops the
-Gaussians that are never visible, moves the result to the COLMAP frame of the
-scene (default; the frame a COLMAP-based viewer or ``cusgs-render-ply
---colmap`` expects) and writes it (:func:`cusgs_jax.io.write_ply`). A JSON
-summary goes to stdout. Only argparse is imported before the arguments are
-parsed, so ``--help`` does not load JAX; a :class:`~cusgs_jax.errors.UserError`
-is one line on stderr and exit code 2.
+[--views auto|cameras|sphere] [--colmap-frame | --normalised-frame]`` loads the
+newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
+no scene images needed), decodes every anchor from ``--directions`` sphere
+directions (SH colours) and from the training cameras that see it (one opacity
+and one covariance; the sphere when no camera is known or with ``--views
+sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bake`,
+whose docstring gives and measures every choice), moves the result to the
+COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
+``cusgs-render-ply --colmap`` expects) and writes it
+(:func:`cusgs_jax.io.write_ply`). A JSON summary goes to stdout. Only argparse
+is imported before the arguments are parsed, so ``--help`` does not load JAX; a
+:class:`~cusgs_jax.errors.UserError` is one line on stderr and exit code 2.
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--directions", type=_int_at_least(1), default=64, metavar="N",
                     help="view directions per anchor (Fibonacci sphere), at least (D+1)^2 (default 64)")
     ap.add_argument("--min-opacity", type=_fraction, default=0.005, metavar="O",
-                    help="drop Gaussians whose opacity is <= O from every direction (default 0.005)")
+                    help="drop Gaussians whose opacity is <= O from every view (default 0.005)")
     ap.add_argument("--views", choices=("auto", "cameras", "sphere"), default="auto",
                     help="average opacity and shape over the training cameras that see each anchor, or over the "
                          "sphere directions; auto: cameras when the run (or its scene) gives them (default)")
@@ -92,8 +93,8 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
 
     Returns:
       {"ply", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
-       opacity ≤ min_opacity from every direction), "considered" (alive anchors × N), "anchors", "sh_degree", "directions",
-       "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
+       opacity ≤ min_opacity from every view), "considered" (alive anchors × N), "anchors",
+       "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
        splatter settings), "file_mb", "checkpoint_mb", "seconds"}.
     Raises:
@@ -140,9 +141,11 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     dropped = summary.considered - summary.gaussians
     return dict(
         ply=str(path), run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
-        gaussians=summary.gaussians, dropped=dropped, considered=summary.considered, anchors=model.num_anchors, sh_degree=sh_degree, directions=directions,
-        min_opacity=min_opacity, views="cameras" if cameras is not None else "sphere", cameras=summary.cameras,
-        cameras_from=model.cameras_from if cameras is not None else None, appearance="mean" if "appearance" in model.nets else "none",
+        gaussians=summary.gaussians, dropped=dropped, considered=summary.considered, anchors=model.num_anchors,
+        sh_degree=sh_degree, directions=directions, min_opacity=min_opacity,
+        views="cameras" if cameras is not None else "sphere", cameras=summary.cameras,
+        cameras_from=model.cameras_from if cameras is not None else None,
+        appearance="mean" if "appearance" in model.nets else "none",
         # how the run rendered (cusgs-render-ply --background R G B [--antialiased] to score it the same way)
         background=[float(c) for c in model.cfg.splat.background], antialiased=bool(model.cfg.splat.antialiased),
         file_mb=round(pathlib.Path(path).stat().st_size / 2**20, 3),
