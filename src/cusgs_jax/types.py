@@ -16,6 +16,7 @@ Every public docstring writes shapes with these letters:
 | V | views (cameras) of a scene |
 | P | sampled pixels |
 | C | colour/feature channels composited by the splatter |
+| K | spherical-harmonic coefficients per colour channel, (d+1)² for SH degree d (standard 3DGS PLY) |
 | H, W | image height and width in pixels |
 | T | tiles |
 """

@@ -27,7 +27,8 @@ def _jsonl(path, rows, tail=""):
     path.write_text("".join(json.dumps(r) + "\n" for r in rows) + tail)
 
 
-def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=None, curve=None):
+def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=None, curve=None, lpips=None,
+          ckpt_bytes=None):
     params = {"anchors": total // 2, "mlps": total // 4, "appearance": 0, "query_heads": 0,
               "memory_banks": 0, "adapters": 0, "total": total}
     curve = curve or [{"step": 100, "wall_s": wall / 2, "psnr": psnr - 3, "ssim": ssim - 0.1},
@@ -39,6 +40,10 @@ def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=No
         result["prune"] = {"strategy": "feature_aware", "passes": 10, "pruned": 123}
     if features is not None:
         result["features"] = {"models": features, "markdown": "..."}
+    if lpips is not None:
+        result["lpips_vgg"], result["lpips_alex"] = lpips
+    if ckpt_bytes is not None:
+        result["checkpoint_bytes"] = ckpt_bytes
     (job / "eval.json").write_text(json.dumps(result))
     _jsonl(job / "metrics.jsonl", [{"step": s, "wall_s": s / 10, "loss": 0.1, "alive_anchors": 1000 - s}
                                    for s in (10, 100, 200)])
@@ -57,9 +62,12 @@ def sweep(tmp_path):
              {"step": 200, "wall_s": 10.25, "psnr": 25.123456789, "ssim": 0.8123456,
               "feature_cosine": 0.3, "feature_l2": 2.0}]
     _eval(_job(root, "0", 0.01), 25.123456789, 0.8123456, 200_000, 900, 10.25, 3.3333,
-          before=4.75, features=feats, curve=curve)
-    _eval(_job(root, "1", 0.1), 26.5, 0.85, 3_000_000, 5000, 20.0, 7.5,
-          features={"clip": {"cosine": 0.25, "l2": 1.5}})
+          before=4.75, features=feats, curve=curve, lpips=(0.123456789, 0.0456), ckpt_bytes=12_345_678)
+    job1 = _job(root, "1", 0.1)
+    _eval(job1, 26.5, 0.85, 3_000_000, 5000, 20.0, 7.5, features={"clip": {"cosine": 0.25, "l2": 1.5}},
+          ckpt_bytes=99_000_000)
+    (job1 / "export").mkdir()
+    (job1 / "export" / "point_cloud.ply").write_bytes(b"x" * 2_500_000)  # the PLY beats the checkpoint
     failed = _job(root, "2", 0.2)
     (failed / "failed.json").write_text(json.dumps(
         {"error": "FloatingPointError: NaN loss at step 7\nsecond line", "traceback": "Traceback ..."}))
@@ -96,14 +104,30 @@ def test_report_end_to_end(sweep, capsys):
     assert float(first["render_ms_before_prune"]) == 4.75
     assert float(first["feature_cosine"]) == pytest.approx(0.3) and float(first["feature_l2"]) == 2.0
     assert rows[1]["render_ms_before_prune"] == "" and float(rows[1]["feature_l2"]) == 1.5
+    assert float(first["lpips_vgg"]) == 0.123456789 and float(first["lpips_alex"]) == 0.0456
+    assert float(first["size_mb"]) == 12.345678 and first["size_of"] == "checkpoint"
+    assert rows[1]["lpips_vgg"] == rows[1]["lpips_alex"] == "" and rows[1]["size_of"] == "ply"
+    assert float(rows[1]["size_mb"]) == 2.5
     for row in rows[2:]:
-        assert row["psnr"] == row["params"] == row["feature_cosine"] == ""
+        assert row["psnr"] == row["params"] == row["feature_cosine"] == row["lpips_vgg"] == row["size_mb"] == ""
 
     md = (out / "report.md").read_text()
     assert md in capsys.readouterr().out
     assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | 200,000 | 900 | 0.8123 | 25.12 |" in md
     assert "Best PSNR: job `1` (prune.ratio=0.1), 26.50 dB" in md
     assert "smallest model: job `0` (prune.ratio=0.01), 200,000 parameters" in md
+
+    table1 = md.split("## Table 1 style")[1].split("## Table 2 style")[0]
+    assert "| job | run | size (MB) | parameters | PSNR | SSIM | LPIPS (VGG) |" in table1
+    assert "| 0 | prune.ratio=0.01 | 12.35 (ckpt) | 200,000 | 25.12 | 0.8123 | 0.1235 |" in table1
+    assert "| 1 | prune.ratio=0.1 | 2.50 | 3,000,000 | 26.50 | 0.8500 |  |" in table1
+    assert "| 2 |" not in table1 and "no lpips extra" in table1  # finished runs only; blank LPIPS explained
+    table2 = md.split("## Table 2 style")[1]
+    assert ("| job | run | clip cos | clip L2 | dino cos | dino L2 | anchors | MLPs | appearance | query heads | "
+            "memory banks | adapters | total |") in table2
+    assert "| 0 | prune.ratio=0.01 | 0.2000 | 1.0000 | 0.4000 | 3.0000 | 100,000 | 50,000 | 0 | 0 | 0 | 0 | 200,000 |" \
+        in table2
+    assert "| 1 | prune.ratio=0.1 | 0.2500 | 1.5000 |  |  | 1,500,000 |" in table2
 
     for name in PLOTS:
         assert (out / name).stat().st_size > 0
@@ -136,7 +160,9 @@ def test_no_features_skips_plot_and_out_option(tmp_path, capsys):
         assert (out / name).stat().st_size > 0
     rows = _csv_rows(out / "report.csv")
     assert rows[0]["model.extra"] == "" and rows[1]["model.extra"] == "1"
-    assert rows[0]["feature_cosine"] == "" and "| 0 | prune.ratio=0.01 | ok |" in (out / "report.md").read_text()
+    md = (out / "report.md").read_text()
+    assert rows[0]["feature_cosine"] == "" and "| 0 | prune.ratio=0.01 | ok |" in md
+    assert "No finished run evaluated feature fields." in md and rows[0]["size_mb"] == ""
 
 
 def test_single_job_labels_defaults(tmp_path):

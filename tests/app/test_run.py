@@ -12,8 +12,9 @@ import pytest
 
 from cusgs_jax.app.inputs import view_order
 from cusgs_jax.app.run import finalise, run, setup, train
-from cusgs_jax.config import compose_config
+from cusgs_jax.config import compose_config, demo_feature_models
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.training.checkpoint import Checkpointer
 
 TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
@@ -92,6 +93,10 @@ def test_run_writes_all_outputs(straight):
     assert rows[-1]["pruned"] == evaluation["prune"]["pruned"]
     assert curve[-1]["alive_anchors"] == evaluation["alive_anchors"]
     assert len(list((tmp_path / "renders").glob("*.png"))) == 2
+    assert not any(key.startswith("lpips") for point in curve for key in point)  # LPIPS: final evaluation only
+    if lpips_available():  # the lpips extra; AlexNet needs ≥ 31 pixels and these views are 40×30
+        assert 0 < evaluation["lpips_vgg"] < 1 and "lpips_alex" not in evaluation
+        assert evaluation["lpips_vgg"] == pytest.approx(np.mean([v["lpips_vgg"] for v in evaluation["per_view"]]))
 
 
 def test_last_curve_point_equals_the_final_evaluation(straight):
@@ -163,12 +168,13 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
     feats = result["features"]
-    assert set(feats["models"]) == {"daisy", "semantic"}
+    models = {m.name for m in demo_feature_models()}  # daisy, semantic (+ vgg16 with the lpips extra)
+    assert set(feats["models"]) == models
     for row in feats["models"].values():
         assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
     assert {"rendered", "ground_truth"} <= set(feats["retrieval"])
     assert (tmp_path / "features.md").read_text().count("|") > 10
-    assert len(list((tmp_path / "features").glob("*.png"))) == 4  # 2 models × 2 held-out views
+    assert len(list((tmp_path / "features").glob("*.png"))) == 2 * len(models)  # per model and held-out view
     params = json.loads((tmp_path / "eval.json").read_text())["params"]
     assert params["query_heads"] > 0 and params["memory_banks"] > 0 and params["adapters"] > 0
     rows = _jsonl(tmp_path / "metrics.jsonl")

@@ -11,7 +11,7 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from cusgs_jax.data.colmap import SceneData, SceneError, load_scene  # noqa: E402
+from cusgs_jax.data.colmap import SceneData, SceneError, load_cameras, load_scene  # noqa: E402
 
 W, H = 32, 24
 PINHOLE = (30.0, 31.0, 16.0, 12.0)
@@ -167,6 +167,22 @@ def test_simple_pinhole_and_per_image_cameras(tmp_path):
         else:
             expect = [[30.0, 0, 16.0], [0, 31.0, 12.0], [0, 0, 1]]
         np.testing.assert_allclose(scene.Ks[i], expect)
+
+
+def test_load_cameras_matches_load_scene_without_reading_images(tmp_path):
+    cams = [("SIMPLE_PINHOLE", (28.0, 15.5, 12.5), W, H), ("PINHOLE", PINHOLE, W, H)]
+    make_scene(tmp_path, n=9, cameras=cams)
+    for downscale, every in ((1, 8), (2, 3), (1, 0)):
+        scene = load_scene(tmp_path, downscale=downscale, holdout_every=every)
+        viewmats, Ks, width, height, train = load_cameras(tmp_path, downscale=downscale, holdout_every=every)
+        np.testing.assert_array_equal(viewmats, scene.viewmats)
+        np.testing.assert_array_equal(Ks, scene.Ks)
+        assert (width, height) == (scene.width, scene.height) and Ks.dtype == np.float32
+        np.testing.assert_array_equal(train, scene.train_indices)
+    shutil.rmtree(tmp_path / "images")  # no image is read
+    assert load_cameras(tmp_path)[0].shape == (9, 4, 4)
+    with pytest.raises(SceneError, match="data.holdout_every"):
+        load_cameras(tmp_path, holdout_every=1)
 
 
 @pytest.mark.parametrize("model,params", [

@@ -391,3 +391,62 @@ def test_unwritable_checkpoint_folder_fails_at_construction(tmp_path, monkeypatc
     with pytest.raises(CheckpointError, match=re.escape(f"checkpoint folder {tmp_path / 'ro'} is not writable "
                                                         "(Permission denied)")):
         Checkpointer(tmp_path / "ro")
+
+
+# --- read_arrays: template-free, read-only (cusgs-export, viewers) ------------------------------
+
+
+def _listing(folder):
+    return sorted(str(p.relative_to(folder)) for p in folder.rglob("*"))
+
+
+def _truncate_every_array_file(step_folder):
+    for f in (step_folder / "state").rglob("*"):
+        if f.is_file() and f.parent.name == "d":
+            _truncate(f)
+
+
+# read_arrays reads only some arrays: damage to a file holding only optimiser moments goes unnoticed (and
+# does not matter), so array damage here hits every data file
+READ_DAMAGE = {"truncated array files": _truncate_every_array_file,
+               **{k: v for k, v in DAMAGE.items() if "array file" not in k}}
+
+
+@pytest.mark.parametrize("damage", list(READ_DAMAGE))
+def test_read_arrays_falls_back_without_touching_the_folder(saved_pair, tmp_path, caplog, damage):
+    from cusgs_jax.training.checkpoint import read_arrays
+
+    folder, states = _copy(saved_pair, tmp_path)
+    READ_DAMAGE[damage](folder / "2")
+    before = _listing(folder)
+    with caplog.at_level(logging.WARNING):
+        step, arrays, meta = read_arrays(folder, ("anchors", "nets"))
+    assert step == 1 and meta == {"step": 1} and set(arrays) == {"anchors", "nets"}
+    want = states[1]
+    np.testing.assert_array_equal(arrays["anchors"]["centers"], want.anchors.centers)
+    np.testing.assert_array_equal(arrays["anchors"]["params"]["latent"], want.anchors.params.latent)
+    assert arrays["anchors"]["params"]["query_table"] is None
+    np.testing.assert_array_equal(arrays["nets"]["decoder"]["cov"]["w1"], want.nets["decoder"]["cov"]["w1"])
+    assert isinstance(arrays["anchors"]["alive"], np.ndarray) and arrays["anchors"]["alive"].dtype == bool
+    assert any(str(folder / "2") in w and "trying checkpoint 1" in w for w in _warnings(caplog))
+    assert not [r for r in caplog.records if r.name == "absl" and r.levelno >= logging.WARNING]
+    assert _listing(folder) == before  # nothing moved aside, nothing created
+
+
+def test_read_arrays_errors_name_the_folder(saved_pair, tmp_path, caplog):
+    from cusgs_jax.training.checkpoint import read_arrays
+
+    folder, _ = _copy(saved_pair, tmp_path)
+    with pytest.raises(CheckpointError, match=re.escape(f"no checkpoint 5 in {folder} (steps there: 2, 1)")):
+        read_arrays(folder, step=5)
+    with pytest.raises(CheckpointError, match="has no queries in its state"):
+        read_arrays(folder, ("anchors", "queries"))
+    for step in (1, 2):
+        DAMAGE["corrupt metadata json"](folder / str(step))
+    with caplog.at_level(logging.WARNING), pytest.raises(CheckpointError, match=f"no checkpoint in {folder} can be"):
+        read_arrays(folder)
+    with pytest.raises(CheckpointError, match=re.escape(f"checkpoint {folder / '2'} cannot be read")):
+        read_arrays(folder, step=2)
+    with pytest.raises(CheckpointError, match="no checkpoint folder"):
+        read_arrays(tmp_path / "missing")
+    assert not (tmp_path / "missing").exists()

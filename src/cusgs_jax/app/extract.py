@@ -23,26 +23,30 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("scene", help="scene folder with images/ and sparse/0/")
     ap.add_argument("--model", required=True, choices=MODELS)
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), default=None,
-                    help="feature map size (default: the image size; clip/dinov2: patch grid)")
+                    help="feature map size (default: the image size; vgg16: 1/4 of it; "
+                         "clip/dinov2: patch grid)")
     ap.add_argument("--lab", action="store_true",
                     help="daisy/hog/gabor: describe each CIE-Lab channel (3x the dimension)")
     ap.add_argument("--overwrite", action="store_true", help="replace existing features")
     ap.add_argument("--dtype", choices=("float16", "float32"), default="float16")
     ap.add_argument("--downscale", type=int, default=1, help="load images at 1/D resolution")
     ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (32)")
+    ap.add_argument("--layer", default=None,
+                    help="vgg16: the VGG16 tap, relu1_2|relu2_2|relu3_3|relu4_3|relu5_3 (relu3_3)")
     ap.add_argument("--weights", default=None,
-                    help="clip/dinov2: LOCAL weights (file for clip, HF snapshot folder for "
-                         "dinov2); nothing is downloaded")
-    ap.add_argument("--arch", default=None, help="clip: open_clip architecture (ViT-B-16)")
+                    help="clip/dinov2: LOCAL weights, a checkpoint file or the folder holding it "
+                         "(open_clip for clip, timm for dinov2); nothing is downloaded")
+    ap.add_argument("--arch", default=None, help="clip: open_clip architecture (ViT-B-16); "
+                                                 "dinov2: timm architecture (vit_small_patch14_dinov2)")
     ap.add_argument("--device", default=None, help="clip/dinov2: torch device (cpu)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-extract SCENE --model daisy|hog|gabor|semantic|clip|dinov2
+    """CLI: ``cusgs-extract SCENE --model daisy|hog|gabor|semantic|vgg16|clip|dinov2
     [--resolution W H] [--lab] [--overwrite] [--dtype float16|float32] [--downscale D]
-    [--weights PATH] [--arch ViT-B-16] [--dim 16] [--device cpu] [--quiet]``."""
+    [--weights PATH] [--arch ARCH] [--dim 16] [--layer relu3_3] [--device cpu] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
 
@@ -51,7 +55,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.model not in ("daisy", "hog", "gabor"):
             ap.error(f"--lab applies to daisy, hog and gabor, not {args.model}")
         options["lab"] = True
-    for key in ("dim", "weights", "arch", "device"):
+    for key in ("dim", "layer", "weights", "arch", "device"):
         if getattr(args, key) is not None:
             options[key] = getattr(args, key)
     try:

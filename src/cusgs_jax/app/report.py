@@ -6,9 +6,11 @@ Input. A *job folder* is any folder under the multirun folder that holds ``.hydr
 ``eval.json`` or ``failed.json`` (Hydra numbers them ``0/``, ``1/``, ...). What is read from it:
 
 * ``.hydra/overrides.yaml`` -- the job's command-line overrides (``["prune.ratio=0.01", ...]``).
-* ``eval.json`` -- written when a run finishes: ``psnr``, ``ssim``, ``params.total``,
-  ``alive_anchors``, ``train_wall_s``, ``render_ms_per_view``, optional ``render_ms_before_prune``,
-  optional ``features.models.<name>.{cosine,l2}`` and the held-out ``curve``.
+* ``eval.json`` -- written when a run finishes: ``psnr``, ``ssim``, ``params`` (``total`` and its
+  parts), ``alive_anchors``, ``train_wall_s``, ``render_ms_per_view``, ``checkpoint_bytes``,
+  optional ``lpips_vgg`` / ``lpips_alex`` (the lpips extra), ``render_ms_before_prune``,
+  ``ply_bytes``, ``features.models.<name>.{cosine,l2}`` and the held-out ``curve``.
+* ``*.ply`` -- an exported PLY in the job folder gives Table 1's size (else the checkpoint's).
 * ``eval_curve.jsonl`` -- the held-out curve so far (used while a run is still going).
 * ``metrics.jsonl`` -- training log rows; ``step`` and ``alive_anchors`` are used.
 * ``failed.json`` -- ``{"error": "Type: message", "traceback": ...}`` when the job raised.
@@ -19,8 +21,11 @@ A job is ``ok`` (has ``eval.json``), ``failed: <first error line>`` (has ``faile
 Output, in ``<root>/report/`` unless ``--out`` says otherwise:
 
 * ``report.md`` -- the table (CUS-GS Table 4 style, rounded) and a line naming the best-PSNR and
-  the smallest run; also printed to stdout.
-* ``report.csv`` -- the same rows at full precision with one column per swept override key.
+  the smallest run, then a Table-1 style table (size MB, parameters, PSNR, SSIM, LPIPS) and a
+  Table-2 style table (per feature model cosine / L2 distance, parameter split;
+  :mod:`cusgs_jax.app.paper_tables`); also printed to stdout.
+* ``report.csv`` -- the Table-4 rows at full precision with one column per swept override key,
+  plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` and ``size_of`` (``ply`` or ``checkpoint``).
 * ``psnr_vs_time.png`` -- held-out PSNR against training wall-clock seconds, one line per run.
 * ``feature_error_vs_time.png`` -- feature cosine distance and L2 error against wall-clock
   seconds; not written when no run evaluated feature fields.
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import os
 import re
@@ -43,6 +49,7 @@ from pathlib import Path
 
 import yaml
 
+from cusgs_jax.app.paper_tables import CSV_COLUMNS, paper_fields, table1_markdown, table2_markdown
 from cusgs_jax.eval.sweep_plots import finite_or_none, write_plots
 
 #: Metric columns: (record / CSV key, Markdown header, Markdown format, meaning).
@@ -156,13 +163,14 @@ def load_job(path, root=None) -> dict:
 
     Keys: ``job`` (path relative to ``root``, or the folder name), ``path``, ``overrides``
     (key -> value string), ``status``, the :data:`METRICS` keys (float or None; None unless
-    ``ok``), ``curve`` (held-out points ``{"step", "wall_s", "psnr", ...}``) and ``anchor_curve``
+    ``ok``), the :func:`~cusgs_jax.app.paper_tables.paper_fields` keys (Tables 1 and 2), ``curve`` (held-out points ``{"step", "wall_s", "psnr", ...}``) and ``anchor_curve``
     (``[(step, alive_anchors), ...]`` from ``metrics.jsonl``).
     """
     path = Path(path)
     record = dict(job=path.relative_to(root).as_posix() if root is not None else path.name,
                   path=path, overrides=_read_overrides(path), status="incomplete",
-                  **{key: None for key, *_ in METRICS})
+                  **{key: None for key, *_ in METRICS}, **{key: None for key in CSV_COLUMNS},
+                  param_split={}, feature_models={})
     record["curve"] = _read_jsonl(path / "eval_curve.jsonl")
     record["anchor_curve"] = [(r["step"], r["alive_anchors"]) for r in _read_jsonl(path / "metrics.jsonl")
                               if finite_or_none(r.get("step")) is not None
@@ -181,7 +189,7 @@ def load_job(path, root=None) -> dict:
         except (OSError, ValueError, TypeError) as exc:
             record["status"] = f"failed: unreadable eval.json ({type(exc).__name__}: {_first_line(exc)})"
         else:
-            record.update(_eval_metrics(result), status="ok")
+            record.update(_eval_metrics(result), **paper_fields(result, path), status="ok")
             curve = [p for p in result.get("curve") or [] if isinstance(p, dict)]
             record["curve"] = curve or record["curve"]
     return record
@@ -221,14 +229,14 @@ def _cell(value, fmt) -> str:
 
 
 def render_markdown(records, keys, fixed) -> str:
-    """The Markdown report: header, table (one row per job) and the best / smallest line."""
+    """The Markdown report: header, table (one row per job), the best / smallest line, Tables 1 and 2."""
     counts = {s: sum(r["status"].split(":")[0] == s for r in records) for s in ("ok", "failed", "incomplete")}
     lines = ["# Sweep report", "",
              f"{len(records)} jobs: {counts['ok']} ok, {counts['failed']} failed, {counts['incomplete']} incomplete."]
     if fixed:
         lines.append("Shared overrides: " + ", ".join(f"`{o}`" for o in fixed) + ".")
     header = ["job", "run", "status"] + [h for _, h, *_ in METRICS]
-    lines += ["", "| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * len(METRICS)) + "|"]
+    lines += ["", "## Table 4 style: every job", "", "| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * len(METRICS)) + "|"]
     for r in records:
         status = r["status"] if len(r["status"]) <= 120 else r["status"][:117] + "..."
         cells = [r["job"], run_label(r, keys), status] + [_cell(r[k], fmt) for k, _, fmt, _ in METRICS]
@@ -247,19 +255,22 @@ def render_markdown(records, keys, fixed) -> str:
             summary.append(f"smallest model: job `{small['job']}` ({run_label(small, keys)}), "
                            f"{small['params']:,.0f} parameters")
         lines.append("; ".join(summary) + ".")
+    label = functools.partial(run_label, keys=keys)
+    lines += [""] + table1_markdown(records, label) + [""] + table2_markdown(records, label)
     return "\n".join(lines) + "\n"
 
 
 def _write_csv(records, keys, path: Path) -> None:
-    """``job``, one column per swept key, ``status``, then the :data:`METRICS` (full precision)."""
+    """``job``, one column per swept key, ``status``, the :data:`METRICS`, then LPIPS and size (full precision)."""
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["job", *keys, "status", *(k for k, *_ in METRICS)])
+        writer.writerow(["job", *keys, "status", *(k for k, *_ in METRICS), *CSV_COLUMNS])
         for r in records:
             sweeps = [r["overrides"].get(k) or "" for k in keys]
             values = ["" if r[k] is None else (int(r[k]) if k in ("params", "anchors") else r[k])
                       for k, *_ in METRICS]
-            writer.writerow([r["job"], *sweeps, r["status"], *values])
+            extra = ["" if r[k] is None else r[k] for k in CSV_COLUMNS]
+            writer.writerow([r["job"], *sweeps, r["status"], *values, *extra])
 
 
 def write_report(records, out_dir) -> dict[str, Path]:

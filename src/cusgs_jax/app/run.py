@@ -7,7 +7,8 @@
   capacities, :mod:`cusgs_jax.training.capacity`), … (a resumed run first drops the rows after the
   restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
-* ``eval.json`` — per-view and mean PSNR/SSIM, model size, times, pruning summary
+* ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
+  ``lpips`` extra), model size, times, pruning summary
 * ``renders/`` — held-out renders beside ground truth (PNG)
 * ``error_vs_time.png`` — held-out PSNR against training wall-clock time
 * ``checkpoints/`` — orbax checkpoints (periodic and final)
@@ -313,8 +314,18 @@ def _psnr_label(session: Session) -> str:
 def _save(session: Session, step: int) -> None:
     meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
                 prune=session.prune, recompilations=session.recompilations, replays=session.replays,
-                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size)
+                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
+                # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
+                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
+                train_cameras=_train_cameras(session))
     session.ckpt.save(step, session.state, meta)
+
+
+def _train_cameras(session: Session) -> dict:
+    """The training views in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
+    scene, idx = session.scene, session.train_idx
+    return dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
+                Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
 
 
 # --- finalise -------------------------------------------------------------------------------
@@ -322,14 +333,16 @@ def _save(session: Session, step: int) -> None:
 
 def finalise(session: Session) -> dict:
     """Final held-out evaluation, ``eval.json``, plots; returns the ``eval.json`` dict."""
+    from cusgs_jax.eval.lpips import lpips_metrics
     from cusgs_jax.eval.plots import plot_error_vs_time
 
     cfg, out, state = session.cfg, session.out, session.state
     save = cfg.eval.save_renders
-    final = _evaluate(session, out_dir=out / "renders" if save else None, time_renders=True)
+    lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
+    final = _evaluate(session, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
     prune_cfg = cfg.prune
     result = dict(
-        psnr=final["psnr"], ssim=final["ssim"], per_view=final["per_view"],
+        psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
         alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,

@@ -31,7 +31,7 @@ import numpy as np
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
 
-__all__ = ["SceneError", "SceneData", "load_scene", "SUPPORTED_CAMERA_MODELS"]
+__all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
 
 SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 _MODEL_PARTS = ("cameras", "images", "points3D")
@@ -154,6 +154,41 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
         test_indices=test_indices,
         extent=extent,
     )
+
+
+def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
+                 holdout_every: int = 8) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """The cameras of a COLMAP scene as :func:`load_scene` gives them, without reading any image.
+
+    For tools that have a trained model and need its views (an exporter, a viewer):
+    the same registered images in the same order, intrinsics scaled by
+    ``downscale``, the same held-out split.
+
+    Returns:
+      (viewmats [V, 4, 4] float64 world→camera in the COLMAP frame, Ks [V, 3, 3] float32,
+      width, height (the size :func:`load_scene` would load at), train_indices int32).
+    Raises:
+      SceneError: as :func:`load_scene` for the model and these settings.
+    """
+    downscale = _check_int_setting("data.downscale", downscale, minimum=1)
+    holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
+    scene = _scene_folder(path)
+    model_dir = _find_model_dir(scene)
+    files = _model_files(model_dir)
+    rec = _read_reconstruction(model_dir, files)
+    entries = _registered_images(rec, files)
+    cameras = {}
+    for _, _, image in entries:
+        if image.camera_id not in cameras:
+            cameras[image.camera_id] = _camera_intrinsics(rec.cameras[image.camera_id], image.camera_id,
+                                                          files["cameras"])
+    _, viewmats = _poses(entries, files)
+    _check_common_size(entries, cameras, downscale, files)
+    first = cameras[entries[0][2].camera_id]
+    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
+    train_indices, _ = _holdout_split(len(entries), holdout_every, scene)
+    return (viewmats.astype(np.float64), Ks, scaled_size(first["width"], downscale),
+            scaled_size(first["height"], downscale), train_indices)
 
 
 # --------------------------------------------------------------------------------------------

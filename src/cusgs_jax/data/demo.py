@@ -161,6 +161,12 @@ def _default_cache_dir() -> pathlib.Path:
     return pathlib.Path(env) if env else pathlib.Path.home() / ".cache" / "cusgs_jax"
 
 
+def demo_scene_folder(cache_dir=None, *, seed=0, num_views=30, width=160, height=120) -> pathlib.Path:
+    """Where :func:`demo_scene_path` keeps the demo scene for these parameters (nothing is generated)."""
+    root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
+    return root / f"demo{FORMAT_VERSION}-s{seed}-v{num_views}-{width}x{height}"
+
+
 def demo_scene_path(cache_dir=None, *, seed=0, num_views=30, width=160, height=120) -> pathlib.Path:
     """Folder of the demo scene for these parameters, generating it on first use.
 
@@ -169,9 +175,8 @@ def demo_scene_path(cache_dir=None, *, seed=0, num_views=30, width=160, height=1
     sibling folder and renamed into place, so an interrupted generation never leaves a partial
     scene behind; an existing complete folder is reused as is.
     """
-    root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
-    name = f"demo{FORMAT_VERSION}-s{seed}-v{num_views}-{width}x{height}"
-    final = root / name
+    final = demo_scene_folder(cache_dir, seed=seed, num_views=num_views, width=width, height=height)
+    root, name = final.parent, final.name
     if (final / "scene.json").is_file():
         return final
     root.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Held-out evaluation: PSNR/SSIM per view, model size, render time, PNGs."""
+"""Held-out evaluation: PSNR/SSIM (and LPIPS when asked) per view, model size, render time, PNGs."""
 
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ def nearest_train_view(camera_centers: np.ndarray, train_indices: np.ndarray, vi
 
 
 def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, out_dir: pathlib.Path | None = None,
-                   time_renders: bool = False) -> dict:
-    """PSNR and SSIM of ``views`` (indices into the scene).
+                   time_renders: bool = False, lpips: dict | None = None) -> dict:
+    """PSNR and SSIM (and LPIPS) of ``views`` (indices into the scene).
 
     Args:
       render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3],)``
@@ -34,9 +34,12 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
       scene: :class:`cusgs_jax.data.colmap.SceneData`.
       out_dir: if given, writes ``<name>.png`` with render | ground truth side by side.
       time_renders: also measure the median render time (after one warm-up).
+      lpips: {key: fn} with ``fn(img0 [1,H,W,3], img1) -> [1]`` on images in [0, 1], e.g.
+        :func:`cusgs_jax.eval.lpips.lpips_metrics` (built once per run; ``{}`` when the extra is
+        missing); render and target are clipped to [0, 1] first. Not timed.
     Returns:
-      {"per_view": [{name, psnr, ssim}], "psnr": mean, "ssim": mean,
-       "render_ms_per_view": median or None}.
+      {"per_view": [{name, psnr, ssim, <lpips keys>}], "psnr": mean, "ssim": mean,
+       <lpips key>: mean for each lpips key, "render_ms_per_view": median or None}.
     """
     per_view, times = [], []
     centers = scene.camera_centers
@@ -52,18 +55,18 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
         target = scene.images[view].astype(np.float32) / 255.0
         row = dict(name=scene.names[view], psnr=float(metrics.psnr(image, target)),
                    ssim=float(metrics.ssim(image, target)))
+        for key, fn in (lpips or {}).items():
+            row[key] = float(fn(np.clip(image, 0, 1)[None], target[None])[0])
         per_view.append(row)
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
             pair = np.concatenate([image, target], axis=1)
             iio.imwrite(out_dir / (pathlib.Path(scene.names[view]).stem + ".png"),
                         (np.clip(pair, 0, 1) * 255).round().astype(np.uint8))
-    return dict(
-        per_view=per_view,
-        psnr=float(np.mean([r["psnr"] for r in per_view])) if per_view else float("nan"),
-        ssim=float(np.mean([r["ssim"] for r in per_view])) if per_view else float("nan"),
-        render_ms_per_view=float(np.median(times) * 1e3) if time_renders and times else None,
-    )
+    means = {key: float(np.mean([r[key] for r in per_view])) if per_view else float("nan")
+             for key in ("psnr", "ssim", *(lpips or {}))}
+    return dict(per_view=per_view, **means,
+                render_ms_per_view=float(np.median(times) * 1e3) if time_renders and times else None)
 
 
 def count_parameters(anchors: AnchorState, nets: dict, banks: dict | None = None) -> dict:

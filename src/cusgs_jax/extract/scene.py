@@ -12,17 +12,22 @@ hog       36 (108 with lab)      :func:`~cusgs_jax.extract.descriptors.hog_featu
 gabor     18 (54 with lab)       :func:`~cusgs_jax.extract.descriptors.gabor_features`
 semantic  32                     demo scene only: a fixed unit vector per object (orthogonal up to 32 ids)
                                  id from ``object_ids/<stem>.npy``; id 0 (nothing) → zero vector
+vgg16     256                    ImageNet VGG16 relu3_3 at 1/4 resolution, unit vectors
+                                 (:mod:`cusgs_jax.extract.vgg`; weights of the lpips extra)
 clip      model width            optional: open_clip ViT patch tokens (local weights only)
-dinov2    model width            optional: DINOv2 patch tokens via transformers (local weights)
+dinov2    model width            optional: DINOv2 patch tokens via timm (local weights)
 ========  =====================  =============================================================
 
-The first four (:data:`BUILT_IN_EXTRACTORS`) are deterministic, weight-free and offline; clip and
-dinov2 live in :mod:`cusgs_jax.extract.pretrained`, imported only when asked for.
+The first five (:data:`BUILT_IN_EXTRACTORS`) are deterministic and offline (the first four
+weight-free; vgg16 needs the ``lpips`` extra's weight file and imports JAX, only when asked for)
+and are extracted automatically when a run needs them; clip and dinov2 live in
+:mod:`cusgs_jax.extract.pretrained`, imported only when asked for.
 
 Resolution: by default the maps have the loaded image size (``downscale``); with
 ``resolution=(W, H)`` the image is first resized to W×H (anti-aliased; object ids by nearest
 neighbour) and described there, so the descriptor's pixel-scale parameters refer to output
-pixels. The foundation models output their patch grid (long side = grid size), or are
+pixels. vgg16 maps are 1/4 of the image size, or ``resolution`` (the image is resized to 4×
+it). The foundation models output their patch grid (long side = grid size), or are
 area-resized to ``resolution``.
 
 Extractor protocol (the registry ``_EXTRACTORS``): ``cls(model, options)`` validates the options
@@ -111,7 +116,7 @@ class _Semantic:
             raise FeatureError(
                 f"model 'semantic' needs per-pixel object ids in {folder}, which does not exist: "
                 "it is only available for the built-in demo scene (generate one with "
-                "`cusgs-demo-scene OUT`); for other scenes use daisy, hog, gabor, clip or dinov2")
+                "`cusgs-demo-scene OUT`); for other scenes use daisy, hog, gabor, vgg16, clip or dinov2")
         path = folder / pathlib.PurePosixPath(view.name).with_suffix(".npy")
         if not path.is_file():
             raise FeatureError(f"object ids for image {view.name!r} are missing: {path} does not "
@@ -135,6 +140,13 @@ class _Semantic:
         return semantic_features(ids.astype(np.int64), dim=self.opts["dim"], seed=self.opts["seed"])
 
 
+def _vgg16(model: str, options: dict):
+    """The vgg16 extractor of :mod:`cusgs_jax.extract.vgg` (JAX is imported on first use)."""
+    from cusgs_jax.extract.vgg import Vgg16
+
+    return Vgg16(model, options)
+
+
 def _pretrained(model: str, options: dict):
     """An extractor of :mod:`cusgs_jax.extract.pretrained` (torch is imported on first use)."""
     from cusgs_jax.extract.pretrained import PRETRAINED
@@ -144,7 +156,7 @@ def _pretrained(model: str, options: dict):
 
 _EXTRACTORS: dict[str, Callable[[str, dict], Any]] = {
     "daisy": _Descriptor, "hog": _Descriptor, "gabor": _Descriptor, "semantic": _Semantic,
-    "clip": _pretrained, "dinov2": _pretrained,
+    "vgg16": _vgg16, "clip": _pretrained, "dinov2": _pretrained,
 }
 
 
@@ -205,15 +217,16 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     Args:
       scene_path: scene folder (images/ + sparse/0/), loaded with ``load_scene``.
       model: one of :data:`MODELS`.
-      resolution: (W, H) of the maps; default: the loaded image size (built-ins) or the patch
-        grid (clip, dinov2).
+      resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
+        (vgg16) or the patch grid (clip, dinov2).
       downscale: ``load_scene`` downscale factor of the images described.
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
       **options: per model — daisy: radius, rings, histograms, orientations, lab;
         hog: cell, orientations, lab; gabor: frequencies, orientations, bandwidth, lab;
-        semantic: dim, seed; clip: weights, arch, device; dinov2: weights, input_size, device.
+        semantic: dim, seed; vgg16: layer; clip: weights, arch, device, net; dinov2: weights, arch,
+        input_size, device, net.
     Returns:
       ExtractSummary (the maps themselves are on disk: ``load_features(scene, model, names)``).
     Raises:

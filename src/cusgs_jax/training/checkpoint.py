@@ -294,6 +294,93 @@ class Checkpointer:
         self.manager.close()
 
 
+def read_arrays(directory: str | pathlib.Path, keys: tuple[str, ...] = ("anchors", "nets"),
+                step: int | None = None) -> tuple[int, dict, dict]:
+    """Read part of a stored state without a template and without writing anything.
+
+    Opens the checkpoints read-only (nothing is created, moved or removed, so a
+    run folder on a read-only disk works) and restores only the top-level
+    ``keys`` of the state tree — e.g. anchors and networks, not the optimiser
+    moments — as nested dicts of NumPy arrays in the stored layout (dataclass
+    pytrees come back as dicts keyed by field name; a ``None`` field stays None).
+
+    Args:
+      directory: the checkpoint folder (``<run>/checkpoints``).
+      keys: top-level entries of the state tree to read.
+      step: a given step; None: the newest one that reads cleanly (a damaged
+        newer one is skipped with a warning, as :meth:`Checkpointer.restore_latest`).
+    Returns:
+      (step, {key: nested dict of np.ndarray}, metadata dict).
+    Raises:
+      CheckpointError: no checkpoint there, the step is missing, none reads,
+        or a key is not in the stored tree (folder named).
+    """
+    directory = pathlib.Path(directory).absolute()
+    if not directory.is_dir():
+        raise CheckpointError(f"no checkpoint folder {directory}: expected the checkpoints/ of a cusgs-train run")
+    _AFTERMATH.mute()
+    with _OrbaxLogCapture():  # orbax warns that a read-only manager saves nothing: dropped
+        manager = ocp.CheckpointManager(
+            directory, options=ocp.CheckpointManagerOptions(create=False, read_only=True),
+            item_handlers=dict(state=ocp.PyTreeCheckpointHandler(), meta=ocp.JsonCheckpointHandler()))
+    try:
+        steps = sorted(manager.all_steps(), reverse=True)
+        if step is not None:
+            if step not in steps:
+                have = ", ".join(map(str, steps)) or "none"
+                raise CheckpointError(f"no checkpoint {step} in {directory} (steps there: {have})")
+            steps = [step]
+        failures = []
+        for candidate in steps:
+            try:
+                arrays, meta = _read_arrays_step(manager, candidate, keys, directory)
+            except _Damaged as e:
+                if step is not None:
+                    raise CheckpointError(f"checkpoint {directory / str(candidate)} cannot be read "
+                                          f"({_one_line(e.__cause__)}): it is damaged") from e.__cause__
+                failures.append((candidate, e.__cause__))
+                older = [s for s in steps if s < candidate]
+                log.warning("checkpoint %s cannot be read (%s); %s", directory / str(candidate),
+                            _one_line(e.__cause__), f"trying checkpoint {older[0]}" if older else "none older")
+                continue
+            return candidate, arrays, meta
+        if not failures:
+            raise CheckpointError(f"no checkpoint in {directory}: the run saved none (train.checkpoint_every=0 "
+                                  "and it did not finish?)")
+        tried = "; ".join(f"{s}: {_one_line(e, 160)}" for s, e in failures)
+        raise CheckpointError(f"no checkpoint in {directory} can be read (tried {tried}): they are damaged")
+    finally:
+        with contextlib.suppress(Exception):
+            manager.close()
+
+
+def _read_arrays_step(manager, step: int, keys, directory: pathlib.Path) -> tuple[dict, dict]:
+    """One step of :func:`read_arrays`; damage raised as :class:`_Damaged`, a missing key as CheckpointError."""
+    with _OrbaxLogCapture():
+        try:
+            meta = manager.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+            stored = manager.item_metadata(step)["state"]
+            stored = getattr(stored, "tree", stored)
+            if not isinstance(stored, dict):
+                raise ValueError('no "state" item')
+        except Exception as e:
+            raise _Damaged() from e
+        missing = [k for k in keys if k not in stored]
+        if missing:
+            raise CheckpointError(f"checkpoint {directory / str(step)} has no {', '.join(missing)} in its state "
+                                  f"(it holds {', '.join(sorted(stored))}): not a cusgs-train checkpoint")
+        item = {k: jax.tree_util.tree_map(lambda m: jax.ShapeDtypeStruct(tuple(m.shape), m.dtype), stored[k])
+                for k in keys}
+        restore_args = jax.tree_util.tree_map(lambda _: ocp.RestoreArgs(restore_type=np.ndarray), item)
+        try:
+            state = manager.restore(step, args=ocp.args.Composite(
+                state=ocp.args.PyTreeRestore(item, restore_args=restore_args, partial_restore=True)))["state"]
+        except Exception as e:
+            _AFTERMATH.mute(f"{directory / str(step)}{os.sep}")
+            raise _Damaged() from e
+    return {k: state[k] for k in keys}, dict(meta or {})
+
+
 class _Damaged(Exception):
     """Internal: one checkpoint failed to read (its ``__cause__`` says why)."""
 

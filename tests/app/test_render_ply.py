@@ -1,0 +1,85 @@
+"""cusgs-render-ply (cusgs_jax.app.render_ply) on a tiny demo scene: JSON, PNGs, errors, a light --help."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+import cusgs_jax
+from cusgs_jax.app.render_ply import main
+from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.io import SplatModel, write_ply
+
+C0 = 0.28209479177387814
+
+
+@pytest.fixture(scope="module")
+def scene_and_ply(tmp_path_factory):
+    """The demo scene's SfM points as small isotropic degree-0 Gaussians, in the COLMAP frame."""
+    root = tmp_path_factory.mktemp("render_ply")
+    scene_dir = generate_demo_scene(root / "scene", num_views=4, width=32, height=24, num_points=300)
+    scene = load_scene(scene_dir, holdout_every=0)
+    points = scene.points.astype(np.float64)
+    dist = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    sigma = 0.5 * float(np.median(dist.min(axis=1)))
+    g = len(points)
+    model = SplatModel(
+        means=points.astype(np.float32),
+        quats=np.tile(np.float32([1, 0, 0, 0]), (g, 1)),
+        log_scales=np.full((g, 3), np.log(sigma), np.float32),
+        opacity_logits=np.full(g, np.log(0.9 / 0.1), np.float32),
+        sh=((scene.point_colors.astype(np.float32) / 255.0 - 0.5) / C0)[:, None, :])
+    return scene_dir, write_ply(root / "points.ply", model)
+
+
+def test_render_ply_cli(scene_and_ply, tmp_path, capsys):
+    scene_dir, ply = scene_and_ply
+    out_dir = tmp_path / "pngs"
+    assert main([str(ply), "--colmap", str(scene_dir), "--holdout-every", "2", "--out-dir", str(out_dir),
+                 "--background", "0", "0", "0", "--quiet"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert {"ply", "scene", "num_gaussians", "sh_degree", "evaluated_on", "num_views", "psnr", "ssim",
+            "per_view"} <= set(result)
+    assert result["evaluated_on"] == "holdout" and result["num_views"] == 2 and result["sh_degree"] == 0
+    assert [r["name"] for r in result["per_view"]] == ["view_000.png", "view_002.png"]
+    assert math.isfinite(result["psnr"]) and math.isfinite(result["ssim"]) and result["psnr"] > 5
+    assert all(math.isfinite(r["psnr"]) and -1 <= r["ssim"] <= 1 for r in result["per_view"])
+    assert np.isclose(result["psnr"], np.mean([r["psnr"] for r in result["per_view"]]))
+    assert sorted(os.listdir(out_dir)) == ["view_000.png", "view_002.png"]
+    assert iio.imread(out_dir / "view_000.png").shape == (24, 64, 3)  # render | ground truth
+
+
+def test_missing_ply_exits_2_naming_it(scene_and_ply, tmp_path, capsys):
+    scene_dir, _ = scene_and_ply
+    missing = tmp_path / "nowhere" / "model.ply"
+    with pytest.raises(SystemExit) as e:
+        main([str(missing), "--colmap", str(scene_dir)])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cusgs-render-ply: error: ") and str(missing) in err and err.count("\n") == 1
+
+
+def test_bad_scene_exits_2(scene_and_ply, tmp_path, capsys):
+    _, ply = scene_and_ply
+    with pytest.raises(SystemExit) as e:
+        main([str(ply), "--colmap", str(tmp_path / "no scene"), "--quiet"])
+    assert e.value.code == 2 and "no scene" in capsys.readouterr().err
+
+
+def test_help_does_not_import_jax():
+    src = str(pathlib.Path(cusgs_jax.__file__).parents[1])
+    code = ("import sys\nfrom cusgs_jax.app.render_ply import main\ntry:\n    main(['--help'])\n"
+            "except SystemExit:\n    pass\nprint('JAX' if 'jax' in sys.modules else 'NOJAX')")
+    env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    assert "--colmap" in out and out.strip().endswith("NOJAX")
