@@ -22,6 +22,7 @@ import json
 import pathlib
 from collections.abc import Sequence
 
+from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "export_run"]
@@ -29,32 +30,10 @@ __all__ = ["main", "export_run"]
 PROG = "cusgs-export"
 
 
-def _int_at_least(minimum: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer ≥ {minimum}, got {text!r}")
-        return value
-    return parse
-
-
 def _sh_degree(text: str) -> int:
     if text not in ("0", "1", "2", "3"):
         raise argparse.ArgumentTypeError(f"expected 0, 1, 2 or 3, got {text!r}")
     return int(text)
-
-
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 <= value < 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1), got {text!r}")
-    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -65,16 +44,16 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("run_dir", metavar="RUN_DIR", help="output folder of a cusgs-train run (holds checkpoints/)")
     ap.add_argument("out", metavar="OUT.ply", help="PLY file to write (its folder is created)")
     ap.add_argument("--sh-degree", type=_sh_degree, default=3, metavar="D", help="SH degree 0-3 (default 3)")
-    ap.add_argument("--directions", type=_int_at_least(1), default=64, metavar="N",
+    ap.add_argument("--directions", type=int_at_least(1), default=64, metavar="N",
                     help="view directions per anchor (Fibonacci sphere), at least (D+1)^2 (default 64)")
-    ap.add_argument("--min-opacity", type=_fraction, default=0.005, metavar="O",
+    ap.add_argument("--min-opacity", type=number_in(0.0, 1.0, include_high=False), default=0.005, metavar="O",
                     help="drop Gaussians whose opacity is <= O from every view (default 0.005)")
     ap.add_argument("--views", choices=("auto", "cameras", "sphere"), default="auto",
                     help="average opacity and shape over the training cameras that see each anchor, or over the "
                          "sphere directions; auto: cameras when the run (or its scene) gives them (default)")
-    ap.add_argument("--step", type=_int_at_least(0), default=None, metavar="S",
+    ap.add_argument("--step", type=int_at_least(0), default=None, metavar="S",
                     help="export checkpoint S instead of the newest")
-    ap.add_argument("--chunk", type=_int_at_least(1), default=1024, metavar="A",
+    ap.add_argument("--chunk", type=int_at_least(1), default=1024, metavar="A",
                     help="anchors baked per batch (memory grows with A x offsets x (directions + cameras); "
                          "default 1024)")
     frame = ap.add_mutually_exclusive_group()

@@ -16,33 +16,12 @@ import json
 import pathlib
 from collections.abc import Sequence
 
+from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
 
 PROG = "cusgs-render-ply"
-
-
-def _int_at_least(minimum: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected an integer ≥ {minimum}, got {text!r}")
-        return value
-    return parse
-
-
-def _unit_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
-    return value
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -52,15 +31,15 @@ def _parser() -> argparse.ArgumentParser:
                     "frame, not normalised) and print per-view and mean PSNR/SSIM as JSON.")
     ap.add_argument("ply", help="standard 3DGS PLY (x y z f_dc_* f_rest_* opacity scale_* rot_*)")
     ap.add_argument("--colmap", required=True, metavar="SCENE", help="scene folder with images/ and sparse/0/")
-    ap.add_argument("--downscale", type=_int_at_least(1), default=1, metavar="D",
+    ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D",
                     help="load images at 1/D resolution (images_D/ if present), intrinsics scaled (default 1)")
-    ap.add_argument("--holdout-every", type=_int_at_least(0), default=8, metavar="N",
+    ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
     ap.add_argument("--out-dir", default=None, metavar="DIR", help="write <image>.png: render | ground truth")
-    ap.add_argument("--background", type=_unit_float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
+    ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
                     help="background colour in [0, 1] (also under images with alpha; default black)")
-    ap.add_argument("--sh-degree", type=_int_at_least(0), default=None, metavar="D",
+    ap.add_argument("--sh-degree", type=int_at_least(0), default=None, metavar="D",
                     help="evaluate SH up to degree D (default: the PLY's)")
     ap.add_argument("--antialiased", action="store_true", help="gsplat's antialiased mode (default: classic)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
