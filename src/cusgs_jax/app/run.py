@@ -256,7 +256,8 @@ def _densify(session: Session, step: int) -> None:
         is_prune = strategy.name == FeaturePruneStrategy.name
         if is_prune and session.prune["render_ms_before_prune"] is None:
             with session.clock.paused():
-                session.prune["render_ms_before_prune"] = _evaluate(session, time_renders=True)["render_ms_per_view"]
+                session.prune["render_ms_before_prune"] = _evaluate(
+                    session, compact(session.state.anchors), time_renders=True)["render_ms_per_view"]
         session.state, info = strategy.update(session.state, session.tx, step)
         if info.get("capacity_grew"):
             session.recompilations += 1  # new shapes: the jitted step retraces
@@ -281,26 +282,26 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
     return row
 
 
-def _evaluate(session: Session, **kwargs) -> dict:
-    """Held-out PSNR/SSIM of the model as it is now, compacted to its alive anchors."""
-    anchors = compact(session.state.anchors)
+def _evaluate(session: Session, anchors, **kwargs) -> dict:
+    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
     return evaluate_views(session.render, anchors, session.state.nets, session.scene, session.test_idx, **kwargs)
 
 
-def _evaluate_features(session: Session, **kwargs) -> dict:
+def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
+    """Feature errors of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
     from cusgs_jax.eval.features import evaluate_features
 
-    anchors = compact(session.state.anchors)
     return evaluate_features(session.feature_render, anchors, session.state.nets, session.scene, session.test_idx,
                              session.banks, session.feature_sets, **kwargs)
 
 
 def _curve_point(session: Session, step: int) -> dict:
-    result = _evaluate(session)
+    anchors = compact(session.state.anchors)  # once for the RGB and the feature evaluation
+    result = _evaluate(session, anchors)
     point = dict(step=step, wall_s=session.clock.total, psnr=result["psnr"], ssim=result["ssim"],
                  alive_anchors=int(np.sum(session.state.anchors.alive)))
     if session.banks is not None:
-        feats = _evaluate_features(session, retrieval=False)["models"]
+        feats = _evaluate_features(session, anchors, retrieval=False)["models"]
         point["feature_cosine"] = float(np.mean([m["cosine"] for m in feats.values()]))
         point["feature_l2"] = float(np.mean([m["l2"] for m in feats.values()]))
     session.curve.append(point)
@@ -339,7 +340,8 @@ def finalise(session: Session) -> dict:
     cfg, out, state = session.cfg, session.out, session.state
     save = cfg.eval.save_renders
     lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
-    final = _evaluate(session, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
+    anchors = compact(state.anchors)
+    final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
     prune_cfg = cfg.prune
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
@@ -359,7 +361,7 @@ def finalise(session: Session) -> dict:
         evaluated_on=session.evaluated_on, curve=session.curve,
     )
     if session.banks is not None:
-        result["features"] = _evaluate_features(session, out_dir=out / "features" if save else None)
+        result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)
         (out / "features.md").write_text(result["features"]["markdown"])
     (out / "eval.json").write_text(json.dumps(result, indent=1))
     plot_error_vs_time(session.curve, out / "error_vs_time.png",
