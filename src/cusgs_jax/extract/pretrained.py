@@ -190,12 +190,8 @@ class _Clip:
         weights = _require_weights("clip", opts["weights"]) if net is None else None
         self.torch, open_clip = _require_modules("clip", ("torch", "open_clip"))
         if net is None:
-            try:
-                net = open_clip.create_model(opts["arch"], pretrained=str(weights))
-            except Exception as e:  # noqa: BLE001 — torch/open_clip/timm raise anything on a bad file (AssertionError…)
-                raise FeatureError(f"cannot load open_clip {opts['arch']!r} from {weights} "
-                                   f"({type(e).__name__}: {str(e)[:300]}); pass --weights pointing at "
-                                   f"{_WEIGHTS_HINT['clip']}") from e
+            net = _load_net("clip", f"open_clip {opts['arch']!r}", weights,
+                            lambda: open_clip.create_model(opts["arch"], pretrained=str(weights)))
             self.source = f"open_clip {opts['arch']} patch tokens, weights {weights}"
         else:
             self.source = f"open_clip {type(net).__name__} patch tokens, weights handed over (net=)"
@@ -226,6 +222,15 @@ class _Clip:
         return resize_features(grid, size if size is not None else fit_aspect(w, h, g / max(w, h)))
 
 
+def _load_net(model: str, what: str, weights, create):
+    """``create()`` (an open_clip/timm constructor reading ``weights``); FeatureError naming the file on failure."""
+    try:
+        return create()
+    except Exception as e:  # noqa: BLE001 — torch/open_clip/timm raise anything on a bad file (AssertionError…)
+        raise FeatureError(f"cannot load {what} from {weights} ({type(e).__name__}: {str(e)[:300]}); "
+                           f"pass --weights pointing at {_WEIGHTS_HINT[model]}") from e
+
+
 class _Dinov2:
     """DINOv2 patch tokens (last layer, after the final norm) of a timm ViT; the image keeps its
     aspect, its long side resized to ``input_size`` (a multiple of the patch, 14)."""
@@ -238,13 +243,9 @@ class _Dinov2:
         weights = _require_weights("dinov2", opts["weights"]) if net is None else None
         self.torch, timm = _require_modules("dinov2", ("torch", "timm"))
         if net is None:
-            try:
-                net = timm.create_model(opts["arch"], pretrained=True, dynamic_img_size=True,
-                                        pretrained_cfg_overlay={"file": str(weights)})
-            except Exception as e:  # noqa: BLE001 — torch/open_clip/timm raise anything on a bad file (AssertionError…)
-                raise FeatureError(f"cannot load timm {opts['arch']!r} from {weights} "
-                                   f"({type(e).__name__}: {str(e)[:300]}); pass --weights pointing at "
-                                   f"{_WEIGHTS_HINT['dinov2']}") from e
+            net = _load_net("dinov2", f"timm {opts['arch']!r}", weights,
+                            lambda: timm.create_model(opts["arch"], pretrained=True, dynamic_img_size=True,
+                                                      pretrained_cfg_overlay={"file": str(weights)}))
             self.source = f"DINOv2 {opts['arch']} last-layer patch tokens (timm), weights {weights}"
         else:
             self.source = f"DINOv2 {type(net).__name__} last-layer patch tokens (timm), weights handed over (net=)"
