@@ -92,12 +92,13 @@ def setup(cfg: Config, output_dir) -> Session:
     """Scene, feature targets, fresh (or resumed) state, step and renderers."""
     out = _output_folder(output_dir)
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints")
-    require(not cfg.train.resume or ckpt.latest_step() is not None, "train.resume", True,
+    latest = ckpt.latest_step()
+    require(not cfg.train.resume or latest is not None, "train.resume", True,
             f"there is no checkpoint to resume in {ckpt.directory}",
             "point hydra.run.dir (or train.checkpoint_dir) at the folder of the run to continue, "
             "or drop train.resume to start afresh")
-    require(cfg.train.resume or ckpt.latest_step() is None, "train.resume", False,
-            f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {ckpt.latest_step()})",
+    require(cfg.train.resume or latest is None, "train.resume", False,
+            f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)

@@ -29,6 +29,7 @@ import numpy as np
 
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.normalize import camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
 
 __all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
@@ -60,7 +61,8 @@ class SceneData:
       point_colors: [P, 3] uint8 colours of those points.
       train_indices, test_indices: int32 indices into ``names``; test views are every
         ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
-      extent: 1.1 × the largest distance of a camera centre from the mean camera centre.
+      extent: 1.1 × the largest distance of a camera centre from the mean camera centre
+        (:func:`cusgs_jax.data.normalize.camera_extent`; from the points when the cameras coincide).
     """
 
     path: pathlib.Path
@@ -126,7 +128,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
 
     centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    extent = 1.1 * float(np.max(np.linalg.norm(centers - centers.mean(0), axis=-1)))
+    extent, _ = camera_extent(centers, points)  # the one definition (points when the cameras coincide)
 
     return SceneData(
         path=scene,
