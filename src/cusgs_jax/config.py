@@ -93,12 +93,26 @@ class TrainOptions:
     checkpoint_every: int = 1000
     log_every: int = 10
     progress: bool = True
+    # Views per step (gsplat's batch_size): the loss is their mean, the densification statistics add
+    # every view, learning rates follow training/optim.py::batch_scaled (√B, Adam β^B).
+    batch_size: int = 1
+    # Local devices the B views are sharded over (training/parallel.py): "auto" = the most that divide B.
+    devices: str = "auto"
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
                 "must be a whole number of steps >= 1", "e.g. train.iterations=30000")
         _at_least(self, "train", 0, "checkpoint_every")
         _at_least(self, "train", 1, "log_every")
+        require(isinstance(self.batch_size, int) and not isinstance(self.batch_size, bool) and self.batch_size >= 1,
+                "train.batch_size", self.batch_size, "must be a whole number of views per step >= 1",
+                "e.g. train.batch_size=2")
+        devices = str(self.devices)
+        require(devices == "auto" or (devices.isdigit() and int(devices) >= 1), "train.devices", self.devices,
+                "must be auto or a whole number of devices >= 1", "e.g. train.devices=auto")
+        require(devices == "auto" or self.batch_size % int(devices) == 0, "train.devices", self.devices,
+                f"must divide train.batch_size={self.batch_size} (each device renders B/devices views)",
+                f"use train.devices=auto or a batch size that is a multiple of {devices}")
 
 
 @dataclasses.dataclass(frozen=True)

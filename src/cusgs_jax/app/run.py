@@ -124,6 +124,9 @@ def setup(cfg: Config, output_dir) -> Session:
                       prune=dict(passes=0, pruned=0, render_ms_before_prune=None))
     if cfg.train.resume:
         _resume(session)
+    if cfg.train.batch_size > 1:
+        log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
+                 jax.device_count())
     session.render = make_render_fn(session.cfg)
     session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
     return session
@@ -232,15 +235,23 @@ def _exact_step(session: Session, batch: dict) -> dict:
 
 
 def _batches(session: Session):
-    """``batch(step)``: the training view of ``step`` (:func:`view_order`) as the step's input."""
-    scene, idx = session.scene, session.train_idx
+    """``batch(step)``: the training views of ``step`` as the step's input.
+
+    One view per step (:func:`view_order` at position ``step``) for ``train.batch_size = 1``; B > 1
+    stacks the views at positions ``step·B … step·B + B − 1`` of the same epoch-wise permutation
+    sequence (every view once per epoch of ⌈V/B⌉ steps, the same sequence on resume).
+    """
+    scene, idx, size = session.scene, session.train_idx, session.cfg.train.batch_size
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
 
     def batch(step: int) -> dict:
-        view = view_order(session.cfg.train.seed, len(idx), step)
+        if size == 1:
+            view = view_order(session.cfg.train.seed, len(idx), step)
+        else:
+            view = jnp.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)])
         out = dict(image=images[view], camera=Camera(Ks[view], viewmats[view], scene.width, scene.height),
-                   index=jnp.int32(view))
+                   index=jnp.int32(view) if size == 1 else view.astype(jnp.int32))
         if session.banks is not None:
             out["features"] = {name: t[view] for name, t in session.targets.items()}
             out["banks"] = session.banks
@@ -265,6 +276,13 @@ def _densify(session: Session, step: int) -> None:
         if is_prune:
             session.prune["passes"] += 1
             session.prune["pruned"] += int(info["pruned"])
+
+
+def _devices(session: Session) -> int:
+    """Devices the step's views are sharded over (1 for a single-view step)."""
+    from cusgs_jax.training.parallel import resolve_devices
+
+    return resolve_devices(session.cfg.train.batch_size, session.cfg.train.devices)
 
 
 def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
@@ -357,7 +375,8 @@ def finalise(session: Session) -> dict:
         recompilations=session.recompilations + session.render.growths
         + (session.feature_render.growths if session.feature_render else 0),
         capacities=capacity.capacities(session.cfg), voxel_size=cfg.model.voxel_size,
-        world_transform=session.world.as_dict(), iterations=cfg.train.iterations, width=session.scene.width,
+        world_transform=session.world.as_dict(), iterations=cfg.train.iterations,
+        batch_size=cfg.train.batch_size, devices=_devices(session), width=session.scene.width,
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
         evaluated_on=session.evaluated_on, curve=session.curve,
     )

@@ -125,5 +125,5 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     state = TrainState(anchors=anchors, nets=nets, opt_state=None,
                        densify={s.name: s.init_state(anchors.capacity) for s in strategies},
                        step=jnp.int32(0), skipped=jnp.int32(0))
-    tx = make_optimizer(cfg.optim, state.trainable, cfg.train.iterations, extent)
+    tx = make_optimizer(cfg.optim, state.trainable, cfg.train.iterations, extent, cfg.train.batch_size)
     return state.replace(opt_state=tx.init(state.trainable)), tx
