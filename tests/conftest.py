@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
+
+# Two virtual CPU devices in every test process (set before JAX starts), so the tests of views
+# sharded over devices (training/parallel.py, the batched step) run on any machine. Single-device
+# code runs on the first of them, as before.
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
 
 TINY_DEMO = dict(width=40, height=30, num_views=4, num_points=1500)
 """The tiny demo scene of the ``demo`` fixture (W, H, V as the extract tests use them)."""

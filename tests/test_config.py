@@ -11,6 +11,7 @@ import pytest
 
 from cusgs_jax import config as config_module
 from cusgs_jax import convnets
+from cusgs_jax.errors import ConfigError
 from cusgs_jax.config import (
     DEMO_FEATURE_MODELS,
     Config,
@@ -200,3 +201,15 @@ def test_prune_config_validation():
         PruneConfig(ratio=-0.1)
     with pytest.raises(ValueError, match="interval"):
         PruneConfig(interval=0)
+
+
+def test_batch_size_and_devices_validation():
+    cfg = compose_config(["train.batch_size=4", "train.devices=2"])
+    assert cfg.train.batch_size == 4 and cfg.train.devices == "2"
+    assert compose_config([]).train.devices == "auto"
+    for bad, match in ((["train.batch_size=0"], "train.batch_size=0: must be a whole number of views per step"),
+                       (["train.devices=0"], "train.devices='0': must be auto or a whole number"),
+                       (["train.devices=many"], "train.devices='many'"),
+                       (["train.batch_size=3", "train.devices=2"], "must divide train.batch_size=3")):
+        with pytest.raises(ConfigError, match=match):
+            compose_config(bad)

@@ -14,6 +14,7 @@ from cusgs_jax.app.inputs import view_order
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import compose_config, demo_feature_models
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.training.checkpoint import Checkpointer
 
@@ -281,3 +282,15 @@ def test_a_first_image_loss_far_outside_the_normal_range_is_warned_about(caplog)
         _log_row(session, cfg.train.log_every, dict(metrics, loss=0.3, loss_image=0.3), 0.1)
     assert row["dropped_anchors"] == row["dropped_pairs"] == 0
     assert caplog.text.count("far above the normal range") == 1 and "model.voxel_size" in caplog.text
+
+
+def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path):
+    result = run(_cfg(tiny_scene, "train.batch_size=2", "train.iterations=10", "eval.every=10", "grow.start=4",
+                      "grow.interval=4", "grow.stop=10", "prune.start=6", "prune.interval=6"), tmp_path)
+    assert result["batch_size"] == 2 and result["devices"] == 2
+    assert np.isfinite(result["psnr"]) and result["prune"]["passes"] == 1
+    rows = _jsonl(tmp_path / "metrics.jsonl")
+    assert rows[-1]["step"] == 10 and all(r["dropped_anchors"] == 0 == r["dropped_pairs"] for r in rows)
+    with pytest.raises(ConfigError, match=r"train.devices='8': only 2 device\(s\) are present"):
+        run(_cfg(tiny_scene, "train.batch_size=8", "train.devices=8"), tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()  # refused before any work

@@ -75,3 +75,28 @@ def test_each_group_steps_with_its_own_decaying_rate():
         for count, update in enumerate(steps):
             np.testing.assert_allclose(np.asarray(update), -float(schedule(count)), rtol=1e-4, err_msg=group)
         np.testing.assert_allclose(np.asarray(steps[-1]), -final, rtol=1e-4, err_msg=group)
+
+
+def test_batch_scaled_is_the_identity_for_one_view_and_gsplats_rule_otherwise():
+    from cusgs_jax.training.optim import ADAM_BETAS, batch_scaled
+
+    assert batch_scaled(1, 1e-15) == (1.0, 1e-15, ADAM_BETAS)  # B = 1: exactly today's settings
+    scale, eps, (b1, b2) = batch_scaled(4, 1e-15)
+    assert scale == 2.0 and eps == 0.5e-15
+    assert b1 == pytest.approx(0.9 ** 4) and b2 == pytest.approx(0.999 ** 4)
+    # gsplat's first-order 1 − B(1 − β) agrees for small B and stays positive where it does not (B = 10)
+    assert abs(b2 - (1 - 4 * 0.001)) < 1e-5
+    assert batch_scaled(10, 1e-15)[2][0] > 0 and 1 - 10 * (1 - 0.9) < 1e-12
+
+
+def test_batch_size_scales_the_learning_rates_by_its_square_root():
+    trainable = {"anchor": {"latent": jnp.zeros((3, 2))}}
+    grads = {"anchor": {"latent": jnp.ones((3, 2))}}
+
+    def first_update(batch_size):
+        opt = make_optimizer(OptimConfig(), trainable, 100, 1.0, batch_size)
+        updates, _ = opt.update(grads, opt.init(trainable), trainable)
+        return float(updates["anchor"]["latent"][0, 0])
+
+    # Adam's first step moves every entry by ≈ lr (sign of the gradient), so the ratio is √B
+    assert first_update(4) / first_update(1) == pytest.approx(2.0, rel=1e-4)
