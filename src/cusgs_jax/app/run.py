@@ -90,8 +90,10 @@ class Session:
 
 def setup(cfg: Config, output_dir) -> Session:
     """Scene, feature targets, fresh (or resumed) state, step and renderers."""
+    from cusgs_jax.training.distributed import require_single_process
     from cusgs_jax.training.parallel import resolve_devices
 
+    require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints")
