@@ -93,12 +93,19 @@ class TrainOptions:
     checkpoint_every: int = 1000
     log_every: int = 10
     progress: bool = True
+    viewer: bool = False  # serve a live web viewer of the model while training (cusgs_jax/view/live.py)
+    viewer_port: int = 8080  # 0: a free port (the address is logged)
+    viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
                 "must be a whole number of steps >= 1", "e.g. train.iterations=30000")
         _at_least(self, "train", 0, "checkpoint_every")
         _at_least(self, "train", 1, "log_every")
+        require(_number(self.viewer_port) and 0 <= self.viewer_port <= 65535, "train.viewer_port", self.viewer_port,
+                "must be a port number 0-65535 (0: a free one)")
+        require(_number(self.viewer_budget) and 0 < self.viewer_budget <= 1, "train.viewer_budget",
+                self.viewer_budget, "must be a share of the training time in (0, 1]", "e.g. train.viewer_budget=0.1")
 
 
 @dataclasses.dataclass(frozen=True)

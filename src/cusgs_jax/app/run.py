@@ -53,6 +53,7 @@ from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
+from cusgs_jax.view.live import live_view
 
 log = logging.getLogger("cusgs_jax")
 LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
@@ -190,11 +191,13 @@ def train(session: Session, progress_label: str = "train") -> None:
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
     with open(session.out / "metrics.jsonl", "a") as metrics_file, \
-            open(session.out / "eval_curve.jsonl", "a") as curve_file:
+            open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(session) as live:
         for step in bar:
             with session.clock:
                 metrics = _exact_step(session, batches(step))
                 _densify(session, step + 1)
+            if live is not None:  # train.viewer: within its share of the wall time, not on the clock
+                live.after_step(session)
             done = step + 1
             if done % cfg.train.log_every == 0 or done == iterations:
                 row = _log_row(session, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)

@@ -95,17 +95,21 @@ def from_trained(model) -> ViewModel:
     return _view_model(cfg, model.anchors, model.nets, banks, cameras)
 
 
-def from_session(session) -> ViewModel:
-    """The :class:`ViewModel` of a training session as it is now (:mod:`cusgs_jax.app.run`)."""
+def from_session(session, cameras: list | None = None) -> ViewModel:
+    """The :class:`ViewModel` of a training session as it is now (:mod:`cusgs_jax.app.run`).
+
+    ``cameras``: the camera list of an earlier call (it does not change during a run), or None.
+    """
     from cusgs_jax.model.anchors import compact
     from cusgs_jax.types import Camera
 
     scene = session.scene
-    cameras = []
-    for prefix, idx in (("train", session.train_idx), ("held-out", scene.test_indices)):
-        if len(idx):
-            batch = Camera(np.asarray(scene.Ks)[idx], np.asarray(scene.viewmats)[idx], scene.width, scene.height)
-            cameras += _camera_list(prefix, batch)
+    if cameras is None:
+        cameras = []
+        for prefix, idx in (("train", session.train_idx), ("held-out", scene.test_indices)):
+            if len(idx):
+                batch = Camera(np.asarray(scene.Ks)[idx], np.asarray(scene.viewmats)[idx], scene.width, scene.height)
+                cameras += _camera_list(prefix, batch)
     return _view_model(session.cfg, compact(session.state.anchors), session.state.nets, session.banks, cameras)
 
 

@@ -21,6 +21,7 @@ the training loop calls :meth:`Viewer.render_pending` itself between steps, with
 from __future__ import annotations
 
 import dataclasses
+import logging
 import threading
 import time
 
@@ -33,6 +34,7 @@ from cusgs_jax.view.render import ViewModel, ViewRenderer
 __all__ = ["Viewer", "SentFrame", "NO_CLIP_REASON"]
 
 NO_CLIP_REASON = "text queries need a CLIP model: start cusgs-view with --clip WEIGHTS (local open_clip weights)"
+log = logging.getLogger("cusgs_jax")
 DEFAULT_HEIGHT = 480
 """Render height in pixels when none is given (the resolution slider's start)."""
 
@@ -239,7 +241,13 @@ class Viewer:
         """Render in a background thread until :meth:`stop`."""
         def loop():
             while not self._stop.is_set():
-                if not self.render_pending():
+                try:
+                    busy = self.render_pending()
+                except Exception as e:  # noqa: BLE001 — keep serving; the panel and the log say what failed
+                    log.exception("cusgs-view: a frame failed")
+                    self.gui_note.content = f"render failed: {type(e).__name__}: {e}"
+                    busy = False
+                if not busy:
                     self._stop.wait(0.01)
 
         self._thread = threading.Thread(target=loop, name="cusgs-view-render", daemon=True)
