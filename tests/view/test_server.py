@@ -31,20 +31,8 @@ TIMEOUT_S = 60.0
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    """A 10-step run with the demo scene's semantic feature model (about 17 s on 2 cores)."""
-    from cusgs_jax.app.run import run
-    from cusgs_jax.config import compose_config
-    from cusgs_jax.data.demo import generate_demo_scene
-
-    root = tmp_path_factory.mktemp("view")
-    scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)
-    cfg = compose_config([f"data.path={scene}", "train.iterations=10", "train.progress=false", "eval.every=0",
-                          "eval.save_renders=false", "train.checkpoint_every=0", "model.n_offsets=4",
-                          "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
-                          "features.models=[{name: semantic}]", "features.sample_pixels=200"])
-    run(cfg, root / "run")
-    return root / "run"
+def run_dir(feature_run):
+    return feature_run
 
 
 @pytest.fixture(scope="module")
