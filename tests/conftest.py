@@ -39,3 +39,20 @@ def names(demo):
     from cusgs_jax.data.colmap import load_scene
 
     return load_scene(demo, holdout_every=0).names
+
+
+@pytest.fixture(scope="session")
+def feature_run(tmp_path_factory):
+    """A 10-step run folder with the demo scene's semantic feature model (about 17 s on 2 cores; the viewer's tests)."""
+    from cusgs_jax.app.run import run
+    from cusgs_jax.config import compose_config
+    from cusgs_jax.data.demo import generate_demo_scene
+
+    root = tmp_path_factory.mktemp("view")
+    scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)
+    cfg = compose_config([f"data.path={scene}", "train.iterations=10", "train.progress=false", "eval.every=0",
+                          "eval.save_renders=false", "train.checkpoint_every=0", "model.n_offsets=4",
+                          "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
+                          "features.models=[{name: semantic}]", "features.sample_pixels=200"])
+    run(cfg, root / "run")
+    return root / "run"

@@ -98,6 +98,9 @@ class TrainOptions:
     batch_size: int = 1
     # Local devices the B views are sharded over (training/parallel.py): "auto" = the most that divide B.
     devices: str = "auto"
+    viewer: bool = False  # serve a live web viewer of the model while training (cusgs_jax/view/live.py)
+    viewer_port: int = 8080  # 0: a free port (the address is logged)
+    viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
@@ -113,6 +116,10 @@ class TrainOptions:
         require(devices == "auto" or self.batch_size % int(devices) == 0, "train.devices", self.devices,
                 f"must divide train.batch_size={self.batch_size} (each device renders B/devices views)",
                 f"use train.devices=auto or a batch size that is a multiple of {devices}")
+        require(_number(self.viewer_port) and 0 <= self.viewer_port <= 65535, "train.viewer_port", self.viewer_port,
+                "must be a port number 0-65535 (0: a free one)")
+        require(_number(self.viewer_budget) and 0 < self.viewer_budget <= 1, "train.viewer_budget",
+                self.viewer_budget, "must be a share of the training time in (0, 1]", "e.g. train.viewer_budget=0.1")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -41,7 +41,10 @@ from cusgs_jax.config import Config, from_dict
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
 
-__all__ = ["TrainedModel", "load_trained"]
+__all__ = ["TrainedModel", "load_trained", "BANKS_FILE"]
+
+BANKS_FILE = "feature_banks.npz"
+"""The run folder's PSC banks of the feature models ({model: [M, D]}), written with the first checkpoint."""
 
 log = logging.getLogger("cusgs_jax")
 
@@ -69,6 +72,10 @@ class TrainedModel:
         :class:`~cusgs_jax.types.Camera` (K [V, 3, 3], world_to_camera [V, 4, 4], static
         width/height), or None when neither the checkpoint nor the scene gives them.
       cameras_from: "checkpoint", the scene folder they were read from, or None.
+      held_out_cameras: the held-out cameras (batched Camera) as the checkpoint records them
+        (``held_out_cameras``, written since the viewer exists), or None (none held out, or an older run).
+      banks: {feature model: [M, D] PSC entries} from ``feature_banks.npz``, or None (no feature
+        model, or a run older than the file).
     """
 
     cfg: Config
@@ -82,6 +89,8 @@ class TrainedModel:
     evaluation: dict | None
     cameras: object = None
     cameras_from: str | None = None
+    held_out_cameras: object = None
+    banks: dict | None = None
 
     @property
     def num_anchors(self) -> int:
@@ -156,7 +165,8 @@ def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
     cameras, cameras_from = _train_cameras(meta, cfg, world)
     return TrainedModel(cfg=cfg, anchors=compact(anchors), nets=nets, world=world, step=int(step), run_dir=run,
                         checkpoint_dir=ckpt_dir, checkpoint_bytes=int(size), evaluation=evaluation,
-                        cameras=cameras, cameras_from=cameras_from)
+                        cameras=cameras, cameras_from=cameras_from,
+                        held_out_cameras=_stored_cameras(meta.get("held_out_cameras")), banks=_banks(run))
 
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -256,13 +266,9 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
 
     stored = meta.get("train_cameras")
     if isinstance(stored, dict):
-        try:
-            viewmats, Ks = np.asarray(stored["viewmats"], np.float32), np.asarray(stored["Ks"], np.float32)
-            if viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4) and Ks.shape == (len(viewmats), 3, 3) and len(Ks):
-                return (Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"])),
-                        "checkpoint")
-        except (KeyError, TypeError, ValueError):
-            pass
+        cameras = _stored_cameras(stored)
+        if cameras is not None:
+            return cameras, "checkpoint"
         log.warning("the checkpoint's train_cameras cannot be read; looking for the scene instead")
     if world is None:
         return None, None
@@ -286,3 +292,32 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
         return None, None
     viewmats = world.viewmats(viewmats[train]).astype(np.float32)
     return Camera(jnp.asarray(Ks[train]), jnp.asarray(viewmats), int(width), int(height)), str(path)
+
+
+def _stored_cameras(stored):
+    """A batched Camera from the checkpoint metadata's {"viewmats", "Ks", "width", "height"}, or None."""
+    import jax.numpy as jnp
+
+    from cusgs_jax.types import Camera
+
+    if not isinstance(stored, dict):
+        return None
+    try:
+        viewmats, Ks = np.asarray(stored["viewmats"], np.float32), np.asarray(stored["Ks"], np.float32)
+        if viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4) and Ks.shape == (len(viewmats), 3, 3) and len(Ks):
+            return Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"]))
+    except (KeyError, TypeError, ValueError):
+        pass
+    return None
+
+
+def _banks(run: pathlib.Path) -> dict | None:
+    """{model: [M, D] float32} from the run's ``feature_banks.npz``, or None when it has none."""
+    path = run / BANKS_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as stored:
+            return {name: np.asarray(stored[name], np.float32) for name in stored.files}
+    except (OSError, ValueError) as e:
+        raise CheckpointError(f"{path} cannot be read ({e}): is the run folder damaged?") from e

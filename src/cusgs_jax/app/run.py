@@ -11,7 +11,10 @@
   ``lpips`` extra), model size, times, pruning summary
 * ``renders/`` — held-out renders beside ground truth (PNG)
 * ``error_vs_time.png`` — held-out PSNR against training wall-clock time
-* ``checkpoints/`` — orbax checkpoints (periodic and final)
+* ``checkpoints/`` — orbax checkpoints (periodic and final); their metadata records the training and
+  held-out cameras
+* ``feature_banks.npz`` — the PSC banks of the feature models ({model: [M, D]}), for renderers that
+  read the run folder without the scene (``cusgs-view``)
 
 The learning curve and the final evaluation use the same renderer: the model
 compacted to its alive anchors (:func:`cusgs_jax.model.anchors.compact`), every slot decoded.
@@ -35,6 +38,7 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.app.clock import Clock
+from cusgs_jax.app.load_run import BANKS_FILE
 from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, view_order
 from cusgs_jax.config import Config, require
 from cusgs_jax.densify import ops
@@ -49,6 +53,7 @@ from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
+from cusgs_jax.view.live import live_view
 
 log = logging.getLogger("cusgs_jax")
 LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
@@ -194,11 +199,13 @@ def train(session: Session, progress_label: str = "train") -> None:
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
     with open(session.out / "metrics.jsonl", "a") as metrics_file, \
-            open(session.out / "eval_curve.jsonl", "a") as curve_file:
+            open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(session) as live:
         for step in bar:
             with session.clock:
                 metrics = _exact_step(session, batches(step))
                 _densify(session, step + 1)
+            if live is not None:  # train.viewer: within its share of the wall time, not on the clock
+                live.after_step(session)
             done = step + 1
             if done % cfg.train.log_every == 0 or done == iterations:
                 row = _log_row(session, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)
@@ -342,13 +349,16 @@ def _save(session: Session, step: int) -> None:
                 capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
                 # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
-                train_cameras=_train_cameras(session))
+                train_cameras=_cameras(session, session.train_idx),
+                held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list
     session.ckpt.save(step, session.state, meta)
+    if session.banks is not None and not (session.out / BANKS_FILE).is_file():  # what cusgs-view renders with
+        np.savez(session.out / BANKS_FILE, **{name: np.asarray(b) for name, b in session.banks.items()})
 
 
-def _train_cameras(session: Session) -> dict:
-    """The training views in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
-    scene, idx = session.scene, session.train_idx
+def _cameras(session: Session, idx) -> dict:
+    """Views ``idx`` in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
+    scene = session.scene
     return dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
                 Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
 

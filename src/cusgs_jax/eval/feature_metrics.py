@@ -10,6 +10,8 @@ and the target (teacher) features of the same views:
 * :func:`object_queries`, :func:`retrieval_scores` — text-free object retrieval (CUS-GS / M3
   protocol): cosine score maps against an object's mean target feature, Otsu threshold, IoU
   against the ground-truth object masks (mIoU, cIoU, AP50);
+* :func:`similarity_mask` — the same score map and Otsu threshold for one query on one map (the
+  viewer's click and text queries);
 * :func:`pca_rgb`, :func:`save_feature_comparison` — false-colour pictures of feature maps.
 
 Shapes: N views, h × w pixels (feature-map resolution), D feature dimension. As in
@@ -35,6 +37,7 @@ __all__ = [
     "resize_to",
     "retrieval_scores",
     "save_feature_comparison",
+    "similarity_mask",
 ]
 
 COS_EPS = 1e-8
@@ -226,24 +229,52 @@ def _retrieve(unit: np.ndarray, query, obj: int, ids: np.ndarray, valid: np.ndar
 
     unit: [N, h, w, D] unit features; query: [D]; ids: [N, h, w] object ids; valid: [N, h, w] bool.
     """
-    from skimage.filters import threshold_otsu  # lazy
-
     dim = unit.shape[-1]
     q = np.asarray(query, np.float64)
     if q.shape != (dim,):
         raise ValueError(f"query of object {obj} must be [D] = [{dim}], got {q.shape}")
-    qn = np.linalg.norm(q)
-    q_unit = (q / qn if qn >= np.sqrt(COS_EPS) else np.zeros_like(q)).astype(np.float32)
-    scores = unit @ q_unit  # [N, h, w] cosine similarity
-    pool = scores[valid]
-    if pool.size == 0 or pool.min() == pool.max():
-        thr = None
-        pred = np.zeros(ids.shape, bool)
-    else:
-        thr = float(threshold_otsu(pool))
-        pred = (scores > thr) & valid
+    _, thr, pred = _scores_and_mask(unit, q, valid)
     gt = (ids == obj) & valid
     return thr, int(np.count_nonzero(pred & gt)), int(np.count_nonzero(pred | gt))
+
+
+def _scores_and_mask(unit: np.ndarray, query: np.ndarray, valid: np.ndarray):
+    """(cosine scores [...], Otsu threshold or None, mask [...] bool) of unit features [..., D] and a query [D].
+
+    The threshold is Otsu's (``skimage.filters.threshold_otsu``) over the valid scores pooled;
+    constant scores have nothing to separate: threshold None, empty mask.
+    """
+    from skimage.filters import threshold_otsu  # lazy
+
+    qn = np.linalg.norm(query)
+    q_unit = (query / qn if qn >= np.sqrt(COS_EPS) else np.zeros_like(query)).astype(np.float32)
+    scores = unit @ q_unit  # cosine similarity
+    pool = scores[valid]
+    if pool.size == 0 or pool.min() == pool.max():
+        return scores, None, np.zeros(scores.shape, bool)
+    thr = float(threshold_otsu(pool))
+    return scores, thr, (scores > thr) & valid
+
+
+def similarity_mask(features, query, valid=None) -> tuple[np.ndarray, float | None, np.ndarray]:
+    """One query against one feature map, as :func:`retrieval_scores` scores a view.
+
+    Args:
+      features: [h, w, D] feature map (e.g. rendered by the field at a viewer's camera).
+      query: [D] query vector (a clicked pixel's feature, a text embedding).
+      valid: optional [h, w] bool; pixels outside it take no part in the threshold and are never
+        in the mask (None = all pixels).
+    Returns:
+      (scores [h, w] float32 cosine similarity (0 for a zero vector), Otsu threshold over the valid
+      scores or None when they are constant, mask [h, w] bool = scores > threshold within valid).
+    """
+    features = np.asarray(features)
+    if features.ndim != 3:
+        raise ValueError(f"features must be [h, w, D], got shape {features.shape}")
+    q = np.asarray(query, np.float64)
+    if q.shape != (features.shape[-1],):
+        raise ValueError(f"query must be [D] = [{features.shape[-1]}], got {q.shape}")
+    return _scores_and_mask(_unit_vectors(features), q, _as_valid(valid, features.shape[:2]))
 
 
 def retrieval_scores(features, object_ids, query_features: Mapping[int, np.ndarray], *,

@@ -273,3 +273,31 @@ class _Dinov2:
 
 
 PRETRAINED = {"clip": _Clip, "dinov2": _Dinov2}  # model name → extractor class
+
+
+def clip_text_encoder(weights=None, *, arch: str = "ViT-B-16", device: str = "cpu", net=None):
+    """``encode(text) -> [D] float32``: open_clip's text embedding, in the joint space of the clip patch tokens.
+
+    For text queries against a rendered clip feature field (``cusgs-view --clip``): the same LOCAL
+    weights as the clip extractor (``weights`` a checkpoint file or its folder, loaded by
+    ``open_clip.create_model(arch, pretrained=FILE)``), or ``net=`` an already built open_clip CLIP
+    model. The tokenizer is ``open_clip.get_tokenizer(arch)`` (open_clip's bundled BPE vocabulary for
+    the OpenAI-style architectures; nothing is downloaded).
+
+    Raises:
+      FeatureError: the extra is missing, or the weights are missing or do not load (file named).
+    """
+    torch, open_clip = _require_modules("clip", ("torch", "open_clip"))
+    if net is None:
+        weights = _require_weights("clip", weights)
+        net = _load_net("clip", f"open_clip {arch!r}", weights,
+                        lambda: open_clip.create_model(arch, pretrained=str(weights)))
+    net = net.eval().to(device)
+    context = int(getattr(net, "context_length", 77))
+    tokenizer = open_clip.get_tokenizer(arch, context_length=context)
+
+    def encode(text: str) -> np.ndarray:
+        with torch.no_grad():
+            return net.encode_text(tokenizer([str(text)]).to(device))[0].float().cpu().numpy()
+
+    return encode

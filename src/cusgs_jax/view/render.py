@@ -1,0 +1,162 @@
+"""What the viewer renders, and the render itself: a model at any camera → :class:`~cusgs_jax.view.modes.Frame`.
+
+:class:`ViewModel` is everything the viewer needs of a model: the configuration, compacted
+anchors, networks (the appearance embedding replaced by the training views' mean, as the
+exporter does for a view that is none of the training views), the PSC banks of the feature
+models, and the list of cameras to jump to. It comes from a run folder
+(:func:`from_trained`, through :func:`cusgs_jax.app.load_run.load_trained`) or from a live
+training session (:func:`from_session`).
+
+:class:`ViewRenderer` renders it with our splatter (:func:`cusgs_jax.training.render.render_gaussians`,
+every slot decoded, never a truncated image): RGB, alpha, alpha-weighted depth, and when asked the
+rendered features of every feature model ([H, W, D] each, through the memory heads).
+
+Naming: A anchor capacity, E appearance size, M PSC entries, D feature dimension, H×W image.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+__all__ = ["ViewModel", "ViewRenderer", "from_trained", "from_session", "mean_appearance_nets"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ViewModel:
+    """A model ready to view.
+
+    Attributes:
+      cfg: its :class:`~cusgs_jax.config.Config`.
+      anchors: compacted :class:`~cusgs_jax.model.anchors.AnchorState`.
+      nets: networks with ``appearance`` [1, E] (the mean embedding; index 0) when the model has one.
+      banks: {model: [M, D]} jax arrays, or None (no feature model rendered).
+      cameras: [(label, K [3, 3], world→camera [4, 4], W, H)] to jump to, training views first.
+      center: [3] the middle of the alive anchors (orbit centre); up: [3] world up of the cameras.
+    """
+
+    cfg: object
+    anchors: object
+    nets: dict
+    banks: dict | None
+    cameras: list
+    center: np.ndarray
+    up: np.ndarray
+
+    @property
+    def feature_models(self) -> list[str]:
+        """Names of the feature models the viewer can render (those with banks and memory heads)."""
+        if self.banks is None or "memory" not in self.nets:
+            return []
+        return [m.name for m in self.cfg.features.model_list if m.name in self.banks]
+
+
+def mean_appearance_nets(nets: dict) -> dict:
+    """``nets`` with the appearance table [V, E] replaced by its mean [1, E] (render with index 0)."""
+    if "appearance" not in nets:
+        return nets
+    import jax.numpy as jnp
+
+    return {**nets, "appearance": jnp.mean(nets["appearance"], axis=0, keepdims=True)}
+
+
+def _camera_list(prefix: str, cameras) -> list:
+    if cameras is None:
+        return []
+    Ks, viewmats = np.asarray(cameras.K), np.asarray(cameras.world_to_camera)
+    return [(f"{prefix} {i}", Ks[i], viewmats[i], int(cameras.width), int(cameras.height)) for i in range(len(Ks))]
+
+
+def _view_model(cfg, anchors, nets, banks, cameras: list) -> ViewModel:
+    import jax.numpy as jnp
+
+    from cusgs_jax.view.camera import scene_up
+
+    alive = np.asarray(anchors.alive)
+    centers = np.asarray(anchors.centers)[alive]
+    center = centers.mean(axis=0) if len(centers) else np.zeros(3)
+    up = scene_up(np.stack([c[2] for c in cameras])) if cameras else np.array([0.0, -1.0, 0.0])
+    banks = None if banks is None else {name: jnp.asarray(b) for name, b in banks.items()}
+    return ViewModel(cfg=cfg, anchors=anchors, nets=mean_appearance_nets(nets), banks=banks, cameras=cameras,
+                     center=center, up=up)
+
+
+def from_trained(model) -> ViewModel:
+    """The :class:`ViewModel` of a :class:`~cusgs_jax.app.load_run.TrainedModel` (its run folder only).
+
+    Cameras: the training views, then the held-out views, as the checkpoint records them.
+    """
+    cfg = model.cfg
+    if cfg.features.models == "auto" and model.banks:  # a cusgs-train run's .hydra config: resolve as it did
+        cfg = cfg.replace(features=cfg.features.resolve(demo_scene=not cfg.data.path))
+    banks = model.banks if cfg.features.enabled else None
+    cameras = _camera_list("train", model.cameras) + _camera_list("held-out", model.held_out_cameras)
+    return _view_model(cfg, model.anchors, model.nets, banks, cameras)
+
+
+def from_session(session, cameras: list | None = None) -> ViewModel:
+    """The :class:`ViewModel` of a training session as it is now (:mod:`cusgs_jax.app.run`).
+
+    ``cameras``: the camera list of an earlier call (it does not change during a run), or None.
+    """
+    from cusgs_jax.model.anchors import compact
+    from cusgs_jax.types import Camera
+
+    scene = session.scene
+    if cameras is None:
+        cameras = []
+        for prefix, idx in (("train", session.train_idx), ("held-out", scene.test_indices)):
+            if len(idx):
+                batch = Camera(np.asarray(scene.Ks)[idx], np.asarray(scene.viewmats)[idx], scene.width, scene.height)
+                cameras += _camera_list(prefix, batch)
+    return _view_model(session.cfg, compact(session.state.anchors), session.state.nets, session.banks, cameras)
+
+
+class ViewRenderer:
+    """Renders a :class:`ViewModel` at a camera (jitted once per image size; pair capacity grown as needed)."""
+
+    def __init__(self, cfg):
+        from cusgs_jax.training.capacity import ExactRender
+
+        self._plain = ExactRender(_build(with_features=False), cfg)
+        self._features = ExactRender(_build(with_features=True), cfg)
+
+    def render(self, model: ViewModel, camera, *, features: bool = False):
+        """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
+        from cusgs_jax.view.modes import Frame
+
+        if features and model.feature_models:
+            rgb, depth, alpha, feats = self._features(model.anchors, model.nets, camera, model.banks)
+        else:
+            rgb, depth, alpha, feats = self._plain(model.anchors, model.nets, camera, None)
+        return Frame(rgb=np.asarray(rgb), depth=np.asarray(depth), alpha=np.asarray(alpha),
+                     features={name: np.asarray(f) for name, f in feats.items()})
+
+
+def _build(with_features: bool):
+    """``build(cfg)`` for :class:`~cusgs_jax.training.capacity.ExactRender`:
+    ``render(anchors, nets, camera, banks) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, dropped, pairs)``."""
+    def build(cfg):
+        import jax
+        import jax.numpy as jnp
+
+        from cusgs_jax.model.decode import decode_view
+        from cusgs_jax.model.field import retrieve
+        from cusgs_jax.training.render import render_config, render_gaussians, view_queries
+
+        cfg = render_config(cfg)
+
+        @jax.jit
+        def render(anchors, nets, camera, banks):
+            index = jnp.int32(0)
+            gaussians, view = decode_view(nets, anchors, camera, index, cfg.model)
+            queries = view_queries(nets, anchors, view, camera, index, cfg) if with_features else None
+            out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
+            feats = retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features) if with_features else {}
+            return (jnp.clip(out.image[..., :3], 0.0, 1.0), out.depth, out.alpha, feats, out.overflow,
+                    out.num_pairs)
+
+        return render
+
+    return build
