@@ -76,3 +76,18 @@ def test_pixel_at_clamps_to_the_image():
     assert pixel_at((0.0, 0.0), 8, 6) == (0, 0)
     assert pixel_at((1.0, 1.0), 8, 6) == (5, 7)
     assert pixel_at((0.5, 0.25), 8, 6) == (1, 4)
+
+
+def test_pca_of_a_large_view_is_fitted_on_a_subset_and_matches_the_full_fit():
+    from cusgs_jax.eval.feature_metrics import pca_rgb
+    from cusgs_jax.view.modes import PCA_FIT_PIXELS
+
+    rng = np.random.default_rng(0)
+    h, w, d = 240, 320, 24
+    assert h * w > PCA_FIT_PIXELS
+    yy, xx = np.meshgrid(np.linspace(0, 1, h), np.linspace(0, 1, w), indexing="ij")
+    basis = rng.normal(size=(3, d))
+    features = (np.stack([xx, yy, xx * yy], -1) @ basis + 0.01 * rng.normal(size=(h, w, d))).astype(np.float32)
+    fast, full = pca_colours(features, None).astype(int), pca_rgb([features])[0].astype(int)
+    close = np.abs(fast - full) <= 3  # the basis of 8192 strided pixels ≈ that of all 76,800
+    assert close.mean() > 0.99

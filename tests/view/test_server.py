@@ -24,7 +24,7 @@ VIEWPORT = dict(width=640, height=480)  # narrower pages put the panel over most
 # left, the axes gizmo at the lower left); the comparison uses the band below them, clear of the gizmo.
 REGION = (slice(260, 470), slice(70, 630))  # rows, columns of the 640×480 page
 # The frame travels as a JPEG (quality 90) and is drawn 1:1 by WebGL (software, SwiftShader).
-# Measured here: mean |error| about 1 grey level, PSNR about 40 dB against the offline render.
+# Measured here (2026-11-24, printed by the first test): mean |error| 0.49 grey levels, PSNR 50.7 dB.
 MAX_MEAN_ABS_ERROR = 4.0  # grey levels of 255
 MIN_PSNR_DB = 32.0
 TIMEOUT_S = 60.0
@@ -114,8 +114,9 @@ def test_the_page_shows_the_splatters_render_of_the_browsers_camera(viewer, page
                                            jnp.int32(0))
     offline = np.round(np.asarray(offline) * 255).astype(np.uint8)
     assert offline.shape == shot.shape
-    assert _mean_abs(shot[REGION], offline[REGION]) < MAX_MEAN_ABS_ERROR
-    assert _psnr(shot[REGION], offline[REGION]) > MIN_PSNR_DB
+    error, psnr = _mean_abs(shot[REGION], offline[REGION]), _psnr(shot[REGION], offline[REGION])
+    print(f"browser vs offline render: mean |error| {error:.2f} grey levels, PSNR {psnr:.1f} dB")
+    assert error < MAX_MEAN_ABS_ERROR and psnr > MIN_PSNR_DB
     start = viewer.model.cameras[0]  # the browser started at the first training camera
     np.testing.assert_allclose(np.asarray(frame.camera.world_to_camera), start[2], atol=2e-3)
     assert "ms at 640×480" in viewer.gui_time.value
@@ -135,8 +136,12 @@ def test_a_click_queries_the_feature_under_the_pointer(viewer, page):
     page.mouse.click(320, 380)
     frame, shot = _shown(viewer, page, "query semantic")
     assert "Otsu threshold" in frame.note
-    clicked = frame.camera  # the query is the rendered feature at the clicked pixel: its score is the maximum 1
-    assert clicked.width == VIEWPORT["width"]
+    # the query is the feature rendered at the clicked pixel of the browser's camera
+    from cusgs_jax.view.modes import pixel_at
+
+    row, col = pixel_at((320 / VIEWPORT["width"], 380 / VIEWPORT["height"]), frame.camera.width, frame.camera.height)
+    offline = viewer.renderer.render(viewer.model, frame.camera, features=True)
+    np.testing.assert_allclose(viewer._queries["semantic"], offline.features["semantic"][row, col], atol=1e-5)
 
 
 def test_without_clip_the_text_box_says_why(viewer, page):
