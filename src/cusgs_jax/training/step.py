@@ -122,7 +122,9 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
 
     ``step(state, batch)`` with the batch of :func:`make_train_step` (leading view axis B).
     Every view is rendered and differentiated on its own device (``shard_map`` over the
-    ``"views"`` axis of :func:`cusgs_jax.training.parallel.view_mesh`, B/D views per device);
+    ``"views"`` axis of :func:`cusgs_jax.training.parallel.view_mesh`, B/D views per device,
+    one after another with ``lax.map``: one view's intermediates in memory at a time, and the
+    same per-view program as on another device count — ``vmap`` measured further apart);
     the loss is the mean of the B view losses, its gradient the mean of theirs (a ``psum``
     over the mesh), applied once by the replicated optimiser. Each view's record — its own
     ∂L_b/∂μ_2D and ∂L_b/∂z, as a single-view step would see them — is added to the
@@ -148,7 +150,8 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
             batch = dict(view, banks=banks) if banks is not None else view
             return jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(trainable, delta, anchors, batch, key)
 
-        (loss, aux), (grads, grad2d) = jax.vmap(one)(views, keys, deltas)
+        (loss, aux), (grads, grad2d) = jax.lax.map(lambda args: one(*args), (views, keys, deltas))
+        grads = jax.lax.optimization_barrier(grads)
         latent_grad = jax.vmap(lambda g, slots: g[slots])(grads["anchor"].latent, aux[2].slots)
         total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), grads)
         return loss, aux, grad2d, latent_grad, total
