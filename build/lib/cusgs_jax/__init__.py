@@ -1,0 +1,67 @@
+"""cusgs-jax: CUS-GS (compact unified structured Gaussian splatting) in JAX.
+
+A lazy facade: ``import cusgs_jax`` imports nothing heavy; each name below is
+imported from its module on first use (so command-line tools that never touch
+JAX do not load it). The naming table of array shapes is in :mod:`cusgs_jax.types`.
+
+Data flow of one training step, with the module of each stage::
+
+    scene (data.colmap / data.demo) → anchors (model.anchors) → decode (model.decode)
+      → splat (splat.render) → loss (losses, model.field) → update (training.step, training.optim)
+      → densify (densify.scaffold, densify.feature_prune) → evaluate (eval.views, eval.features)
+"""
+
+from __future__ import annotations
+
+import importlib
+
+__version__ = "0.1.0"
+
+_EXPORTS = {
+    # configuration and types
+    "Config": "config", "ModelConfig": "config", "SplatConfig": "config", "GrowConfig": "config",
+    "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "config",
+    "Camera": "types",
+    # data
+    "SceneData": "data.colmap", "SceneError": "data.colmap", "load_scene": "data.colmap",
+    "normalize_scene": "data.normalize", "WorldTransform": "data.normalize",
+    "UserError": "errors", "ConfigError": "errors", "CheckpointError": "errors",
+    "demo_scene_path": "data.demo", "generate_demo_scene": "data.demo",
+    # model
+    "AnchorParams": "model.anchors", "AnchorState": "model.anchors", "init_anchors": "model.anchors",
+    "voxelize": "model.anchors",
+    "Gaussians": "model.decode", "decode_gaussians": "model.decode", "frustum_mask": "model.decode",
+    "init_decoder": "model.decode", "decode_view": "model.decode",
+    # splatting
+    "RenderOutput": "splat", "check_inputs": "splat", "rasterize": "splat", "rasterize_batch": "splat",
+    "sh_to_rgb": "splat", "sh_basis": "splat",
+    # models that leave the project (standard 3DGS PLY)
+    "SplatModel": "io", "PlyError": "io", "read_ply": "io", "write_ply": "io", "render_splats": "io",
+    "bake_splats": "model.bake", "load_trained": "app.load_run", "TrainedModel": "app.load_run",
+    # densification
+    "GrowStats": "densify.scaffold", "accumulate_stats": "densify.scaffold",
+    "ScaffoldStrategy": "densify.scaffold",
+    "PruneStats": "densify.feature_prune", "accumulate_prune_stats": "densify.feature_prune",
+    "anchor_scores": "densify.feature_prune", "prune_pass": "densify.feature_prune",
+    "FeaturePruneStrategy": "densify.feature_prune",
+    # training
+    "TrainState": "training.state", "init_train_state": "training.state",
+    "make_train_step": "training.step",
+}
+_MODULES = ("losses", "config", "types")
+
+__all__ = sorted([*_EXPORTS, *_MODULES])
+
+
+def __getattr__(name: str):
+    if name in _MODULES:
+        return importlib.import_module(f"cusgs_jax.{name}")
+    if name in _EXPORTS:
+        value = getattr(importlib.import_module(f"cusgs_jax.{_EXPORTS[name]}"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'cusgs_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return __all__

@@ -1,0 +1,1 @@
+"""Command-line entry points and the training run (the imperative shell)."""

@@ -1,0 +1,34 @@
+"""argparse value types shared by the command-line tools (a bad value: argparse's message, exit 2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from typing import Callable
+
+
+def int_at_least(minimum: int) -> Callable[[str], int]:
+    """An integer ≥ ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"expected an integer ≥ {minimum}, got {text!r}")
+        return value
+    return parse
+
+
+def number_in(low: float, high: float, *, include_high: bool = True) -> Callable[[str], float]:
+    """A number in ``[low, high]`` (``[low, high)`` with ``include_high=False``)."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (low <= value <= high and (include_high or value < high)):
+            closing = "]" if include_high else ")"
+            raise argparse.ArgumentTypeError(f"expected a number in [{low:g}, {high:g}{closing}, got {text!r}")
+        return value
+    return parse

@@ -1,0 +1,101 @@
+"""What a run reads: the scene, the feature maps and their PSC banks, the view order."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from cusgs_jax.config import Config, FeatureConfig
+
+log = logging.getLogger("cusgs_jax")
+
+
+def load_data(cfg: Config):
+    """The scene of ``data.path`` (or the built-in demo scene when it is None) in the normalised frame.
+
+    Returns:
+      (:class:`cusgs_jax.data.colmap.SceneData` with extent 1, :class:`cusgs_jax.data.normalize.WorldTransform`
+      from the COLMAP frame to it). Images with an alpha channel are composited on ``splat.background``.
+    """
+    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.normalize import normalize_scene
+
+    data = cfg.data
+    path = data.path
+    if not path:
+        from cusgs_jax.data.demo import demo_scene_path
+
+        demo = data.demo
+        path = demo_scene_path(seed=demo.seed, num_views=demo.views, width=demo.width, height=demo.height)
+        log.info("using the built-in demo scene at %s", path)
+    scene = load_scene(path, downscale=data.downscale, holdout_every=data.holdout_every,
+                       background=cfg.splat.background)
+    return normalize_scene(scene)
+
+
+def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
+    """Feature maps of every configured model and their PSC banks.
+
+    Missing built-in features are extracted first when ``fcfg.auto_extract``
+    (the demo scene's default). The PSC scan sees a seeded random subset of the
+    training pixels (``psc_rows``) in random order, so the ``max_bank_entries``
+    cap samples the whole scene rather than its first views.
+
+    Returns:
+      (maps {model: FeatureSet}, banks {model: [M, D] float32 numpy}).
+    """
+    from cusgs_jax.data.features import load_features
+    from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
+    from cusgs_jax.memory import psc
+
+    maps, banks = {}, {}
+    for index, model in enumerate(fcfg.model_list):
+        # locked: the jobs of a parallel sweep share the demo scene's cache
+        if fcfg.auto_extract and model.name in BUILT_IN_EXTRACTORS and ensure_extracted(
+                scene.path, model.name, progress=False):
+            log.info("extracted %s features for %s", model.name, scene.path)
+        fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
+        rows = fs.maps[scene.train_indices].reshape(-1, fs.dim)
+        rows = rows[np.any(rows != 0, axis=-1)]
+        rng = np.random.default_rng([seed, 7, index])
+        rows = rows[rng.permutation(len(rows))[: fcfg.psc_rows]]
+        bank = psc.build(rows, model.gamma, max_entries=fcfg.max_bank_entries)
+        if bank.count == 0:
+            raise ValueError(f"feature model {model.name!r}: no non-zero training targets to build a memory from")
+        log.info("PSC %s: %d entries from %d pixels (gamma %.2f)", model.name, bank.count, len(rows), model.gamma)
+        maps[model.name], banks[model.name] = fs, np.asarray(bank.entries, np.float32)
+    return maps, banks
+
+
+FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65504
+
+
+def feature_targets(feature_sets: dict, views: np.ndarray) -> dict:
+    """{model: [V, h, w, D] device array} of the training views' feature maps.
+
+    Stored as float16 (half the memory) unless a map holds values beyond
+    float16's range (±65504), which would become inf: that model stays float32.
+    """
+    import jax.numpy as jnp
+
+    targets = {}
+    for name, fs in feature_sets.items():
+        maps = fs.maps[views]
+        peak = float(np.max(np.abs(maps))) if maps.size else 0.0
+        if peak > FLOAT16_MAX:
+            log.info("feature model %s has values up to %.4g, beyond float16: its targets stay float32", name, peak)
+            targets[name] = jnp.asarray(maps.astype(np.float32))
+        else:
+            targets[name] = jnp.asarray(maps.astype(np.float16))
+    return targets
+
+
+def view_order(seed: int, num_train: int, step: int) -> int:
+    """Training view (position in the train list) used at ``step``.
+
+    A fresh permutation per epoch, derived from (seed, epoch) alone, so a
+    resumed run sees exactly the same sequence.
+    """
+    epoch, position = divmod(step, num_train)
+    return int(np.random.default_rng([seed, epoch]).permutation(num_train)[position])

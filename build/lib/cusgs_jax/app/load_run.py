@@ -1,0 +1,288 @@
+"""A trained model back from its run folder, without the scene (for exporters and viewers).
+
+A run folder (``cusgs-train`` or :func:`cusgs_jax.app.run.run`) holds:
+
+* ``checkpoints/<step>/`` — orbax checkpoints of the whole training state; only
+  the anchors and the networks are read (not the optimiser moments), read-only
+  (:func:`cusgs_jax.training.checkpoint.read_arrays`);
+* ``.hydra/config.yaml`` — the composed configuration (runs started by
+  ``cusgs-train``); runs started from Python have it in the checkpoint metadata
+  (``config``) instead; without either the defaults are used. Either way the
+  decoder's shape (N offsets, latent size, hidden width, appearance size) is
+  read off the stored arrays, so it always matches the weights;
+* ``eval.json`` — ``world_transform`` ({scale, center}: ``p_normalised =
+  scale·(p_colmap − center)``) and the resolved ``voxel_size``; checkpoints
+  written since the exporter exists record both in their metadata as well, so an
+  unfinished run loads too.
+
+The training cameras (:attr:`TrainedModel.cameras`; the exporter bakes
+opacities and shapes over them) come from the checkpoint metadata
+(``train_cameras``, written since the exporter exists); for an older run they are
+read from the scene's COLMAP model at ``data.path`` (the demo scene's cache
+folder when it is unset) if it is still there — poses and intrinsics only, no
+image is read and nothing is generated. Otherwise they are None.
+
+Nothing reads the images or the feature targets.
+
+Naming (:mod:`cusgs_jax.types`): A anchor capacity, N offsets per anchor, F
+latent size, V training views, E appearance size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import pathlib
+
+import numpy as np
+
+from cusgs_jax.config import Config, from_dict
+from cusgs_jax.data.normalize import WorldTransform
+from cusgs_jax.errors import CheckpointError, UserError
+
+__all__ = ["TrainedModel", "load_trained"]
+
+log = logging.getLogger("cusgs_jax")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedModel:
+    """A trained model as the run left it, in the normalised training frame.
+
+    Attributes:
+      cfg: the run's :class:`~cusgs_jax.config.Config` (``model.voxel_size`` resolved
+        when the run recorded it; decoder shape as stored).
+      anchors: :class:`~cusgs_jax.model.anchors.AnchorState`, compacted to the alive
+        anchors (:func:`~cusgs_jax.model.anchors.compact`: capacity A a multiple of 64,
+        the padding slots dead): centers [A, 3], alive [A], params.offsets [A, N, 3],
+        params.log_scaling [A, 6], params.latent [A, F], params.query_table [A, N, Q] or None.
+      nets: {"decoder": {"opacity", "cov", "color"} MLP params, "appearance"?: [V, E]
+        per training view, "queries"?, "memory"?} as jax arrays.
+      world: :class:`~cusgs_jax.data.normalize.WorldTransform` back to the COLMAP
+        frame, or None when the run recorded none.
+      step: the checkpoint's step.
+      run_dir: the run folder; checkpoint_dir: the folder of the checkpoints.
+      checkpoint_bytes: size on disk of the checkpoint read (optimiser state included).
+      evaluation: the run's ``eval.json`` as a dict, or None (unfinished run).
+      cameras: the V training cameras in the normalised frame as one batched
+        :class:`~cusgs_jax.types.Camera` (K [V, 3, 3], world_to_camera [V, 4, 4], static
+        width/height), or None when neither the checkpoint nor the scene gives them.
+      cameras_from: "checkpoint", the scene folder they were read from, or None.
+    """
+
+    cfg: Config
+    anchors: object
+    nets: dict
+    world: WorldTransform | None
+    step: int
+    run_dir: pathlib.Path
+    checkpoint_dir: pathlib.Path
+    checkpoint_bytes: int
+    evaluation: dict | None
+    cameras: object = None
+    cameras_from: str | None = None
+
+    @property
+    def num_anchors(self) -> int:
+        """Alive anchors."""
+        return int(np.sum(np.asarray(self.anchors.alive)))
+
+    def mean_appearance(self):
+        """[E] mean of the training views' appearance embeddings, or None without the embedding.
+
+        The decoder's colour head takes a per-training-camera embedding; a view
+        that is none of them (an exporter's, a viewer's) has no embedding of its
+        own, and the mean is the one that belongs to no view in particular.
+        """
+        if "appearance" not in self.nets:
+            return None
+        import jax.numpy as jnp
+
+        return jnp.mean(self.nets["appearance"], axis=0)
+
+
+def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
+    """Load the newest checkpoint (or ``step``) of a run folder as a :class:`TrainedModel`.
+
+    Args:
+      run_dir: a run folder written by ``cusgs-train`` (or :func:`cusgs_jax.app.run.run`).
+      step: a given checkpoint step; None: the newest one that reads cleanly.
+    Raises:
+      UserError (:class:`~cusgs_jax.errors.CheckpointError` for checkpoint problems):
+        not a folder, no checkpoint, damaged checkpoints, a config or eval.json that
+        cannot be read, or stored arrays that are not a cusgs-jax model — the folder named.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
+    from cusgs_jax.training.checkpoint import read_arrays
+
+    run = pathlib.Path(run_dir).expanduser().absolute()
+    if not run.is_dir():
+        raise UserError(f"{run} is not a folder: pass the output folder of a cusgs-train run "
+                        "(it holds checkpoints/ and eval.json)")
+    evaluation = _read_json(run / "eval.json")
+    cfg_file = _hydra_config(run)
+    ckpt_dir = _checkpoint_dir(run, cfg_file)
+    step, arrays, meta = read_arrays(ckpt_dir, ("anchors", "nets"), step=step)
+
+    try:
+        stored = arrays["anchors"]
+        params = stored["params"]
+        anchors = AnchorState(
+            centers=jnp.asarray(stored["centers"], jnp.float32), alive=jnp.asarray(stored["alive"], bool),
+            params=AnchorParams(offsets=jnp.asarray(params["offsets"]), log_scaling=jnp.asarray(params["log_scaling"]),
+                                latent=jnp.asarray(params["latent"]),
+                                query_table=None if params.get("query_table") is None
+                                else jnp.asarray(params["query_table"])))
+        nets = jax.tree_util.tree_map(jnp.asarray, arrays["nets"])
+        shape = _decoder_shape(anchors, nets)
+    except (KeyError, TypeError, IndexError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {ckpt_dir / str(step)} does not hold a cusgs-jax model "
+                              f"({type(e).__name__}: {e})") from e
+    if not np.any(np.asarray(anchors.alive)):
+        raise CheckpointError(f"checkpoint {ckpt_dir / str(step)} has no alive anchor: nothing to load")
+
+    cfg = _config(run, cfg_file, meta, shape)
+    voxel = (evaluation or {}).get("voxel_size", meta.get("voxel_size"))
+    if cfg.model.voxel_size == "auto" and voxel is not None:
+        cfg = cfg.replace(model=dict(voxel_size=float(voxel)))
+    world = (evaluation or {}).get("world_transform") or meta.get("world_transform")
+    world = None if world is None else WorldTransform(float(world["scale"]), tuple(float(c) for c in world["center"]))
+    folder = ckpt_dir / str(step)
+    size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
+    cameras, cameras_from = _train_cameras(meta, cfg, world)
+    return TrainedModel(cfg=cfg, anchors=compact(anchors), nets=nets, world=world, step=int(step), run_dir=run,
+                        checkpoint_dir=ckpt_dir, checkpoint_bytes=int(size), evaluation=evaluation,
+                        cameras=cameras, cameras_from=cameras_from)
+
+
+# --- helpers ---------------------------------------------------------------------------------
+
+
+def _read_json(path: pathlib.Path) -> dict | None:
+    if not path.is_file():
+        return None
+    try:
+        value = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise UserError(f"{path} cannot be read as JSON ({e}): is the run folder damaged?") from e
+    if not isinstance(value, dict):
+        raise UserError(f"{path} is not a JSON object: is the run folder damaged?")
+    return value
+
+
+def _hydra_config(run: pathlib.Path):
+    """The OmegaConf of ``.hydra/config.yaml``, or None."""
+    path = run / ".hydra" / "config.yaml"
+    if not path.is_file():
+        return None
+    from omegaconf import OmegaConf
+
+    try:
+        return OmegaConf.load(path)
+    except Exception as e:
+        raise UserError(f"{path} cannot be read ({type(e).__name__}: {e})") from e
+
+
+def _checkpoint_dir(run: pathlib.Path, cfg_file) -> pathlib.Path:
+    """``<run>/checkpoints``, or the run's ``train.checkpoint_dir`` when it named another folder."""
+    default = run / "checkpoints"
+    if default.is_dir() or cfg_file is None:
+        if not default.is_dir():
+            raise CheckpointError(f"{run} has no checkpoints/ folder: not the output folder of a cusgs-train run "
+                                  "(or it was trained with train.checkpoint_dir elsewhere)")
+        return default
+    other = cfg_file.get("train", {}).get("checkpoint_dir")
+    if other:
+        path = pathlib.Path(str(other)).expanduser()
+        for candidate in ((path,) if path.is_absolute() else (run / path, path.absolute())):
+            if candidate.is_dir():
+                return candidate
+    raise CheckpointError(f"{run} has no checkpoints/ folder{f' (train.checkpoint_dir={other})' if other else ''}: "
+                          "not the output folder of a cusgs-train run with saved checkpoints")
+
+
+def _decoder_shape(anchors, nets: dict) -> dict:
+    """ModelConfig fields that fix the decoder's array shapes, read off the stored arrays."""
+    decoder = nets["decoder"]
+    n_offsets, latent_dim = int(anchors.params.offsets.shape[1]), int(anchors.params.latent.shape[1])
+    hidden = int(decoder["opacity"]["w0"].shape[1])
+    appearance = "appearance" in nets
+    shape = dict(n_offsets=n_offsets, latent_dim=latent_dim, hidden=hidden, appearance=appearance)
+    if appearance:
+        shape["appearance_dim"] = int(nets["appearance"].shape[1])
+    expected_in = latent_dim + 3 + shape.get("appearance_dim", 0)
+    if decoder["color"]["w0"].shape[0] != expected_in or decoder["opacity"]["w0"].shape[0] != latent_dim + 3:
+        raise ValueError(f"decoder input widths {decoder['opacity']['w0'].shape[0]}/{decoder['color']['w0'].shape[0]} "
+                         f"do not fit latent {latent_dim} and appearance {shape.get('appearance_dim', 0)}")
+    return shape
+
+
+def _config(run: pathlib.Path, cfg_file, meta: dict, shape: dict) -> Config:
+    """The run's Config (Hydra's file, else the checkpoint's record, else defaults) with the stored decoder shape."""
+    from cusgs_jax.config import from_omegaconf
+
+    source = None
+    try:
+        if cfg_file is not None:
+            source = run / ".hydra" / "config.yaml"
+            cfg = from_omegaconf(cfg_file)
+        elif isinstance(meta.get("config"), dict):
+            source = f"the checkpoint metadata of {run}"
+            cfg = from_dict(meta["config"])
+        else:
+            cfg = Config()
+            log.warning("%s records no configuration (no .hydra/config.yaml): using the defaults, with the "
+                        "decoder shape read off the checkpoint", run)
+    except UserError as e:  # a setting the config schema refuses: name where it came from
+        raise UserError(f"the configuration in {source} is refused: {e}") from e
+    except Exception as e:
+        raise UserError(f"the configuration in {source} cannot be read ({type(e).__name__}: {e})") from e
+    differs = {k: (getattr(cfg.model, k), v) for k, v in shape.items() if getattr(cfg.model, k) != v}
+    if differs and source is not None:
+        log.warning("the configuration in %s does not match the checkpoint's arrays (%s); using the arrays' shape",
+                    source, ", ".join(f"model.{k}={a} vs stored {b}" for k, (a, b) in differs.items()))
+    return cfg.replace(model=shape) if differs else cfg
+
+
+def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
+    """(batched Camera of the training views in the normalised frame, where from) or (None, None)."""
+    import jax.numpy as jnp
+
+    from cusgs_jax.types import Camera
+
+    stored = meta.get("train_cameras")
+    if isinstance(stored, dict):
+        try:
+            viewmats, Ks = np.asarray(stored["viewmats"], np.float32), np.asarray(stored["Ks"], np.float32)
+            if viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4) and Ks.shape == (len(viewmats), 3, 3) and len(Ks):
+                return (Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"])),
+                        "checkpoint")
+        except (KeyError, TypeError, ValueError):
+            pass
+        log.warning("the checkpoint's train_cameras cannot be read; looking for the scene instead")
+    if world is None:
+        return None, None
+    from cusgs_jax.data.colmap import load_cameras
+
+    data = cfg.data
+    if data.path:
+        path = pathlib.Path(str(data.path)).expanduser()
+    else:
+        from cusgs_jax.data.demo import demo_scene_folder
+
+        path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
+                                 height=data.demo.height)
+    if not path.is_dir():
+        return None, None
+    try:
+        viewmats, Ks, width, height, train = load_cameras(path, downscale=data.downscale,
+                                                          holdout_every=data.holdout_every)
+    except UserError as e:
+        log.warning("the run's scene %s cannot give the training cameras (%s)", path, e)
+        return None, None
+    viewmats = world.viewmats(viewmats[train]).astype(np.float32)
+    return Camera(jnp.asarray(Ks[train]), jnp.asarray(viewmats), int(width), int(height)), str(path)

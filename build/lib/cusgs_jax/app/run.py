@@ -1,0 +1,383 @@
+"""The training run (imperative shell): setup → loop → finalise.
+
+``run(cfg, output_dir)`` takes a :class:`cusgs_jax.config.Config` and writes into ``output_dir``:
+
+* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors`` and
+  ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
+  capacities, :mod:`cusgs_jax.training.capacity`), … (a resumed run first drops the rows after the
+  restored step, so steps stay unique and increasing)
+* ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
+* ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
+  ``lpips`` extra), model size, times, pruning summary
+* ``renders/`` — held-out renders beside ground truth (PNG)
+* ``error_vs_time.png`` — held-out PSNR against training wall-clock time
+* ``checkpoints/`` — orbax checkpoints (periodic and final)
+
+The learning curve and the final evaluation use the same renderer: the model
+compacted to its alive anchors (:func:`cusgs_jax.model.anchors.compact`), every slot decoded.
+
+The run trains in the normalised world frame of :mod:`cusgs_jax.data.normalize`
+(``eval.json`` records the transform as ``world_transform``), so lengths in the
+configuration are in units of the scene extent.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from cusgs_jax.app.clock import Clock
+from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, view_order
+from cusgs_jax.config import Config, require
+from cusgs_jax.densify import ops
+from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
+from cusgs_jax.eval.views import count_parameters, evaluate_views
+from cusgs_jax.model.anchors import compact
+from cusgs_jax.model.decode import num_visible_slots
+from cusgs_jax.training.checkpoint import Checkpointer
+from cusgs_jax.training import capacity
+from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
+from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+from cusgs_jax.training.step import make_train_step
+from cusgs_jax.types import Camera
+
+log = logging.getLogger("cusgs_jax")
+LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
+
+
+@dataclasses.dataclass
+class Session:
+    """Host-side context of one run (mutable; the numeric state is ``state``)."""
+
+    cfg: Config
+    out: pathlib.Path
+    scene: object
+    world: object  # data.normalize.WorldTransform: COLMAP frame → the normalised training frame
+    train_idx: np.ndarray
+    test_idx: np.ndarray  # the evaluated views: held-out ones, or training views when there are none
+    feature_sets: dict
+    banks: dict | None
+    targets: dict
+    strategies: tuple
+    tx: object
+    state: object
+    ckpt: Checkpointer
+    clock: Clock
+    curve: list
+    prune: dict  # {"passes", "pruned", "render_ms_before_prune"}
+    recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
+    replays: int = 0  # steps replayed because a capacity was too small
+    step_fn: object = None
+    render: object = None
+    feature_render: object = None
+
+    @property
+    def evaluated_on(self) -> str:
+        return "held_out" if len(self.scene.test_indices) else "train"
+
+
+# --- setup ----------------------------------------------------------------------------------
+
+
+def setup(cfg: Config, output_dir) -> Session:
+    """Scene, feature targets, fresh (or resumed) state, step and renderers."""
+    out = _output_folder(output_dir)
+    ckpt = Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints")
+    latest = ckpt.latest_step()
+    require(not cfg.train.resume or latest is not None, "train.resume", True,
+            f"there is no checkpoint to resume in {ckpt.directory}",
+            "point hydra.run.dir (or train.checkpoint_dir) at the folder of the run to continue, "
+            "or drop train.resume to start afresh")
+    require(cfg.train.resume or latest is None, "train.resume", False,
+            f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
+            "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
+    cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
+    scene, world = load_data(cfg)
+    cfg = resolve_voxel_size(cfg, scene.points)
+    train_idx = scene.train_indices
+    test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
+    log.info("scene %s: %d train / %d held-out views at %dx%d, %d points; COLMAP extent %.4g (trained in units "
+             "of it), voxel size %.4g", scene.path, len(train_idx), len(scene.test_indices), scene.width,
+             scene.height, len(scene.points), 1.0 / world.scale, cfg.model.voxel_size)
+    if not len(scene.test_indices):
+        log.warning("no held-out views (data.holdout_every=%d): the reported PSNR/SSIM are measured on "
+                    "training views and say nothing about novel views", cfg.data.holdout_every)
+    feature_sets, banks, targets = {}, None, {}
+    if cfg.features.enabled:
+        feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed)
+        targets = feature_targets(feature_sets, train_idx)
+        banks = {name: jnp.asarray(b) for name, b in banks.items()}
+    strategies = make_strategies(cfg)
+    state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
+    session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
+                      feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
+                      state=state, ckpt=ckpt, clock=Clock(), curve=[],
+                      prune=dict(passes=0, pruned=0, render_ms_before_prune=None))
+    if cfg.train.resume:
+        _resume(session)
+    session.render = make_render_fn(session.cfg)
+    session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
+    return session
+
+
+def _output_folder(output_dir) -> pathlib.Path:
+    out = pathlib.Path(output_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ".write_test").touch()
+        (out / ".write_test").unlink()
+    except OSError as error:
+        require(False, "hydra.run.dir", str(out), f"the output folder cannot be written ({error.strerror})",
+                "run from a writable folder or set hydra.run.dir=<a writable folder>")
+    return out
+
+
+def _spread(indices: np.ndarray, count: int) -> np.ndarray:
+    """Up to ``count`` entries of ``indices`` spread evenly over it."""
+    return indices[np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))]
+
+
+def _resume(session: Session) -> None:
+    """Restore the newest checkpoint that restores cleanly and trim the logs to its step."""
+    def template(meta: dict):
+        fresh, saved = session.state, int(meta["capacity"])
+        return fresh if saved == fresh.anchors.capacity else ops.grow_capacity(fresh, session.tx, saved)
+
+    session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
+    step = int(session.state.step)
+    session.cfg = capacity.with_capacities(session.cfg, meta.get("capacities"))
+    session.clock = Clock(float(meta["wall_s"]))
+    session.curve = list(meta["curve"])
+    session.prune = dict(session.prune, **meta.get("prune", {}))
+    session.recompilations = int(meta.get("recompilations", 0))
+    session.replays = int(meta.get("replays", 0))
+    _trim_jsonl(session.out / "metrics.jsonl", step)
+    _trim_jsonl(session.out / "eval_curve.jsonl", step)
+    log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+
+
+def _trim_jsonl(path: pathlib.Path, last_step: int) -> None:
+    """Keep the rows of ``path`` with ``step ≤ last_step`` (rows written after the checkpoint go)."""
+    if not path.is_file():
+        return
+    rows = [line for line in path.read_text().splitlines() if line.strip()]
+    kept = [line for line in rows if json.loads(line)["step"] <= last_step]
+    path.write_text("".join(line + "\n" for line in kept))
+
+
+# --- the loop -------------------------------------------------------------------------------
+
+
+def train(session: Session, progress_label: str = "train") -> None:
+    """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint."""
+    cfg = session.cfg
+    iterations, start = cfg.train.iterations, int(session.state.step)
+    batches = _batches(session)
+    bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
+               disable=not cfg.train.progress, dynamic_ncols=True)
+    last_log = time.perf_counter()
+    with open(session.out / "metrics.jsonl", "a") as metrics_file, \
+            open(session.out / "eval_curve.jsonl", "a") as curve_file:
+        for step in bar:
+            with session.clock:
+                metrics = _exact_step(session, batches(step))
+                _densify(session, step + 1)
+            done = step + 1
+            if done % cfg.train.log_every == 0 or done == iterations:
+                row = _log_row(session, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)
+                last_log = time.perf_counter()
+                metrics_file.write(json.dumps(row) + "\n")
+                metrics_file.flush()
+                bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['train_psnr']:.2f}",
+                                anchors=row["alive_anchors"], step_s=row["step_s"])
+            if cfg.eval.every and (done % cfg.eval.every == 0 or done == iterations):
+                point = _curve_point(session, done)
+                curve_file.write(json.dumps(point) + "\n")
+                curve_file.flush()
+                bar.write(f"step {done}: {_psnr_label(session)} {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
+            if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
+                _save(session, done)
+    bar.close()
+    if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
+        _save(session, iterations)
+
+
+def _exact_step(session: Session, batch: dict) -> dict:
+    """One training step on ``batch`` that dropped no work; returns its metrics (host values).
+
+    A step that reported dropped anchors or tile pairs changed nothing; the
+    capacity is grown (:func:`cusgs_jax.training.capacity.grow_for`), the step
+    rebuilt and the same batch replayed.
+    """
+    while True:
+        if session.step_fn is None:
+            session.step_fn = make_train_step(session.cfg, session.tx, session.strategies)
+        session.state, metrics = session.step_fn(session.state, batch)
+        metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
+        if not (metrics["dropped_anchors"] or metrics["dropped_pairs"]):
+            return metrics
+        model = session.cfg.model
+        num_gaussians = num_visible_slots(session.state.anchors.capacity, model.visible_fraction) * model.n_offsets
+        session.cfg = capacity.grow_for(session.cfg, metrics, session.state.anchors.capacity, num_gaussians)
+        session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
+
+
+def _batches(session: Session):
+    """``batch(step)``: the training view of ``step`` (:func:`view_order`) as the step's input."""
+    scene, idx = session.scene, session.train_idx
+    images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
+    viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
+
+    def batch(step: int) -> dict:
+        view = view_order(session.cfg.train.seed, len(idx), step)
+        out = dict(image=images[view], camera=Camera(Ks[view], viewmats[view], scene.width, scene.height),
+                   index=jnp.int32(view))
+        if session.banks is not None:
+            out["features"] = {name: t[view] for name, t in session.targets.items()}
+            out["banks"] = session.banks
+        return out
+
+    return batch
+
+
+def _densify(session: Session, step: int) -> None:
+    """Run every strategy due after ``step`` completed steps (host side, between steps)."""
+    for strategy in session.strategies:
+        if not strategy.due(step):
+            continue
+        is_prune = strategy.name == FeaturePruneStrategy.name
+        if is_prune and session.prune["render_ms_before_prune"] is None:
+            with session.clock.paused():
+                session.prune["render_ms_before_prune"] = _evaluate(
+                    session, compact(session.state.anchors), time_renders=True)["render_ms_per_view"]
+        session.state, info = strategy.update(session.state, session.tx, step)
+        if info.get("capacity_grew"):
+            session.recompilations += 1  # new shapes: the jitted step retraces
+        if is_prune:
+            session.prune["passes"] += 1
+            session.prune["pruned"] += int(info["pruned"])
+
+
+def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
+    state = session.state
+    row = dict(step=step, wall_s=round(session.clock.total, 3), loss=float(metrics["loss"]),
+               **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
+               train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
+               visible_anchors=int(metrics["visible_anchors"]), pruned=session.prune["pruned"],
+               skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
+               dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
+               recompilations=session.recompilations, step_s=round(step_s, 4))
+    if step == session.cfg.train.log_every and float(metrics["loss_image"]) > LOSS_ALARM:
+        log.warning("step %d: image loss %.4g is far above the normal range (< %g for images in [0, 1]): check the "
+                    "scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of the "
+                    "scene extent", step, float(metrics["loss_image"]), LOSS_ALARM)
+    return row
+
+
+def _evaluate(session: Session, anchors, **kwargs) -> dict:
+    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
+    return evaluate_views(session.render, anchors, session.state.nets, session.scene, session.test_idx, **kwargs)
+
+
+def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
+    """Feature errors of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
+    from cusgs_jax.eval.features import evaluate_features
+
+    return evaluate_features(session.feature_render, anchors, session.state.nets, session.scene, session.test_idx,
+                             session.banks, session.feature_sets, **kwargs)
+
+
+def _curve_point(session: Session, step: int) -> dict:
+    anchors = compact(session.state.anchors)  # once for the RGB and the feature evaluation
+    result = _evaluate(session, anchors)
+    point = dict(step=step, wall_s=session.clock.total, psnr=result["psnr"], ssim=result["ssim"],
+                 alive_anchors=int(np.sum(session.state.anchors.alive)))
+    if session.banks is not None:
+        feats = _evaluate_features(session, anchors, retrieval=False)["models"]
+        point["feature_cosine"] = float(np.mean([m["cosine"] for m in feats.values()]))
+        point["feature_l2"] = float(np.mean([m["l2"] for m in feats.values()]))
+    session.curve.append(point)
+    return point
+
+
+def _psnr_label(session: Session) -> str:
+    return "held-out PSNR" if session.evaluated_on == "held_out" else "training-view PSNR (no held-out views)"
+
+
+def _save(session: Session, step: int) -> None:
+    meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
+                prune=session.prune, recompilations=session.recompilations, replays=session.replays,
+                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
+                # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
+                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
+                train_cameras=_train_cameras(session))
+    session.ckpt.save(step, session.state, meta)
+
+
+def _train_cameras(session: Session) -> dict:
+    """The training views in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
+    scene, idx = session.scene, session.train_idx
+    return dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
+                Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
+
+
+# --- finalise -------------------------------------------------------------------------------
+
+
+def finalise(session: Session) -> dict:
+    """Final held-out evaluation, ``eval.json``, plots; returns the ``eval.json`` dict."""
+    from cusgs_jax.eval.lpips import lpips_metrics
+    from cusgs_jax.eval.plots import plot_error_vs_time
+
+    cfg, out, state = session.cfg, session.out, session.state
+    save = cfg.eval.save_renders
+    lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
+    anchors = compact(state.anchors)
+    final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
+    prune_cfg = cfg.prune
+    result = dict(
+        psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
+        params=count_parameters(state.anchors, state.nets, session.banks),
+        alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
+        checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,
+        render_ms_per_view=final["render_ms_per_view"],
+        render_ms_before_prune=session.prune["render_ms_before_prune"],
+        prune=dict(strategy=prune_cfg.strategy, ratio=prune_cfg.ratio, lambda_norm=prune_cfg.lambda_norm,
+                   lambda_grad=prune_cfg.lambda_grad, passes=session.prune["passes"], pruned=session.prune["pruned"]),
+        skipped_updates=int(state.skipped), dropped_anchors=0, dropped_pairs=0, replayed_steps=session.replays,
+        recompilations=session.recompilations + session.render.growths
+        + (session.feature_render.growths if session.feature_render else 0),
+        capacities=capacity.capacities(session.cfg), voxel_size=cfg.model.voxel_size,
+        world_transform=session.world.as_dict(), iterations=cfg.train.iterations, width=session.scene.width,
+        height=session.scene.height, held_out_views=len(session.scene.test_indices),
+        evaluated_on=session.evaluated_on, curve=session.curve,
+    )
+    if session.banks is not None:
+        result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)
+        (out / "features.md").write_text(result["features"]["markdown"])
+    (out / "eval.json").write_text(json.dumps(result, indent=1))
+    plot_error_vs_time(session.curve, out / "error_vs_time.png",
+                       title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
+    session.ckpt.close()
+    log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
+             result["ssim"], result["alive_anchors"], result["train_wall_s"])
+    return result
+
+
+def run(cfg: Config, output_dir, progress_label: str = "train") -> dict:
+    """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
+
+    ``progress_label`` names the progress bar (a sweep labels each job's bar).
+    """
+    session = setup(cfg, output_dir)
+    train(session, progress_label)
+    return finalise(session)

@@ -1,0 +1,127 @@
+"""``cusgs-train``: the Hydra entry point (a thin shell around :func:`cusgs_jax.app.run.run`).
+
+Single runs: ``cusgs-train model.voxel_size=0.02``. Sweeps:
+``cusgs-train -m experiment=voxel_size`` (the ready sweeps are in ``conf/experiment``;
+they run side by side with Hydra's joblib launcher; ``hydra/launcher=submitit_local``, ``slurm``
+or ``ray_local`` run them elsewhere). ``cusgs-train -m experiment=pareto_search`` is a
+multi-objective Optuna search (:mod:`cusgs_jax.sweep.pareto`): each job then returns
+``(PSNR, parameter count)``, the objectives ``hydra.sweeper.objectives`` names.
+
+Exit codes: 0 success; 2 a bad setting or bad input (one line on stderr naming
+the option or file and the fix — checked before any work where possible,
+:mod:`cusgs_jax.app.overrides`); 1 a bug (traceback). In a sweep a job that
+raises writes ``failed.json`` (error and traceback) into its own folder, is
+logged, and the other jobs go on; when the sweep ends, :class:`FailedJobs`
+lists the failed jobs and the command exits 2 (all of them bad settings or
+input) or 1, never 0. ``cusgs-report <multirun folder>`` lists them too.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import pathlib
+import sys
+import traceback
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from hydra.types import RunMode
+from omegaconf import DictConfig
+
+from cusgs_jax.app.overrides import check_command_line
+from cusgs_jax.config import from_omegaconf, register_configs
+from cusgs_jax.errors import UserError
+
+log = logging.getLogger("cusgs_jax")
+register_configs()  # config.Config is the schema and the defaults of conf/config.yaml
+PROG = "cusgs-train"
+
+
+def record_failure(output_dir: str | pathlib.Path, error: BaseException) -> pathlib.Path:
+    """Write ``failed.json`` ({"error": "Type: message", "user_error": bool, "traceback": ...}) into a job folder."""
+    path = pathlib.Path(output_dir) / "failed.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({
+        "error": f"{type(error).__name__}: {error}",
+        "user_error": isinstance(error, UserError),
+        "traceback": "".join(traceback.format_exception(type(error), error, error.__traceback__)),
+    }, indent=1))
+    return path
+
+
+class FailedJobs(Callback):
+    """Hydra callback: after a sweep, collect the jobs that wrote ``failed.json`` (read by :func:`main`)."""
+
+    found: list[dict] = []
+
+    def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
+        sweep_dir = pathlib.Path(str(config.hydra.sweep.dir))
+        FailedJobs.found = [dict(json.loads(path.read_text()), path=str(path))
+                            for path in sorted(sweep_dir.glob("*/failed.json"))]
+
+
+def _objectives(hydra_cfg) -> list[str]:
+    """The objective names a multi-objective sweeper asks for (``hydra.sweeper.objectives``), else []."""
+    names = hydra_cfg.sweeper.get("objectives") if isinstance(hydra_cfg.sweeper, DictConfig) else None
+    return [str(name) for name in names] if names else []
+
+
+@hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
+def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
+    """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
+    from cusgs_jax.app.run import run
+
+    logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
+    hydra_cfg = HydraConfig.get()
+    output_dir = hydra_cfg.runtime.output_dir
+    sweeping = hydra_cfg.mode == RunMode.MULTIRUN
+    try:
+        result = run(from_omegaconf(cfg), output_dir,
+                     progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")
+    except UserError as error:
+        record_failure(output_dir, error)
+        if sweeping:
+            log.error("job %s: %s", hydra_cfg.job.num, error)
+            return math.nan
+        log.error("%s", error)
+        raise SystemExit(2) from None
+    except Exception as error:  # noqa: BLE001 - a sweep must outlive one bad job
+        if not sweeping:
+            raise
+        path = record_failure(output_dir, error)
+        log.exception("job %s failed (details in %s); the other jobs go on", hydra_cfg.job.num, path)
+        return math.nan
+    objectives = _objectives(hydra_cfg)
+    if objectives:  # hydra/sweeper=pareto (cusgs_jax/sweep/pareto.py)
+        from cusgs_jax.sweep.pareto import result_objectives
+
+        return result_objectives(result, objectives)
+    return float(result["psnr"])
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``cusgs-train [overrides]``: check the command line, run Hydra, report failed sweep jobs."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    problem = check_command_line(argv)
+    if problem:
+        print(f"{PROG}: error: {problem}", file=sys.stderr)
+        raise SystemExit(2)
+    sys.argv = [sys.argv[0] or PROG] + argv
+    FailedJobs.found = []
+    _hydra_main()
+    if FailedJobs.found:
+        for job in FailedJobs.found:
+            print(f"{PROG}: job failed: {job['error'].splitlines()[0]} ({job['path']})", file=sys.stderr)
+        print(f"{PROG}: error: {len(FailedJobs.found)} sweep job(s) failed; the others finished", file=sys.stderr)
+        raise SystemExit(2 if all(job.get("user_error") for job in FailedJobs.found) else 1)
+
+
+if __name__ == "__main__":
+    # run the imported module's main, so FailedJobs (which Hydra instantiates from cusgs_jax.app.train) is one class
+    from cusgs_jax.app.train import main as _main
+
+    _main()

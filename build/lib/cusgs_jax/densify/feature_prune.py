@@ -1,0 +1,343 @@
+"""CUS-GS feature-aware anchor pruning (DESIGN.md §1, "Feature-aware pruning").
+
+Every anchor ``v`` gets a score
+
+    S_v = λ_n ‖z_v‖ + λ_g g_v + S_v^contrib / mean_{alive u} S_u^contrib
+
+and every pruning pass removes the ``floor(ratio · alive)`` alive anchors with
+the lowest score. The pieces are pure and jittable; the configuration is a
+frozen dataclass that callers close over (never traced):
+
+* :class:`PruneStats` is accumulated inside the jitted train step by
+  :func:`accumulate_prune_stats` (one call per rendered view);
+* :func:`prune_pass` turns the statistics into cleared ``alive`` bits and
+  resets them, so each pass only looks at the views since the previous one;
+* :func:`prune_due` / :func:`stats_window` give the schedule.
+
+Choices the paper leaves open (documented here, the place to change them):
+
+* **Gradient term.** ``g_v`` is the *mean over the views since the last pass*
+  of ``‖∇_{z_v} L‖`` (the gradient of that step's loss with respect to the
+  anchor's latent, L2 norm over the F channels), over the views in which the
+  anchor was decoded; 0 for an anchor not decoded since the last pass. We
+  store Σ‖∇z L‖ and a count (not Σ‖∇z L‖²): a per-step norm is what the
+  paper's formula writes, and the mean does not favour anchors that happen to
+  be sampled more often. ``λ_n`` and ``λ_g`` multiply the raw ‖z‖ and g (the
+  paper's 2 : 8); no normalisation is applied to those two terms.
+* **Contribution term.** LightGaussian's global significance of a Gaussian is
+  Σ over training views and composited pixels of ``opacity · T``, times
+  ``(V / V_ref)^0.1``. Scale and opacity are view dependent here, so the
+  volume weight is computed per view from that view's decoded Gaussians (only
+  the active ones, opacity > 0) and applied before summing over views; an
+  anchor's contribution is the sum over its N Gaussians. The raw sums are
+  O(10²–10⁵) and grow with the number of views, so before they are added to
+  the score they are divided by their mean over alive anchors (mean 0 → the
+  term is 0). After normalisation the term is O(1), comparable to λ_n‖z‖.
+* **V_ref.** LightGaussian (``calculate_v_imp_score``) sorts the volumes in
+  *decreasing* order and takes the entry at index ``int(0.9 · G)``: despite the
+  name "90th largest percentile" this is a *small* volume (about the 10th
+  percentile in increasing order; 90 % of the Gaussians are at least as
+  large). We reproduce exactly that: ``volume_percentile = p`` takes the entry
+  at index ``floor(p/100 · G_active)`` (clamped to the last one) of the
+  active volumes sorted in decreasing order. With power 0.1 the choice only
+  rescales a view's weights by a common factor.
+* **Candidates.** An anchor decoded in fewer than ``min_visits`` views since
+  the last pass is not pruned (with ``min_visits = 1``, an anchor that just
+  was not sampled — its contribution and gradient are 0 for lack of data, not
+  because it is useless — is kept). The number removed is still computed from
+  the alive count, capped by the number of candidates. ``min_visits = 0``
+  makes every alive anchor a candidate.
+* **Window.** Statistics are reset at every pass, so each pass sees the
+  ``interval`` steps before it (:func:`stats_window` starts one interval
+  before the first pass). LightGaussian sums over *all* training views; with
+  one view per step a pass sees ``interval`` views.
+
+Strategies (``prune.strategy``): ``"feature_aware"`` (this module, as
+:class:`FeaturePruneStrategy`), ``"scaffold"`` and ``"none"``. Scaffold-GS's
+opacity pruning lives in :class:`cusgs_jax.densify.scaffold.ScaffoldStrategy`
+(it runs with growing, whatever the strategy here); for ``"scaffold"`` and
+``"none"`` no feature-aware strategy is built at all, so nothing of this
+module is traced or stored.
+
+Naming (:mod:`cusgs_jax.types`): A anchor capacity, S gathered (visible) slots
+per view, N Gaussians per anchor, F latent size, G = S·N Gaussians of a view
+in slot order. (Docstrings below write V for S.)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from fractions import Fraction
+
+import jax
+import jax.numpy as jnp
+
+from cusgs_jax.config import PruneConfig
+from cusgs_jax.model.anchors import AnchorState, PerAnchor
+
+# Denominator bound of the exact-fraction path in :func:`_floor_ratio`: with
+# q ≤ 46340 and p ≤ q, (count mod q) · p < q² < 2³¹ stays inside int32.
+_MAX_DENOMINATOR = 46340
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PruneStats(PerAnchor):
+    """Per-anchor statistics accumulated since the last pruning pass.
+
+    Attributes:
+      latent_grad_norm: [A] Σ over steps of ‖∇_{z_v} L‖ (steps where the
+        anchor was decoded).
+      grad_count: [A] number of those steps (views that decoded the anchor).
+      contrib: [A] Σ over views of Σ_n significance_{v,n} · (V_{v,n}/V_ref)^power.
+    """
+
+    latent_grad_norm: jax.Array
+    grad_count: jax.Array
+    contrib: jax.Array
+
+    @staticmethod
+    def zeros(capacity: int) -> PruneStats:
+        """All-zero statistics for ``capacity`` anchor slots (float32 [A] each)."""
+        # three distinct buffers: a donated state must not hold one array twice
+        return PruneStats(*(jnp.zeros(capacity, jnp.float32) for _ in range(3)))
+
+    def clear(self, mask: jax.Array) -> PruneStats:
+        """Zero the rows where ``mask`` [A] bool is set (e.g. slots refilled by growing)."""
+        return jax.tree_util.tree_map(lambda x: jnp.where(mask, 0.0, x), self)
+
+
+def _floor_ratio(count: jax.Array, ratio) -> jax.Array:
+    """``floor(count · ratio)`` as int32, exact for fractional ``ratio``.
+
+    A Python ``ratio`` that is a fraction p/q with q ≤ 46340 (every decimal
+    like 0.001, 0.0015, 0.9 is) is evaluated in integer arithmetic, so e.g.
+    ``floor(1000 · 0.01) = 10`` and ``floor(10 · 0.9) = 9`` whatever float32
+    would round to. Other ratios (and traced ones) use float32
+    ``floor(count · ratio)``.
+
+    Args:
+      count: [...] integer array (≥ 0).
+    Returns:
+      [...] int32.
+    """
+    count = jnp.asarray(count).astype(jnp.int32)
+    if isinstance(ratio, (int, float)) and not isinstance(ratio, bool):
+        frac = Fraction(float(ratio)).limit_denominator(_MAX_DENOMINATOR)
+        p, q = frac.numerator, frac.denominator
+        if float(frac) == float(ratio) and 0 <= p <= q:  # the float *is* this fraction's nearest double
+            return (count // q) * p + ((count % q) * p) // q
+    return jnp.floor(count.astype(jnp.float32) * jnp.asarray(ratio, jnp.float32)).astype(jnp.int32)
+
+
+def gaussian_volume_weight(scales: jax.Array, active: jax.Array, cfg: PruneConfig = PruneConfig()) -> jax.Array:
+    """LightGaussian's volume weight ``(V / V_ref)^power`` of one view's Gaussians.
+
+    ``V = prod(scales)``; V_ref is the entry at index
+    ``min(floor(volume_percentile/100 · G_active), G_active − 1)`` of the
+    active volumes sorted in decreasing order (LightGaussian
+    ``calculate_v_imp_score``; 90 → a small, ~10th-percentile volume). Not
+    differentiated (statistics only).
+
+    Args:
+      scales: [G, 3] linear standard deviations.
+      active: [G] bool; inactive Gaussians neither enter V_ref nor get a weight.
+    Returns:
+      [G] float32, 0 where inactive (and where the view has no active
+      Gaussian); a non-positive V_ref is replaced by 1.
+    """
+    scales = jax.lax.stop_gradient(scales).astype(jnp.float32)
+    volume = jnp.prod(scales, axis=-1)
+    n = jnp.sum(active).astype(jnp.int32)
+    ascending = jnp.sort(jnp.where(active, volume, jnp.inf))  # the n active volumes come first
+    k_desc = jnp.minimum(_floor_ratio(n, cfg.volume_percentile / 100.0), n - 1)
+    v_ref = ascending[jnp.clip(n - 1 - k_desc, 0, volume.shape[0] - 1)]
+    v_ref = jnp.where((n > 0) & (v_ref > 0) & jnp.isfinite(v_ref), v_ref, 1.0)
+    ratio = jnp.where(active, volume / v_ref, 0.0)
+    return jnp.where(active, ratio ** cfg.volume_power, 0.0)
+
+
+def accumulate_prune_stats(stats: PruneStats, slots: jax.Array, valid: jax.Array, latent_grad: jax.Array,
+                           significance: jax.Array, scales: jax.Array, active: jax.Array, enabled: jax.Array,
+                           cfg: PruneConfig = PruneConfig()) -> PruneStats:
+    """Add one view's pruning statistics into the anchor slots (pure, jittable).
+
+    Inputs are in the gathered order of ``model.decode.decode_view``: Gaussian
+    ``i`` belongs to gathered slot ``i // N``.
+
+    Args:
+      stats: [A] statistics so far.
+      slots: [S] int32 anchor slot of each gathered entry.
+      valid: [S] bool, entry holds a decoded anchor (padding entries may
+        repeat a slot; they are ignored).
+      latent_grad: [S, F] ∂L/∂z of the gathered latents (equivalently
+        ``grads["anchor"].latent[slots]``).
+      significance: [S·N] ``RenderOutput.significance`` (Σ opacity·T).
+      scales: [S·N, 3] decoded scales of the view.
+      active: [S·N] bool, Gaussians switched on (``Gaussians.active``).
+      enabled: [] bool, e.g. ``stats_window(step) & finite``.
+      cfg: closed over (volume power and percentile).
+    Returns:
+      Updated :class:`PruneStats`. Invalid entries, inactive Gaussians and a
+      disabled call add exactly 0 (``jnp.where``, so NaN/inf there cannot leak).
+    """
+    capacity = stats.contrib.shape[0]
+    num_slots = slots.shape[0]
+    n = significance.shape[0] // num_slots
+    on = valid & jnp.asarray(enabled, bool)  # [S]
+    gaussian_on = active & jnp.repeat(valid, n)  # [S·N]
+    weight = gaussian_volume_weight(scales, gaussian_on, cfg)
+    sig = jax.lax.stop_gradient(significance).astype(jnp.float32)
+    per_gaussian = jnp.where(gaussian_on, sig * weight, 0.0)
+    per_anchor = jnp.where(on, jnp.sum(per_gaussian.reshape(num_slots, n), axis=-1), 0.0)
+    grad = jax.lax.stop_gradient(latent_grad).astype(jnp.float32)
+    grad_norm = jnp.where(on, jnp.sqrt(jnp.sum(jnp.where(on[:, None], grad, 0.0) ** 2, axis=-1)), 0.0)
+    index = jnp.where(on, slots, capacity)  # out of range → dropped
+    def add(acc, x):
+        return acc.at[index].add(x, mode="drop")
+
+    return PruneStats(
+        latent_grad_norm=add(stats.latent_grad_norm, grad_norm),
+        grad_count=add(stats.grad_count, on.astype(jnp.float32)),
+        contrib=add(stats.contrib, per_anchor),
+    )
+
+
+def anchor_scores(latent: jax.Array, stats: PruneStats, alive: jax.Array, cfg: PruneConfig = PruneConfig()
+                  ) -> jax.Array:
+    """Feature-aware pruning score of every anchor slot.
+
+    ``S_v = λ_n ‖z_v‖ + λ_g g_v + contrib_v / mean_{alive} contrib`` with
+    ``g_v = latent_grad_norm_v / grad_count_v`` (0 when never seen) and the
+    contribution term 0 when the alive mean is 0.
+
+    Args:
+      latent: [A, F] anchor latents z.
+      stats: accumulated :class:`PruneStats`.
+      alive: [A] bool.
+    Returns:
+      [A] float32; +inf for dead slots (never chosen).
+    """
+    latent = jax.lax.stop_gradient(latent).astype(jnp.float32)
+    norm = jnp.sqrt(jnp.sum(latent ** 2, axis=-1))
+    count = stats.grad_count
+    grad = jnp.where(count > 0, stats.latent_grad_norm / jnp.maximum(count, 1.0), 0.0)
+    alive_count = jnp.sum(alive).astype(jnp.float32)
+    mean_contrib = jnp.sum(jnp.where(alive, stats.contrib, 0.0)) / jnp.maximum(alive_count, 1.0)
+    contrib = jnp.where(mean_contrib > 0, stats.contrib / jnp.where(mean_contrib > 0, mean_contrib, 1.0), 0.0)
+    score = cfg.lambda_norm * norm + cfg.lambda_grad * grad + contrib
+    return jnp.where(alive, score, jnp.inf)
+
+
+def select_prune(scores: jax.Array, alive: jax.Array, ratio, eligible: jax.Array | None = None) -> jax.Array:
+    """The ``floor(ratio · alive_count)`` lowest-scoring alive anchors.
+
+    Static shapes: one lexicographic sort of (not candidate, score, index) and
+    a rank mask; jittable with a traced ``alive``. Ties are broken by the
+    lower index; NaN scores sort after every number. Dead slots are never
+    selected, whatever their score.
+
+    Args:
+      scores: [A].
+      alive: [A] bool; the count ``floor(ratio · Σ alive)`` is taken from it
+        (exact integer arithmetic for decimal Python ratios, see
+        :func:`_floor_ratio`).
+      ratio: Python float (or a traced scalar, then float32 arithmetic).
+      eligible: [A] bool or None; when given only ``alive & eligible``
+        anchors are candidates (at most that many are selected).
+    Returns:
+      [A] bool, ``min(floor(ratio · alive_count), candidates)`` entries set.
+    """
+    num = scores.shape[0]
+    candidate = alive if eligible is None else alive & eligible
+    k = _floor_ratio(jnp.sum(alive), ratio)
+    index = jnp.arange(num, dtype=jnp.int32)
+    *_, order = jax.lax.sort(((~candidate).astype(jnp.int32), scores, index), num_keys=3)
+    rank = jnp.zeros(num, jnp.int32).at[order].set(index)
+    return (rank < k) & candidate
+
+
+def prune_pass(anchors: AnchorState, stats: PruneStats, cfg: PruneConfig = PruneConfig()
+               ) -> tuple[AnchorState, PruneStats, dict[str, jax.Array]]:
+    """One feature-aware pruning pass (pure, jittable; ``cfg`` closed over).
+
+    Args:
+      anchors: the anchors (centres, alive, latents z [A, F]).
+      stats: statistics accumulated since the last pass.
+    Returns:
+      (anchors with the selected ``alive`` bits cleared, statistics reset to
+      zero for every slot, info) with info ``{"pruned", "alive",
+      "candidates"}`` int32 scalars. For strategies "scaffold" and "none" the
+      anchors are returned unchanged, the statistics are still reset.
+    """
+    fresh = PruneStats.zeros(anchors.capacity)
+    alive = anchors.alive
+    if cfg.strategy != "feature_aware":
+        zero = jnp.int32(0)
+        return anchors, fresh, dict(pruned=zero, alive=jnp.sum(alive).astype(jnp.int32), candidates=zero)
+    scores = anchor_scores(anchors.params.latent, stats, alive, cfg)
+    eligible = stats.grad_count >= cfg.min_visits
+    prune = select_prune(scores, alive, cfg.ratio, eligible)
+    new_alive = alive & ~prune
+    info = dict(pruned=jnp.sum(prune).astype(jnp.int32), alive=jnp.sum(new_alive).astype(jnp.int32),
+                candidates=jnp.sum(alive & eligible).astype(jnp.int32))
+    return anchors.replace(alive=new_alive), fresh, info
+
+
+def prune_due(step, cfg: PruneConfig = PruneConfig()):
+    """Whether a pass runs at ``step``: ``start ≤ step ≤ stop`` and ``step % interval == 0``.
+
+    Works on Python ints (returns bool) and traced int arrays (returns [] bool).
+    Always False for strategies other than "feature_aware".
+    """
+    if cfg.strategy != "feature_aware":
+        return False if isinstance(step, int) else jnp.zeros((), bool)
+    due = (step >= cfg.start) & (step <= cfg.stop) & (step % cfg.interval == 0)
+    return bool(due) if isinstance(step, int) else due
+
+
+def stats_window(step, cfg: PruneConfig = PruneConfig()):
+    """Whether statistics are accumulated at ``step``: ``start − interval ≤ step < stop``.
+
+    So the first pass, like every later one, sees ``interval`` steps. Python
+    int → bool, traced → [] bool; always False for other strategies.
+    """
+    if cfg.strategy != "feature_aware":
+        return False if isinstance(step, int) else jnp.zeros((), bool)
+    on = (step >= cfg.start - cfg.interval) & (step < cfg.stop)
+    return bool(on) if isinstance(step, int) else on
+
+
+class FeaturePruneStrategy:
+    """CUS-GS feature-aware pruning as a densification strategy (see :mod:`cusgs_jax.densify`).
+
+    State: :class:`PruneStats`, accumulated inside the jitted step
+    (:meth:`accumulate`); every due step :meth:`update` runs the jitted
+    :func:`prune_pass` (a mask: no shape changes, nothing recompiles).
+    """
+
+    name = "feature_prune"
+
+    def __init__(self, cfg: PruneConfig):
+        self.cfg = cfg
+        self._pass = jax.jit(lambda anchors, stats: prune_pass(anchors, stats, cfg), donate_argnums=(0, 1))
+
+    def init_state(self, capacity: int) -> PruneStats:
+        return PruneStats.zeros(capacity)
+
+    def accumulate(self, stats: PruneStats, view) -> PruneStats:
+        """Inside the step: add one view's ‖∇_z L‖ and LightGaussian contribution."""
+        enabled = stats_window(view.step, self.cfg) & view.finite
+        return accumulate_prune_stats(stats, view.slots.slots, view.slots.valid, view.latent_grad,
+                                      view.render.significance, view.gaussians.scales, view.gaussians.active,
+                                      enabled, self.cfg)
+
+    def due(self, step: int) -> bool:
+        """A pass after ``step`` completed steps."""
+        return prune_due(step, self.cfg)
+
+    def update(self, state, tx, step: int):
+        """Host side, after step ``step``: one pruning pass. Returns (state, info with "pruned")."""
+        del tx, step  # a mask flip: shapes, moments and the other statistics are untouched
+        anchors, stats, info = self._pass(state.anchors, state.densify[self.name])
+        return state.replace(anchors=anchors, densify={**state.densify, self.name: stats}), info

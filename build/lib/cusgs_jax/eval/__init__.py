@@ -1,0 +1,1 @@
+"""Evaluation: image and feature-field metrics, and plots of run results."""

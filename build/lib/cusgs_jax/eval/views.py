@@ -1,0 +1,90 @@
+"""Held-out evaluation: PSNR/SSIM (and LPIPS when asked) per view, model size, render time, PNGs."""
+
+from __future__ import annotations
+
+import pathlib
+import time
+
+import imageio.v3 as iio
+import jax
+import numpy as np
+
+from cusgs_jax.eval import metrics
+from cusgs_jax.model.anchors import AnchorState, parameter_counts
+from cusgs_jax.types import Camera
+
+
+def nearest_train_view(camera_centers: np.ndarray, train_indices: np.ndarray, view: int) -> int:
+    """Position (in the training list) of the training camera closest to ``view``.
+
+    Held-out views have no appearance embedding of their own; they borrow the
+    nearest training camera's.
+    """
+    d = np.linalg.norm(camera_centers[train_indices] - camera_centers[view], axis=-1)
+    return int(np.argmin(d))
+
+
+def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, out_dir: pathlib.Path | None = None,
+                   time_renders: bool = False, lpips: dict | None = None) -> dict:
+    """PSNR and SSIM (and LPIPS) of ``views`` (indices into the scene).
+
+    Args:
+      render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3],)``
+        (:func:`cusgs_jax.training.render.make_render_fn`, which never drops work).
+      scene: :class:`cusgs_jax.data.colmap.SceneData`.
+      out_dir: if given, writes ``<name>.png`` with render | ground truth side by side.
+      time_renders: also measure the median render time (after one warm-up).
+      lpips: {key: fn} with ``fn(img0 [1,H,W,3], img1) -> [1]`` on images in [0, 1], e.g.
+        :func:`cusgs_jax.eval.lpips.lpips_metrics` (built once per run; ``{}`` when the extra is
+        missing); render and target are clipped to [0, 1] first. Not timed.
+    Returns:
+      {"per_view": [{name, psnr, ssim, <lpips keys>}], "psnr": mean, "ssim": mean,
+       <lpips key>: mean for each lpips key, "render_ms_per_view": median or None}.
+    """
+    per_view, times = [], []
+    centers = scene.camera_centers
+    for view in views:
+        app = nearest_train_view(centers, scene.train_indices, view)
+        args = (anchors, nets, Camera.of_scene(scene, view), app)
+        if time_renders and not times:
+            jax.block_until_ready(render(*args))
+        start = time.perf_counter()
+        (image,) = jax.block_until_ready(render(*args))
+        times.append(time.perf_counter() - start)
+        image = np.asarray(image)
+        target = scene.images[view].astype(np.float32) / 255.0
+        row = dict(name=scene.names[view], psnr=float(metrics.psnr(image, target)),
+                   ssim=float(metrics.ssim(image, target)))
+        for key, fn in (lpips or {}).items():
+            row[key] = float(fn(np.clip(image, 0, 1)[None], target[None])[0])
+        per_view.append(row)
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            pair = np.concatenate([image, target], axis=1)
+            iio.imwrite(out_dir / (pathlib.Path(scene.names[view]).stem + ".png"),
+                        (np.clip(pair, 0, 1) * 255).round().astype(np.uint8))
+    means = {key: float(np.mean([r[key] for r in per_view])) if per_view else float("nan")
+             for key in ("psnr", "ssim", *(lpips or {}))}
+    return dict(per_view=per_view, **means,
+                render_ms_per_view=float(np.median(times) * 1e3) if time_renders and times else None)
+
+
+def count_parameters(anchors: AnchorState, nets: dict, banks: dict | None = None) -> dict:
+    """Parameter counts by part.
+
+    Returns:
+      {"anchors", "mlps", "appearance", "query_heads", "memory_banks",
+       "adapters", "total"} — anchors count alive anchors only (their centres
+      included); query heads include a per-Gaussian query table's alive rows;
+      memory banks count the PSC entries; adapters are the memory heads (key
+      projection, temperature, adapter).
+    """
+    def size(tree):
+        return sum(int(np.size(x)) for x in jax.tree_util.tree_leaves(tree))
+
+    per_anchor = parameter_counts(anchors)
+    parts = dict(anchors=per_anchor["anchors"], mlps=size(nets["decoder"]), appearance=size(nets.get("appearance", {})),
+                 query_heads=size(nets.get("queries", {})) + per_anchor["query_table"],
+                 memory_banks=size(banks or {}), adapters=size(nets.get("memory", {})))
+    parts["total"] = sum(parts.values())
+    return parts

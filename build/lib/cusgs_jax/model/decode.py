@@ -1,0 +1,177 @@
+"""Anchor decoding: (latent, view direction, appearance) → N Gaussians per anchor.
+
+Scaffold-GS ``generate_neural_gaussians`` (DESIGN.md §1), in plain JAX.
+Naming (:mod:`cusgs_jax.types`): A anchors, S visible slots, N offsets per
+anchor, F latent size, E appearance size, G = S·N Gaussians.
+
+| head | input | output | activation |
+|---|---|---|---|
+| opacity | z, d | N | tanh; ≤ 0 switches the Gaussian off |
+| covariance | z, d | 7N | scale = exp(s[3:])·sigmoid(out[:3]); quat = out[3:7] |
+| colour | z, d, e | 3N | sigmoid |
+
+Position ``μ = x_v + Δx · exp(s[:3])``.
+
+Per view, the anchors in the frustum are first gathered into a static number
+of visible slots S (:func:`visible_slots`), so culled anchors cost nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from cusgs_jax.config import DecoderConfig
+from cusgs_jax.model.anchors import AnchorParams, AnchorState
+from cusgs_jax.nn import apply_mlp, init_mlp
+from cusgs_jax.types import Camera
+
+
+def init_decoder(key: jax.Array, cfg: DecoderConfig) -> dict:
+    """The three Scaffold-GS heads: {"opacity", "cov", "color"} MLP params."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    base = cfg.latent_dim + 3
+    return {
+        "opacity": init_mlp(k1, (base, cfg.hidden, cfg.n_offsets)),
+        "cov": init_mlp(k2, (base, cfg.hidden, 7 * cfg.n_offsets)),
+        "color": init_mlp(k3, (base + cfg.appearance_dim, cfg.hidden, 3 * cfg.n_offsets)),
+    }
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Gaussians:
+    """Decoded Gaussians of one view.
+
+    Attributes:
+      means: [G, 3]; quats: [G, 4] (wxyz, unnormalised); scales: [G, 3];
+      opacities: [G] (0 where switched off, culled or dead); colors: [G, 3];
+      active: [G] bool, opacity > 0 (for statistics);
+      anchor_index: [G] int32 row of the owning anchor in the decoded arrays.
+    """
+
+    means: jax.Array
+    quats: jax.Array
+    scales: jax.Array
+    opacities: jax.Array
+    colors: jax.Array
+    active: jax.Array
+    anchor_index: jax.Array
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class VisibleSlots:
+    """The anchors gathered for one view.
+
+    Attributes:
+      slots: [S] int32 anchor slots (indices into the [A] arrays).
+      valid: [S] bool, the entry holds an alive anchor in the frustum (padding entries repeat slot 0).
+      overflow: [] int32 visible anchors that did not fit in S.
+    """
+
+    slots: jax.Array
+    valid: jax.Array
+    overflow: jax.Array
+
+
+def frustum_mask(centers: jax.Array, viewmat: jax.Array, K: jax.Array, width: int, height: int,
+                 *, near: float = 0.01, margin: float = 0.15) -> jax.Array:
+    """Anchors whose centre projects into the image widened by ``margin`` on each side.
+
+    Args:
+      centers: [A, 3]; viewmat: [4, 4] world→camera; K: [3, 3].
+    Returns:
+      [A] bool.
+    """
+    cam = centers @ viewmat[:3, :3].T + viewmat[:3, 3]
+    z = cam[:, 2]
+    zs = jnp.where(z > near, z, 1.0)
+    u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
+    v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    mx, my = margin * width, margin * height
+    return (z > near) & (u > -mx) & (u < width + mx) & (v > -my) & (v < height + my)
+
+
+def num_visible_slots(capacity: int, visible_fraction: float) -> int:
+    """Static S = ceil(visible_fraction · A), at least 1 and at most A."""
+    return max(1, min(capacity, int(-(-visible_fraction * capacity // 1))))
+
+
+def visible_slots(anchors: AnchorState, camera: Camera, *, visible_fraction: float,
+                  margin: float) -> VisibleSlots:
+    """Slots of the alive anchors in the camera's frustum, compacted to S entries."""
+    capacity = anchors.capacity
+    visible = frustum_mask(anchors.centers, camera.world_to_camera, camera.K, camera.width, camera.height,
+                           margin=margin) & anchors.alive
+    count = num_visible_slots(capacity, visible_fraction)
+    if count >= capacity:
+        return VisibleSlots(jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0))
+    (slots,) = jnp.nonzero(visible, size=count, fill_value=0)
+    valid = jnp.arange(count) < jnp.sum(visible)
+    return VisibleSlots(slots.astype(jnp.int32), valid, jnp.maximum(jnp.sum(visible) - count, 0).astype(jnp.int32))
+
+
+def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Array, decoded: jax.Array,
+                     camera_center: jax.Array, appearance: jax.Array | None, cfg: DecoderConfig) -> Gaussians:
+    """Decode the N Gaussians of every given anchor for one view.
+
+    Args:
+      params: decoder params from :func:`init_decoder`.
+      anchor_params: [S, …] learnable anchor arrays (the query table is not used here).
+      centers: [S, 3] anchor centres.
+      decoded: [S] bool, the anchor is alive and visible; other anchors produce
+        Gaussians with opacity 0 (and no rasterisation work).
+      camera_center: [3] world position of the camera.
+      appearance: [E] embedding of the view's camera, or None when disabled.
+    Returns:
+      :class:`Gaussians` with G = S·N.
+    """
+    num, n = centers.shape[0], cfg.n_offsets
+    direction = centers - camera_center
+    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+    base = jnp.concatenate([anchor_params.latent, direction], axis=-1)  # [S, F+3]
+    opacity = jnp.tanh(apply_mlp(params["opacity"], base))  # [S, N]
+    cov = apply_mlp(params["cov"], base).reshape(num, n, 7)
+    if appearance is not None:
+        color_in = jnp.concatenate([base, jnp.broadcast_to(appearance, (num, appearance.shape[-1]))], axis=-1)
+    else:
+        color_in = base
+    colors = jax.nn.sigmoid(apply_mlp(params["color"], color_in)).reshape(num, n, 3)
+
+    scaling = jnp.exp(anchor_params.log_scaling)  # [S, 6]
+    scales = scaling[:, None, 3:] * jax.nn.sigmoid(cov[..., :3])
+    quats = cov[..., 3:7]
+    means = centers[:, None, :] + anchor_params.offsets * scaling[:, None, :3]
+    keep = decoded[:, None] & (opacity > 0)
+    return Gaussians(
+        means=means.reshape(-1, 3),
+        quats=quats.reshape(-1, 4),
+        scales=scales.reshape(-1, 3),
+        opacities=jnp.where(keep, opacity, 0.0).reshape(-1),
+        colors=colors.reshape(-1, 3),
+        active=keep.reshape(-1),
+        anchor_index=jnp.repeat(jnp.arange(num, dtype=jnp.int32), n),
+    )
+
+
+def decode_view(nets: dict, anchors: AnchorState, camera: Camera, appearance_index: jax.Array,
+                cfg) -> tuple[Gaussians, VisibleSlots]:
+    """Frustum-cull the anchors, gather the visible ones and decode the view's Gaussians.
+
+    Args:
+      nets: {"decoder", "appearance"?: [V, E]} network parameters.
+      appearance_index: [] int32 training view whose appearance embedding is used.
+      cfg: :class:`cusgs_jax.config.ModelConfig` (static).
+    Returns:
+      (Gaussians with G = S·N in slot order, VisibleSlots).
+    """
+    view = visible_slots(anchors, camera, visible_fraction=cfg.visible_fraction, margin=cfg.frustum_margin)
+    gathered = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
+    decoded = anchors.alive[view.slots] & view.valid
+    appearance = nets["appearance"][appearance_index] if cfg.appearance else None
+    gaussians = decode_gaussians(nets["decoder"], gathered, anchors.centers[view.slots], decoded, camera.center,
+                                 appearance, cfg.decoder())
+    return gaussians, view

@@ -1,0 +1,97 @@
+"""The feature field's read-out: memory attention per feature model, and M3's feature loss.
+
+Model ``m`` reads its slice of the rendered query and retrieves its feature
+from its PSC memory bank with :func:`cusgs_jax.memory.attention.attend`.
+Naming (:mod:`cusgs_jax.types`): Q query channels, P sampled pixels,
+M memory entries, D feature dimension, H×W image.
+
+Nothing here is traced when a scene has no feature models: callers check
+``FeatureConfig.enabled`` (a static Python bool) before calling in.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from cusgs_jax.config import FeatureConfig
+from cusgs_jax.memory.attention import attend, init_memory_head, precompute_keys
+
+
+def init_memory_heads(key, cfg: FeatureConfig, banks: dict) -> dict:
+    """One attention head per model: {name: params}."""
+    keys = jax.random.split(key, max(len(cfg.model_list), 1))
+    return {m.name: init_memory_head(k, m.query_dim, banks[m.name].shape[1], adapter=m.adapter)
+            for m, k in zip(cfg.model_list, keys)}
+
+
+def retrieve(heads: dict, banks: dict, queries, cfg: FeatureConfig) -> dict:
+    """Features of every model from rendered queries.
+
+    Args:
+      heads: {name: attention params}; banks: {name: [M, D]} PSC entries.
+      queries: [..., Q] rendered query per pixel.
+    Returns:
+      {name: [..., D]}.
+    """
+    out = {}
+    for name, sl in cfg.slices():
+        keys = precompute_keys(heads[name], banks[name])  # once per call (per step)
+        out[name] = attend(heads[name], queries[..., sl], keys, banks[name])
+    return out
+
+
+def feature_loss(predicted: jax.Array, target: jax.Array, valid: jax.Array) -> tuple[jax.Array, dict]:
+    """M3's per-model loss: mean squared error + (1 − cosine) over valid pixels.
+
+    Args:
+      predicted, target: [P, D]; valid: [P] bool (all-zero targets are invalid).
+    Returns:
+      (loss, {"l2": …, "cos": …}).
+    """
+    w = valid.astype(predicted.dtype)
+    count = jnp.maximum(jnp.sum(w), 1.0)
+    l2 = jnp.sum(w * jnp.mean((predicted - target) ** 2, axis=-1)) / count
+    eps = 1e-8
+    cos = jnp.sum(predicted * target, -1) / jnp.maximum(
+        jnp.linalg.norm(predicted, axis=-1) * jnp.linalg.norm(target, axis=-1), eps)
+    cos_loss = jnp.sum(w * (1.0 - cos)) / count
+    return l2 + cos_loss, {"l2": l2, "cos": cos_loss}
+
+
+def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: dict, key: jax.Array,
+                         cfg: FeatureConfig) -> tuple[jax.Array, dict]:
+    """Σ over models of :func:`feature_loss` on ``cfg.sample_pixels`` pixels drawn per model.
+
+    Each model's target map may have its own resolution h×w; a sampled feature
+    pixel reads the rendered query of the image pixel whose centre is nearest.
+
+    Args:
+      queries: [H, W, Q] rendered queries.
+      targets: {name: [h, w, D]} feature maps (all-zero vector = no target).
+      heads, banks: per model attention params and [M, D] PSC entries.
+    Returns:
+      (total, {"feat_<name>_l2", "feat_<name>_cos"}).
+    """
+    height, width = queries.shape[:2]
+    total, terms = 0.0, {}
+    for model_index, (name, channels) in enumerate(cfg.slices()):
+        target = targets[name]
+        fh, fw = target.shape[:2]
+        count = fh * fw if cfg.sample_pixels <= 0 else min(cfg.sample_pixels, fh * fw)
+        if count < fh * fw:
+            pick = jax.random.choice(jax.random.fold_in(key, model_index), fh * fw, (count,), replace=False)
+        else:
+            pick = jnp.arange(fh * fw)
+        row, col = pick // fw, pick % fw
+        img_row = jnp.minimum(((row + 0.5) * height / fh).astype(jnp.int32), height - 1)
+        img_col = jnp.minimum(((col + 0.5) * width / fw).astype(jnp.int32), width - 1)
+        q = queries[img_row, img_col][:, channels]
+        head, bank = heads[name], banks[name]
+        predicted = attend(head, q, precompute_keys(head, bank), bank)  # keys once per step
+        t = target.reshape(-1, target.shape[-1])[pick].astype(jnp.float32)
+        loss, parts = feature_loss(predicted, t, jnp.any(t != 0, axis=-1))
+        total = total + loss
+        terms[f"feat_{name}_l2"] = parts["l2"]
+        terms[f"feat_{name}_cos"] = parts["cos"]
+    return total, terms

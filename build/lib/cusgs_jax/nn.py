@@ -1,0 +1,33 @@
+"""Plain-JAX multilayer perceptrons shared by the anchor decoder and the query heads."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+
+
+def init_mlp(key: jax.Array, sizes: tuple[int, ...]) -> dict:
+    """Dense layers initialised like PyTorch ``nn.Linear`` (U(±1/√fan_in)).
+
+    Returns:
+      {"w0": [sizes[0], sizes[1]], "b0": [sizes[1]], "w1": …}.
+    """
+    params = {}
+    for i, (fan_in, fan_out) in enumerate(zip(sizes[:-1], sizes[1:])):
+        key, kw, kb = jax.random.split(key, 3)
+        bound = 1.0 / math.sqrt(fan_in)
+        params[f"w{i}"] = jax.random.uniform(kw, (fan_in, fan_out), jnp.float32, -bound, bound)
+        params[f"b{i}"] = jax.random.uniform(kb, (fan_out,), jnp.float32, -bound, bound)
+    return params
+
+
+def apply_mlp(params: dict, x: jax.Array) -> jax.Array:
+    """Dense → ReLU → … → Dense (no final activation). x: [..., sizes[0]]."""
+    layers = len(params) // 2
+    for i in range(layers):
+        x = x @ params[f"w{i}"] + params[f"b{i}"]
+        if i < layers - 1:
+            x = jax.nn.relu(x)
+    return x

@@ -1,0 +1,25 @@
+"""Differentiable tile-based Gaussian splatting (gsplat 1.5.3 conventions).
+
+Public API: :func:`rasterize`, :func:`rasterize_batch`, :func:`check_inputs`,
+:class:`RenderOutput`, and the stage functions they are built from;
+:func:`sh_to_rgb` / :func:`sh_basis` (spherical harmonics as the standard 3DGS PLY means them).
+"""
+
+from cusgs_jax.splat.composite import Composite, composite_tiles
+from cusgs_jax.splat.project import Projection, normalize_quats, project_gaussians, quats_to_rotmats
+from cusgs_jax.splat.render import (
+    RenderOutput,
+    check_inputs,
+    default_max_pairs,
+    rasterize,
+    rasterize_batch,
+)
+from cusgs_jax.splat.sh import sh_basis, sh_to_rgb
+from cusgs_jax.splat.tiles import TileGrid, TileIntersections, intersect_tiles
+
+__all__ = [
+    "Composite", "Projection", "RenderOutput", "TileGrid", "TileIntersections",
+    "check_inputs", "composite_tiles", "default_max_pairs", "intersect_tiles",
+    "normalize_quats", "project_gaussians", "quats_to_rotmats", "rasterize", "rasterize_batch",
+    "sh_basis", "sh_to_rgb",
+]

@@ -1,0 +1,263 @@
+"""Public rasterisation API: project → bin into tiles → composite.
+
+Naming: G Gaussians, C channels, H×W image, B cameras.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from cusgs_jax.splat.composite import composite_tiles, default_lanes
+from cusgs_jax.splat.project import project_gaussians
+from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
+
+
+class RenderOutput(NamedTuple):
+    """Everything a render returns (a pytree of arrays).
+
+    Attributes:
+      image: [H, W, C] Σ c α T + T_final · background.
+      alpha: [H, W] 1 − T_final.
+      depth: [H, W] Σ z α T (alpha-weighted camera depth, not normalised).
+      n_contrib: [H, W] int32 Gaussians composited per pixel.
+      means2d: [G, 2] projected centres (differentiable; densification uses
+        its gradient).
+      radii: [G, 2] int32 footprint half-extents in pixels (0 = culled),
+        clamped to 2^30.
+      visible: [G] bool.
+      significance: [G] Σ over composited pixels of opacity·T (LightGaussian;
+        the compositing opacity, i.e. compensated in antialiased mode).
+        Not differentiable.
+      hits: [G] int32 pixels each Gaussian was composited into.
+      overflow: [] int32 tile–Gaussian pairs dropped because ``max_pairs``
+        was exceeded (0 means the image is exact).
+      num_pairs: [] int32 tile–Gaussian pairs composited.
+    """
+
+    image: jax.Array
+    alpha: jax.Array
+    depth: jax.Array
+    n_contrib: jax.Array
+    means2d: jax.Array
+    radii: jax.Array
+    visible: jax.Array
+    significance: jax.Array
+    hits: jax.Array
+    overflow: jax.Array
+    num_pairs: jax.Array
+
+
+def default_max_pairs(num_gaussians: int, width: int, height: int, tile_size: int = 16) -> int:
+    """Default tile–Gaussian pair capacity.
+
+    ``ceil(8 · (16 / tile_size)^1.5)`` pairs per Gaussian (8 at tile 16, 23 at
+    tile 8) plus 64 per tile: about twice what footprints of 3–30 pixels need.
+    Larger footprints may overflow; ``RenderOutput.overflow`` says so.
+    """
+    grid = TileGrid(width, height, tile_size)
+    per_gaussian = math.ceil(8 * (16 / tile_size) ** 1.5)
+    return int(per_gaussian * num_gaussians + 64 * grid.num_tiles)
+
+
+def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
+    """[T, S, ...] per-tile pixels → [H, W, ...] image (padding cropped)."""
+    ts = grid.tile_size
+    rest = tiles.shape[2:]
+    img = tiles.reshape(grid.tiles_y, grid.tiles_x, ts, ts, *rest)
+    img = jnp.moveaxis(img, 2, 1).reshape(grid.tiles_y * ts, grid.tiles_x * ts, *rest)
+    return img[: grid.height, : grid.width]
+
+
+@partial(
+    jax.jit,
+    static_argnames=(
+        "width", "height", "near", "far", "antialiased", "eps2d", "tile_size",
+        "max_pairs", "chunk_size", "lanes",
+    ),
+)
+def rasterize(
+    means: jax.Array,
+    quats: jax.Array,
+    scales: jax.Array,
+    opacities: jax.Array,
+    colors: jax.Array,
+    viewmat: jax.Array,
+    K: jax.Array,
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: jax.Array | None = None,
+    antialiased: bool = False,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+    max_pairs: int | None = None,
+    chunk_size: int = 16,
+    means2d_delta: jax.Array | None = None,
+    lanes: int | None = None,
+) -> RenderOutput:
+    """Render 3D Gaussians with gsplat 1.5.3's conventions (DESIGN.md §2).
+
+    Args:
+      means: [G, 3] world centres.
+      quats: [G, 4] wxyz rotations, need not be normalised.
+      scales: [G, 3] linear standard deviations.
+      opacities: [G] in [0, 1].
+      colors: [G, C] any C ≥ 1 (RGB and feature channels in one pass).
+      viewmat: [4, 4] world→camera, OpenCV axes (+z forward, +y down).
+      K: [3, 3] pinhole intrinsics.
+      width, height: static image size.
+      near, far: depth culling planes.
+      background: [C] or None (black).
+      antialiased: gsplat's "antialiased" mode (opacity compensation).
+      eps2d: low-pass variance added to every 2D covariance.
+      tile_size: static tile edge in pixels (16 as gsplat; 8 is 1.3–1.7x
+        faster on CPU, see benchmarks/splat_bench.py). The image does not
+        depend on it.
+      max_pairs: static tile–Gaussian pair capacity; ``None`` uses
+        :func:`default_max_pairs`. Exceeding it drops the farthest pairs and is
+        reported in ``overflow``.
+      chunk_size: static number of Gaussians per tile per compositing step.
+      means2d_delta: [G, 2] or None, added to the projected centres. Pass
+        zeros and differentiate with respect to it to get ∂L/∂μ_2D (the
+        screen-space gradient densification statistics use).
+      lanes: static number of tiles composited side by side; a lane that
+        finishes its tile (list exhausted or every pixel terminated) takes the
+        next one. ``None`` uses :func:`~cusgs_jax.splat.composite.default_lanes`.
+    Returns:
+      :class:`RenderOutput`. Differentiable with respect to means, quats,
+      scales, opacities, colors, background (and viewmat, K).
+    """
+    num_gaussians, channels = colors.shape
+    if num_gaussians == 0:  # nothing to draw: the background (one invisible Gaussian keeps every shape non-empty)
+        return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
+                                  far=far, background=background, antialiased=antialiased, eps2d=eps2d,
+                                  tile_size=tile_size, max_pairs=max_pairs, chunk_size=chunk_size,
+                                  means2d_delta=means2d_delta, lanes=lanes)
+    grid = TileGrid(int(width), int(height), int(tile_size))
+    if max_pairs is None:
+        max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
+    dtype = means.dtype
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmat.astype(dtype), K.astype(dtype),
+        width, height, near=near, far=far, eps2d=eps2d, antialiased=antialiased,
+    )
+    isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs)
+    order = isect.order
+    means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
+    depth = jnp.where(proj.visible, proj.depths, 0.0)
+    features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
+    lanes = default_lanes(grid.num_tiles) if lanes is None else int(lanes)
+    out = composite_tiles(
+        grid, int(chunk_size), lanes,
+        means2d[order], proj.conics[order], proj.opacities[order], features[order],
+        isect.pair_gaussians, isect.tile_starts, isect.tile_ends,
+    )
+    color_fg = _tiles_to_image(out.colors, grid)
+    trans = _tiles_to_image(out.transmittance, grid)
+    if background is None:
+        image = color_fg[..., :channels]
+    else:
+        image = color_fg[..., :channels] + trans[..., None] * jnp.asarray(background, dtype)
+    significance = jnp.zeros_like(out.significance).at[order].set(out.significance)
+    hits = jnp.zeros_like(out.hits).at[order].set(out.hits)
+    radii = jnp.minimum(proj.radii, float(2**30)).astype(jnp.int32)
+    return RenderOutput(
+        image=image,
+        alpha=1.0 - trans,
+        depth=color_fg[..., channels],
+        n_contrib=_tiles_to_image(out.n_contrib, grid),
+        means2d=means2d,
+        radii=radii,
+        visible=proj.visible,
+        significance=jax.lax.stop_gradient(significance),
+        hits=hits,
+        overflow=isect.overflow,
+        num_pairs=isect.num_pairs,
+    )
+
+
+def _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, *, means2d_delta,
+                       **kwargs) -> RenderOutput:
+    """:func:`rasterize` of G = 0 Gaussians: one fully transparent Gaussian is drawn, and the
+    per-Gaussian fields come back with G = 0 rows (so gradients keep the inputs' empty shapes)."""
+    def one_more(x, value):
+        return jnp.concatenate([x, jnp.full((1,) + x.shape[1:], value, x.dtype)])
+
+    delta = None if means2d_delta is None else one_more(means2d_delta, 0.0)
+    out = rasterize(one_more(means, 0.0), one_more(quats, 1.0), one_more(scales, 1e-3), one_more(opacities, 0.0),
+                    one_more(colors, 0.0), viewmat, K, width, height, means2d_delta=delta, **kwargs)
+    return out._replace(means2d=out.means2d[:0], radii=out.radii[:0], visible=out.visible[:0],
+                        significance=out.significance[:0], hits=out.hits[:0])
+
+
+def rasterize_batch(
+    means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, **kwargs
+) -> RenderOutput:
+    """Render one scene from B cameras (``jax.vmap`` of :func:`rasterize`).
+
+    Args:
+      viewmats: [B, 4, 4]; Ks: [B, 3, 3]; other arguments as :func:`rasterize`.
+    Returns:
+      :class:`RenderOutput` with a leading batch axis B on every field.
+    """
+    background = kwargs.pop("background", None)
+
+    def one(viewmat, K):
+        return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                         background=background, **kwargs)
+
+    return jax.vmap(one)(viewmats, Ks)
+
+
+def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
+                 background=None) -> None:
+    """Validate rasteriser inputs on the host (outside jit) with clear messages.
+
+    Raises:
+      ValueError: naming the offending argument, its shape or how many
+        non-finite entries it has, and what was expected.
+    """
+    arrays = dict(means=means, quats=quats, scales=scales, opacities=opacities,
+                  colors=colors, viewmat=viewmat, K=K)
+    if background is not None:
+        arrays["background"] = background
+    arrays = {k: np.asarray(v) for k, v in arrays.items()}
+    if arrays["means"].ndim != 2 or arrays["means"].shape[1] != 3:
+        raise ValueError(f"means must have shape [G, 3], got {arrays['means'].shape}")
+    g = arrays["means"].shape[0]
+    if arrays["colors"].ndim != 2 or arrays["colors"].shape[1] < 1:
+        raise ValueError(f"colors must have shape [G, C] with C >= 1, got {arrays['colors'].shape}")
+    c = arrays["colors"].shape[1]
+    expected = dict(means=(g, 3), quats=(g, 4), scales=(g, 3), opacities=(g,), colors=(g, c),
+                    viewmat=(4, 4), K=(3, 3), background=(c,))
+    for name, arr in arrays.items():
+        if arr.shape != expected[name]:
+            raise ValueError(f"{name} must have shape {list(expected[name])} "
+                             f"(G={g}, C={c}), got {list(arr.shape)}")
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise ValueError(f"{name} must be a floating-point array, got dtype {arr.dtype}")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s) (NaN or Inf), "
+                             f"first at index {tuple(int(i) for i in np.argwhere(bad)[0])}; "
+                             "fix or drop those entries before rendering")
+    if (arrays["scales"] < 0).any():
+        raise ValueError("scales must be non-negative linear standard deviations "
+                         "(pass exp(log_scales) if you store logarithms)")
+    if ((arrays["opacities"] < 0) | (arrays["opacities"] > 1)).any():
+        raise ValueError("opacities must lie in [0, 1] (apply a sigmoid to logits first)")
+    for name, value in (("width", width), ("height", height)):
+        if int(value) != value or int(value) <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if not np.allclose(arrays["viewmat"][3], [0, 0, 0, 1]):
+        raise ValueError(f"viewmat's last row must be [0, 0, 0, 1], got {arrays['viewmat'][3]}")
+    if arrays["K"][0, 0] <= 0 or arrays["K"][1, 1] <= 0:
+        raise ValueError("K must have positive focal lengths K[0,0] and K[1,1]")

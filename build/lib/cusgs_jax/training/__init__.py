@@ -1,0 +1,1 @@
+"""Training: the state, the jitted step, the optimiser, rendering helpers and checkpoints."""

@@ -1,0 +1,129 @@
+"""The training state: anchors, networks, optimiser state and densification statistics.
+
+Naming (:mod:`cusgs_jax.types`): A anchor capacity, V training views, E appearance size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from cusgs_jax.config import Config, require
+from cusgs_jax.densify.base import Strategy
+from cusgs_jax.model.anchors import AnchorState, auto_voxel_size, init_anchors
+from cusgs_jax.model.decode import init_decoder
+from cusgs_jax.model.field import init_memory_heads
+from cusgs_jax.model.queries import init_query_heads
+from cusgs_jax.training.optim import make_optimizer
+
+log = logging.getLogger("cusgs_jax")
+MIN_ANCHORS = 4  # fewer cannot represent a scene: refused
+FEW_ANCHORS = 64  # fewer is allowed but warned about
+
+
+def resolve_voxel_size(cfg: Config, points: np.ndarray) -> Config:
+    """``cfg`` with ``model.voxel_size="auto"`` replaced by :func:`auto_voxel_size` of ``points`` [P, 3]."""
+    if cfg.model.voxel_size != "auto":
+        return cfg
+    size = auto_voxel_size(points)
+    log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of %d SfM points)", size, len(points))
+    return cfg.replace(model=dict(voxel_size=size))
+
+
+def _check_scaffold(anchors: AnchorState, voxel_size: float, points: np.ndarray) -> None:
+    """Refuse a scaffold too coarse to mean anything; warn when it is merely coarse."""
+    count = int(np.sum(np.asarray(anchors.alive)))
+    hint = f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell"
+    require(count >= MIN_ANCHORS, "model.voxel_size", voxel_size,
+            f"leaves only {count} anchor(s) for {len(points)} SfM points (the cell is about as large as the "
+            "scene, whose extent is 1 in these units)", hint)
+    if count < FEW_ANCHORS:
+        log.warning("only %d anchors from %d SfM points at model.voxel_size=%g: the model will be very coarse; %s",
+                    count, len(points), voxel_size, hint)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TrainState:
+    """Everything that changes during training (a pytree; checkpointed whole).
+
+    Attributes:
+      anchors: :class:`AnchorState`, every per-anchor array (centres, alive, learnable arrays).
+      nets: shared networks {"decoder", "appearance"?: [V, E], "queries"?: query heads,
+        "memory"?: {model: attention head}}; only what the configuration uses exists.
+      opt_state: optax state over :attr:`trainable`.
+      densify: {strategy name: its per-anchor statistics}.
+      step: [] int32 completed steps.
+      skipped: [] int32 updates skipped because loss or gradient was not finite.
+    """
+
+    anchors: AnchorState
+    nets: dict
+    opt_state: Any
+    densify: dict
+    step: jax.Array
+    skipped: jax.Array
+
+    @property
+    def trainable(self) -> dict:
+        """The tree the optimiser updates: {"anchor": AnchorParams, **nets}."""
+        return {"anchor": self.anchors.params, **self.nets}
+
+    def with_trainable(self, trainable: dict) -> TrainState:
+        nets = {k: v for k, v in trainable.items() if k != "anchor"}
+        return self.replace(anchors=self.anchors.replace(params=trainable["anchor"]), nets=nets)
+
+    def replace(self, **changes) -> TrainState:
+        return dataclasses.replace(self, **changes)
+
+
+def init_nets(key, cfg: Config, num_train_views: int, banks: dict | None = None) -> dict:
+    """Network parameters; the feature heads exist only when feature models are configured."""
+    model, features = cfg.model, cfg.features
+    nets = {"decoder": init_decoder(key, model.decoder())}
+    if model.appearance:
+        # Scaffold-GS: nn.Embedding default init N(0, 1).
+        nets["appearance"] = jax.random.normal(jax.random.fold_in(key, 1), (num_train_views, model.appearance_dim))
+    if features.enabled:
+        if banks is None or set(banks) != {m.name for m in features.model_list}:
+            raise ValueError("feature models are configured: pass one PSC bank per model")
+        if model.query_granularity == "per_anchor":
+            nets["queries"] = init_query_heads(jax.random.fold_in(key, 2), features, model.latent_dim,
+                                               model.appearance_dim if model.appearance else 0)
+        nets["memory"] = init_memory_heads(jax.random.fold_in(key, 3), features, banks)
+    return nets
+
+
+def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, extent: float,
+                     strategies: tuple[Strategy, ...], banks: dict | None = None
+                     ) -> tuple[TrainState, optax.GradientTransformation]:
+    """Fresh state and optimiser from an SfM point cloud.
+
+    Args:
+      points: [P, 3] SfM points (in the normalised frame of :mod:`cusgs_jax.data.normalize`).
+      extent: scene extent (scales the offsets' learning rate; 1 in the normalised frame).
+      strategies: the densification strategies (:func:`cusgs_jax.densify.base.make_strategies`).
+      banks: {model: [M, D] PSC entries} when feature models are configured.
+    Returns:
+      (TrainState, optax transformation).
+    """
+    model, key = cfg.model, jax.random.PRNGKey(cfg.train.seed)
+    require(model.voxel_size != "auto", "model.voxel_size", model.voxel_size,
+            "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
+    table = cfg.features.enabled and model.query_granularity == "per_gaussian"
+    anchors = init_anchors(points, model.voxel_size, n_offsets=model.n_offsets, latent_dim=model.latent_dim,
+                           capacity_factor=model.capacity_factor,
+                           query_dim=cfg.features.query_dim if table else 0, key=jax.random.fold_in(key, 2))
+    _check_scaffold(anchors, model.voxel_size, points)
+    nets = init_nets(key, cfg, num_train_views, banks)
+    state = TrainState(anchors=anchors, nets=nets, opt_state=None,
+                       densify={s.name: s.init_state(anchors.capacity) for s in strategies},
+                       step=jnp.int32(0), skipped=jnp.int32(0))
+    tx = make_optimizer(cfg.optim, state.trainable, cfg.train.iterations, extent)
+    return state.replace(opt_state=tx.init(state.trainable)), tx

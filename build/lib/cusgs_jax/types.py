@@ -1,0 +1,56 @@
+"""The naming table of array shapes, and the :class:`Camera` pytree.
+
+Every public docstring writes shapes with these letters:
+
+| letter | meaning |
+|---|---|
+| A | anchor capacity (slots of :class:`cusgs_jax.model.anchors.AnchorState`; ``alive`` says which hold an anchor) |
+| N | Gaussians (offsets) per anchor |
+| S | visible slots: anchors gathered for one view before decoding, ``ceil(visible_fraction · A)`` |
+| G | Gaussians of one render (``S·N`` after decoding, or any count given to the splatter) |
+| F | anchor latent size |
+| E | appearance-embedding size |
+| Q | feature-query channels, Σ over feature models of their slice |
+| M | memory-bank (PSC) entries of one feature model |
+| D | feature dimension of one feature model |
+| V | views (cameras) of a scene |
+| P | sampled pixels |
+| C | colour/feature channels composited by the splatter |
+| K | spherical-harmonic coefficients per colour channel, (d+1)² for SH degree d (standard 3DGS PLY) |
+| H, W | image height and width in pixels |
+| T | tiles |
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Camera:
+    """A pinhole camera: OpenCV axes (+z forward, +y down), gsplat conventions (DESIGN.md §2).
+
+    Attributes:
+      K: [3, 3] intrinsics.
+      world_to_camera: [4, 4] world→camera matrix.
+      width, height: image size in pixels (static: part of the tree structure, never traced).
+    """
+
+    K: jax.Array
+    world_to_camera: jax.Array
+    width: int = dataclasses.field(metadata=dict(static=True))
+    height: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def center(self) -> jax.Array:
+        """[3] camera position in world coordinates."""
+        return -self.world_to_camera[:3, :3].T @ self.world_to_camera[:3, 3]
+
+    @staticmethod
+    def of_scene(scene, view: int) -> Camera:
+        """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.colmap.SceneData`)."""
+        return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height)
