@@ -18,7 +18,7 @@ from cusgs_jax.app.overrides import check_command_line
     (["prune.ratio=1.0"], r"prune\.ratio=1\.0: .*1 would remove every anchor"),
     (["prune.ratio=-0.1"], r"prune\.ratio=-0\.1"),
     (["model.n_offsets=0"], r"model\.n_offsets=0: must be a number >= 1"),
-    (["experiment=nope"], r"Could not find 'experiment/nope'; choose one of \['prune_ratio'"),
+    (["experiment=nope"], r"Could not find 'experiment/nope'; choose one of \['pareto_search', 'prune_ratio'"),
     (["data.path=/my", "scenes/garden"], r"'scenes/garden'.*a path with spaces must be quoted.*data\.path="),
     (["-m", "model.voxel_size=0.01,0"], r"model\.voxel_size=0: "),  # every swept value is checked
 ])

@@ -9,7 +9,7 @@ import pytest
 import yaml
 from PIL import Image
 
-from cusgs_jax.app.report import collect, find_jobs, load_job, main
+from cusgs_jax.app.report import collect, find_jobs, load_job, main, mark_pareto
 
 PLOTS = ("psnr_vs_time.png", "feature_error_vs_time.png", "psnr_vs_size.png", "anchors_vs_step.png")
 
@@ -108,12 +108,16 @@ def test_report_end_to_end(sweep, capsys):
     assert float(first["size_mb"]) == 12.345678 and first["size_of"] == "checkpoint"
     assert rows[1]["lpips_vgg"] == rows[1]["lpips_alex"] == "" and rows[1]["size_of"] == "ply"
     assert float(rows[1]["size_mb"]) == 2.5
+    assert [r["pareto"] for r in rows] == ["1", "1", "", "", ""]
     for row in rows[2:]:
         assert row["psnr"] == row["params"] == row["feature_cosine"] == row["lpips_vgg"] == row["size_mb"] == ""
 
     md = (out / "report.md").read_text()
     assert md in capsys.readouterr().out
-    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | 200,000 | 900 | 0.8123 | 25.12 |" in md
+    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | ★ | 200,000 | 900 | 0.8123 | 25.12 |" in md
+    assert "| 2 | prune.ratio=0.2 | failed: FloatingPointError: NaN loss at step 7 |  |" in md
+    assert ("Pareto front (2 of 5 runs, smallest first): job `0` 25.12 dB / 200,000 params; "
+            "job `1` 26.50 dB / 3,000,000 params.") in md
     assert "Best PSNR: job `1` (prune.ratio=0.1), 26.50 dB" in md
     assert "smallest model: job `0` (prune.ratio=0.01), 200,000 parameters" in md
 
@@ -184,3 +188,21 @@ def test_bad_root_exits_2(tmp_path, capsys, make):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert str(root) in err and "cusgs-train -m" in err
+
+
+def test_mark_pareto_matches_brute_force():
+    """The report's front (``mark_pareto``) is exactly the set no other finished run dominates."""
+    import random
+
+    rng = random.Random(0)
+    for _ in range(50):
+        records = [dict(status=rng.choice(["ok", "ok", "ok", "failed: x", "incomplete"]),
+                        params=float(rng.randint(1, 6)), psnr=float(rng.randint(20, 25))) for _ in range(rng.randint(0, 9))]
+        front = mark_pareto(records)
+        ok = [r for r in records if r["status"] == "ok"]
+        for r in records:
+            dominated = any(o["params"] <= r["params"] and o["psnr"] >= r["psnr"]
+                            and (o["params"], o["psnr"]) != (r["params"], r["psnr"]) for o in ok)
+            assert r["pareto"] == (None if r["status"] != "ok" else not dominated)
+        assert [r["params"] for r in front] == sorted(r["params"] for r in front)
+        assert {id(r) for r in front} == {id(r) for r in records if r["pareto"]}

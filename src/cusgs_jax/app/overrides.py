@@ -28,6 +28,7 @@ def check_command_line(argv: list[str]) -> str | None:
         overrides = _parse(args.overrides)
         for variant in _variants(overrides):
             _compose(variant)
+        _check_sweeper([o.input_line for o in overrides if not o.is_sweep_override()])
         if not args.multirun and not any(o.is_sweep_override() for o in overrides):
             _check_writable(_run_dir(overrides))
     except UserError as error:
@@ -58,9 +59,50 @@ def _variants(overrides) -> list[list[str]]:
     fixed = [o.input_line for o in overrides if not o.is_sweep_override()]
     variants = [fixed]
     for sweep in (o for o in overrides if o.is_sweep_override()):
-        for value in sweep.sweep_string_iterator():
+        for value in _sweep_values(sweep):
             variants.append(fixed + [f"{sweep.get_key_element()}={value}"])
     return variants
+
+
+def _sweep_values(sweep) -> list:
+    """Every value of a choice / range sweep; the two ends of an ``interval`` (Optuna searches between)."""
+    from hydra.core.override_parser.types import IntervalSweep
+
+    value = sweep.value()
+    if isinstance(value, IntervalSweep):
+        return [value.start, value.end]
+    return list(sweep.sweep_string_iterator())
+
+
+#: The Hydra plugin each optional launcher / sweeper needs, and the extra that installs it.
+_EXTRAS = {"hydra/launcher/ray": "ray", "hydra/launcher/submitit": "slurm"}
+
+
+def _check_sweeper(fixed: list[str]) -> None:
+    """``hydra/sweeper=pareto``: its settings, and every end / choice of its search space, must compose."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()
+    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
+        sweeper = compose("config", overrides=fixed, return_hydra_config=True).hydra.sweeper
+    if not str(sweeper.get("_target_", "")).endswith("ParetoSweeper"):
+        return
+    try:
+        import optuna  # noqa: F401
+    except ImportError:
+        raise UserError("hydra/sweeper=pareto needs Optuna: pip install -e \".[optuna]\"") from None
+    from cusgs_jax.sweep.pareto import check_sweeper_settings
+
+    problem = check_sweeper_settings(OmegaConf.to_container(sweeper, resolve=False))
+    if problem:
+        raise UserError(problem)
+    params = sweeper.get("params") or {}
+    for sweep in _parse([f"{key}={value}" for key, value in params.items()]):
+        for value in _sweep_values(sweep) if sweep.is_sweep_override() else [sweep.value()]:
+            _compose(fixed + [f"{sweep.get_key_element()}={value}"])
 
 
 def _compose(overrides: list[str]) -> None:
@@ -73,7 +115,9 @@ def _compose(overrides: list[str]) -> None:
     except MissingConfigException as error:
         first = str(error).split("\n\n")[0]
         options = _listed_options(str(error))
-        raise UserError(f"{first}; choose one of {options}" if options else first) from None
+        extra = next((name for key, name in _EXTRAS.items() if f"'{key}" in first), None)
+        hint = f"; the plugin comes with the {extra} extra: pip install -e \".[{extra}]\"" if extra else ""
+        raise UserError((f"{first}; choose one of {options}" if options else first) + hint) from None
     except ConfigCompositionException as error:
         raise UserError(_composition_message(error)) from None
 

@@ -24,8 +24,10 @@ Output, in ``<root>/report/`` unless ``--out`` says otherwise:
   the smallest run, then a Table-1 style table (size MB, parameters, PSNR, SSIM, LPIPS) and a
   Table-2 style table (per feature model cosine / L2 distance, parameter split;
   :mod:`cusgs_jax.app.paper_tables`); also printed to stdout.
+  Its ``Pareto`` column marks (★) the non-dominated runs: no other finished run has at least the
+  held-out PSNR with at most the parameters, one of them strictly (:func:`mark_pareto`).
 * ``report.csv`` -- the Table-4 rows at full precision with one column per swept override key,
-  plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` and ``size_of`` (``ply`` or ``checkpoint``).
+  ``pareto`` (1 on the front, 0 off it, empty without both numbers), plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` and ``size_of`` (``ply`` or ``checkpoint``).
 * ``psnr_vs_time.png`` -- held-out PSNR against training wall-clock seconds, one line per run.
 * ``feature_error_vs_time.png`` -- feature cosine distance and L2 error against wall-clock
   seconds; not written when no run evaluated feature fields.
@@ -50,7 +52,7 @@ from pathlib import Path
 import yaml
 
 from cusgs_jax.app.paper_tables import CSV_COLUMNS, paper_fields, table1_markdown, table2_markdown
-from cusgs_jax.eval.sweep_plots import finite_or_none, write_plots
+from cusgs_jax.eval.sweep_plots import finite_or_none, pareto_front, write_plots
 
 #: Metric columns: (record / CSV key, Markdown header, Markdown format, meaning).
 METRICS = [
@@ -217,6 +219,19 @@ def swept_keys(records) -> tuple[list[str], list[str]]:
     return swept, fixed
 
 
+def mark_pareto(records) -> list[dict]:
+    """Set ``record["pareto"]``: True for the finished runs no other run beats in both held-out PSNR
+    (higher) and parameter count (lower) (:func:`~cusgs_jax.eval.sweep_plots.pareto_front`), False
+    for the other finished runs, None for runs without both numbers. Returns the front, smallest first."""
+    ok = [r for r in records if r["status"] == "ok" and r["psnr"] is not None and r["params"] is not None]
+    for r in records:
+        r["pareto"] = None
+    front = pareto_front([(r["params"], r["psnr"]) for r in ok])
+    for i, r in enumerate(ok):
+        r["pareto"] = i in front
+    return [ok[i] for i in front]
+
+
 def run_label(record, keys) -> str:
     """``"prune.ratio=0.01, prune.passes=10"`` from the swept ``keys``; ``"(defaults)"`` if none."""
     parts = [k if record["overrides"][k] is None else f"{k}={record['overrides'][k]}"
@@ -235,11 +250,16 @@ def render_markdown(records, keys, fixed) -> str:
              f"{len(records)} jobs: {counts['ok']} ok, {counts['failed']} failed, {counts['incomplete']} incomplete."]
     if fixed:
         lines.append("Shared overrides: " + ", ".join(f"`{o}`" for o in fixed) + ".")
-    header = ["job", "run", "status"] + [h for _, h, *_ in METRICS]
-    lines += ["", "## Table 4 style: every job", "", "| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 3 + ["---:"] * len(METRICS)) + "|"]
+    front = mark_pareto(records)
+    header = ["job", "run", "status", "Pareto"] + [h for _, h, *_ in METRICS]
+    lines += ["", "## Table 4 style: every job", "",
+              "Pareto: ★ marks the runs on the front of held-out PSNR (higher) against parameters (lower): "
+              "no other run has both at least as many dB and at most as many parameters, one of them strictly.",
+              "", "| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * len(METRICS)) + "|"]
     for r in records:
         status = r["status"] if len(r["status"]) <= 120 else r["status"][:117] + "..."
-        cells = [r["job"], run_label(r, keys), status] + [_cell(r[k], fmt) for k, _, fmt, _ in METRICS]
+        cells = [r["job"], run_label(r, keys), status, "★" if r.get("pareto") else ""] + \
+            [_cell(r[k], fmt) for k, _, fmt, _ in METRICS]
         lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
     ok = [r for r in records if r["status"] == "ok"]
     best = max((r for r in ok if r["psnr"] is not None), key=lambda r: r["psnr"], default=None)
@@ -255,6 +275,9 @@ def render_markdown(records, keys, fixed) -> str:
             summary.append(f"smallest model: job `{small['job']}` ({run_label(small, keys)}), "
                            f"{small['params']:,.0f} parameters")
         lines.append("; ".join(summary) + ".")
+    if front:
+        lines.append(f"Pareto front ({len(front)} of {len(records)} runs, smallest first): " + "; ".join(
+            f"job `{r['job']}` {r['psnr']:.2f} dB / {r['params']:,.0f} params" for r in front) + ".")
     label = functools.partial(run_label, keys=keys)
     lines += [""] + table1_markdown(records, label) + [""] + table2_markdown(records, label)
     return "\n".join(lines) + "\n"
@@ -264,13 +287,15 @@ def _write_csv(records, keys, path: Path) -> None:
     """``job``, one column per swept key, ``status``, the :data:`METRICS`, then LPIPS and size (full precision)."""
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(["job", *keys, "status", *(k for k, *_ in METRICS), *CSV_COLUMNS])
+        writer.writerow(["job", *keys, "status", "pareto", *(k for k, *_ in METRICS), *CSV_COLUMNS])
+        mark_pareto(records)
         for r in records:
             sweeps = [r["overrides"].get(k) or "" for k in keys]
             values = ["" if r[k] is None else (int(r[k]) if k in ("params", "anchors") else r[k])
                       for k, *_ in METRICS]
             extra = ["" if r[k] is None else r[k] for k in CSV_COLUMNS]
-            writer.writerow([r["job"], *sweeps, r["status"], *values, *extra])
+            pareto = "" if r["pareto"] is None else int(r["pareto"])
+            writer.writerow([r["job"], *sweeps, r["status"], pareto, *values, *extra])
 
 
 def write_report(records, out_dir) -> dict[str, Path]:

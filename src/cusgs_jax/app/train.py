@@ -2,7 +2,10 @@
 
 Single runs: ``cusgs-train model.voxel_size=0.02``. Sweeps:
 ``cusgs-train -m experiment=voxel_size`` (the ready sweeps are in ``conf/experiment``;
-they run side by side with Hydra's joblib launcher).
+they run side by side with Hydra's joblib launcher; ``hydra/launcher=submitit_local``, ``slurm``
+or ``ray_local`` run them elsewhere). ``cusgs-train -m experiment=pareto_search`` is a
+multi-objective Optuna search (:mod:`cusgs_jax.sweep.pareto`): each job then returns
+``(PSNR, parameter count)``, the objectives ``hydra.sweeper.objectives`` names.
 
 Exit codes: 0 success; 2 a bad setting or bad input (one line on stderr naming
 the option or file and the fix — checked before any work where possible,
@@ -60,8 +63,15 @@ class FailedJobs(Callback):
                             for path in sorted(sweep_dir.glob("*/failed.json"))]
 
 
+def _objectives(hydra_cfg) -> list[str]:
+    """The objective names a multi-objective sweeper asks for (``hydra.sweeper.objectives``), else []."""
+    names = hydra_cfg.sweeper.get("objectives") if isinstance(hydra_cfg.sweeper, DictConfig) else None
+    return [str(name) for name in names] if names else []
+
+
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
-def _hydra_main(cfg: DictConfig) -> float:
+def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
+    """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
     from cusgs_jax.app.run import run
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
@@ -85,6 +95,11 @@ def _hydra_main(cfg: DictConfig) -> float:
         path = record_failure(output_dir, error)
         log.exception("job %s failed (details in %s); the other jobs go on", hydra_cfg.job.num, path)
         return math.nan
+    objectives = _objectives(hydra_cfg)
+    if objectives:  # hydra/sweeper=pareto (cusgs_jax/sweep/pareto.py)
+        from cusgs_jax.sweep.pareto import result_objectives
+
+        return result_objectives(result, objectives)
     return float(result["psnr"])
 
 

@@ -1,0 +1,1 @@
+"""Sweeps beyond Hydra's grid: :mod:`cusgs_jax.sweep.pareto` (multi-objective Optuna search)."""
