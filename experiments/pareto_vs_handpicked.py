@@ -20,7 +20,6 @@ def main(roots) -> None:
     for i, root in enumerate(roots):
         records = [r for r in collect(root) if r["status"] == "ok"]
         keys, _ = swept_keys(records)
-        keys = keys or [k for k in records[0]["overrides"] if k != "experiment"] if records else keys
         source = "search" if i == 0 else Path(root).name
         runs += [dict(r, source=source, label=run_label(r, keys)) for r in records]
     front = set(pareto_front([(r["params"], r["psnr"]) for r in runs]))
