@@ -56,3 +56,19 @@ def feature_run(tmp_path_factory):
                           "features.models=[{name: semantic}]", "features.sample_pixels=200"])
     run(cfg, root / "run")
     return root / "run"
+
+
+TINY_SWEEP = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
+              "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2", "prune.start=2",
+              "prune.interval=2", "eval.save_renders=false", "model.n_offsets=4", "model.latent_dim=8",
+              "model.hidden=16", "model.appearance_dim=8", "features=none"]
+
+
+@pytest.fixture(scope="session")
+def tiny_sweep(tmp_path_factory):
+    """(scene folder, overrides) of a few-second ``cusgs-train`` job: the sweep tests' (launchers, Pareto sweeper)."""
+    from cusgs_jax.data.demo import generate_demo_scene
+
+    scene = generate_demo_scene(tmp_path_factory.mktemp("sweep_scene") / "demo", num_views=9, width=32, height=24,
+                                num_points=800)
+    return scene, list(TINY_SWEEP)

@@ -11,19 +11,8 @@ import sys
 import pytest
 import yaml
 
-from cusgs_jax.data.demo import generate_demo_scene
 
 APP = [sys.executable, "-m", "cusgs_jax.app.train"]
-TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
-        "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2", "prune.start=2",
-        "prune.interval=2", "eval.save_renders=false", "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16",
-        "model.appearance_dim=8", "features=none"]
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_views=9, width=32, height=24,
-                               num_points=800)
 
 
 def _hydra_cfg(*overrides) -> dict:
@@ -62,8 +51,9 @@ def test_bad_launcher_settings_exit_2_with_one_line(tmp_path):
         assert len(done.stderr.strip().splitlines()) == 1
 
 
-def _two_job_sweep(scene, sweep, launcher_overrides):
-    cmd = [*APP, "-m", f"data.path={scene}", *TINY, "model.voxel_size=0.06,0.1", *launcher_overrides,
+def _two_job_sweep(tiny_sweep, sweep, launcher_overrides):
+    scene, tiny = tiny_sweep
+    cmd = [*APP, "-m", f"data.path={scene}", *tiny, "model.voxel_size=0.06,0.1", *launcher_overrides,
            f"hydra.sweep.dir={sweep}"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, (done.stdout + done.stderr)[-4000:]
@@ -76,16 +66,16 @@ def _two_job_sweep(scene, sweep, launcher_overrides):
     return done
 
 
-def test_submitit_local_two_job_sweep(tiny_scene, tmp_path):
+def test_submitit_local_two_job_sweep(tiny_sweep, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     sweep = tmp_path / "submitit"
-    _two_job_sweep(tiny_scene, sweep, ["hydra/launcher=submitit_local"])
+    _two_job_sweep(tiny_sweep, sweep, ["hydra/launcher=submitit_local"])
     assert (sweep / ".submitit").is_dir()  # submitit's own job logs
 
 
-def test_ray_two_job_sweep(tiny_scene, tmp_path):
+def test_ray_two_job_sweep(tiny_sweep, tmp_path):
     """Ray started by the sweep itself with 2 CPUs (ray_local.yaml), stopped when the command exits."""
     pytest.importorskip("hydra_plugins.hydra_ray_launcher")
-    done = _two_job_sweep(tiny_scene, tmp_path / "ray", ["hydra/launcher=ray_local",
+    done = _two_job_sweep(tiny_sweep, tmp_path / "ray", ["hydra/launcher=ray_local",
                                                           "hydra.launcher.ray.init.num_cpus=2"])
     assert "Started a local Ray instance" in done.stdout + done.stderr

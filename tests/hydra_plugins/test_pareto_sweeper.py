@@ -13,24 +13,13 @@ import pytest
 
 pytest.importorskip("optuna")  # the optuna extra
 
-from cusgs_jax.data.demo import generate_demo_scene  # noqa: E402
 
 APP = [sys.executable, "-m", "cusgs_jax.app.train"]
-TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
-        "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2", "prune.start=2",
-        "prune.interval=2", "eval.save_renders=false", "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16",
-        "model.appearance_dim=8", "features=none"]
 
 
-@pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_views=9, width=32, height=24,
-                               num_points=800)
-
-
-def test_pareto_search_runs_through_the_cli_and_the_report_marks_its_front(tiny_scene, tmp_path):
-    sweep = tmp_path / "pareto"
-    cmd = [*APP, "-m", "experiment=pareto_search", f"data.path={tiny_scene}", *TINY, "hydra.sweeper.n_trials=2",
+def test_pareto_search_runs_through_the_cli_and_the_report_marks_its_front(tiny_sweep, tmp_path):
+    sweep, (tiny_scene, tiny) = tmp_path / "pareto", tiny_sweep
+    cmd = [*APP, "-m", "experiment=pareto_search", f"data.path={tiny_scene}", *tiny, "hydra.sweeper.n_trials=2",
            "hydra.sweeper.n_jobs=2", "model.voxel_size=tag(log, interval(0.05, 0.2))", f"hydra.sweep.dir={sweep}"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
