@@ -151,7 +151,6 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
             return jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(trainable, delta, anchors, batch, key)
 
         (loss, aux), (grads, grad2d) = jax.lax.map(lambda args: one(*args), (views, keys, deltas))
-        grads = jax.lax.optimization_barrier(grads)
         latent_grad = jax.vmap(lambda g, slots: g[slots])(grads["anchor"].latent, aux[2].slots)
         total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), grads)
         return loss, aux, grad2d, latent_grad, total
