@@ -49,6 +49,21 @@ def view_queries(nets: dict, anchors: AnchorState, view: VisibleSlots, camera: C
     return decode_queries(nets.get("queries"), gathered, direction, appearance)
 
 
+def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_index, cfg: Config,
+                 banks: dict | None = None) -> tuple[RenderOutput, dict]:
+    """Decode every visible slot at ``camera`` and rasterise (traceable; ``cfg`` from :func:`render_config`).
+
+    Returns:
+      (RenderOutput with ``image`` [H, W, 3] — [H, W, 3+Q] when ``banks`` is given —, features
+      {model: [H, W, D]} retrieved through the memory heads, or {} without ``banks``).
+    """
+    gaussians, view = decode_view(nets, anchors, camera, appearance_index, cfg.model)
+    queries = None if banks is None else view_queries(nets, anchors, view, camera, appearance_index, cfg)
+    out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
+    features = {} if banks is None else retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
+    return out, features
+
+
 def render_config(cfg: Config) -> Config:
     """The config for rendering a :func:`cusgs_jax.model.anchors.compact` model (every slot decoded)."""
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, visible_fraction=1.0))
@@ -67,8 +82,7 @@ def make_render_fn(cfg: Config) -> ExactRender:
 
         @jax.jit
         def render(anchors, nets, camera, appearance_index):
-            gaussians, _ = decode_view(nets, anchors, camera, appearance_index, cfg.model)
-            out = render_gaussians(gaussians, camera, cfg.splat)
+            out, _ = render_model(anchors, nets, camera, appearance_index, cfg)
             return jnp.clip(out.image, 0.0, 1.0), out.overflow, out.num_pairs
 
         return render
@@ -86,10 +100,7 @@ def make_feature_render_fn(cfg: Config) -> ExactRender:
 
         @jax.jit
         def render(anchors, nets, camera, appearance_index, banks):
-            gaussians, view = decode_view(nets, anchors, camera, appearance_index, cfg.model)
-            queries = view_queries(nets, anchors, view, camera, appearance_index, cfg)
-            out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
-            features = retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
+            out, features = render_model(anchors, nets, camera, appearance_index, cfg, banks)
             return jnp.clip(out.image[..., :3], 0.0, 1.0), features, out.overflow, out.num_pairs
 
         return render

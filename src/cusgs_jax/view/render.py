@@ -119,44 +119,32 @@ class ViewRenderer:
     def __init__(self, cfg):
         from cusgs_jax.training.capacity import ExactRender
 
-        self._plain = ExactRender(_build(with_features=False), cfg)
-        self._features = ExactRender(_build(with_features=True), cfg)
+        self._render = ExactRender(_build, cfg)
 
     def render(self, model: ViewModel, camera, *, features: bool = False):
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
         from cusgs_jax.view.modes import Frame
 
-        if features and model.feature_models:
-            rgb, depth, alpha, feats = self._features(model.anchors, model.nets, camera, model.banks)
-        else:
-            rgb, depth, alpha, feats = self._plain(model.anchors, model.nets, camera, None)
+        banks = model.banks if features and model.feature_models else None
+        rgb, depth, alpha, feats = self._render(model.anchors, model.nets, camera, banks)
         return Frame(rgb=np.asarray(rgb), depth=np.asarray(depth), alpha=np.asarray(alpha),
                      features={name: np.asarray(f) for name, f in feats.items()})
 
 
-def _build(with_features: bool):
-    """``build(cfg)`` for :class:`~cusgs_jax.training.capacity.ExactRender`:
-    ``render(anchors, nets, camera, banks) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, dropped, pairs)``."""
-    def build(cfg):
-        import jax
-        import jax.numpy as jnp
+def _build(cfg):
+    """``build(cfg)`` for :class:`~cusgs_jax.training.capacity.ExactRender`: ``render(anchors, nets, camera,
+    banks or None) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, dropped, pairs)`` with the
+    mean appearance embedding (index 0 of :func:`mean_appearance_nets`)."""
+    import jax
+    import jax.numpy as jnp
 
-        from cusgs_jax.model.decode import decode_view
-        from cusgs_jax.model.field import retrieve
-        from cusgs_jax.training.render import render_config, render_gaussians, view_queries
+    from cusgs_jax.training.render import render_config, render_model
 
-        cfg = render_config(cfg)
+    cfg = render_config(cfg)
 
-        @jax.jit
-        def render(anchors, nets, camera, banks):
-            index = jnp.int32(0)
-            gaussians, view = decode_view(nets, anchors, camera, index, cfg.model)
-            queries = view_queries(nets, anchors, view, camera, index, cfg) if with_features else None
-            out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
-            feats = retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features) if with_features else {}
-            return (jnp.clip(out.image[..., :3], 0.0, 1.0), out.depth, out.alpha, feats, out.overflow,
-                    out.num_pairs)
+    @jax.jit
+    def render(anchors, nets, camera, banks):
+        out, feats = render_model(anchors, nets, camera, jnp.int32(0), cfg, banks)
+        return jnp.clip(out.image[..., :3], 0.0, 1.0), out.depth, out.alpha, feats, out.overflow, out.num_pairs
 
-        return render
-
-    return build
+    return render
