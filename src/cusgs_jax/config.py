@@ -499,8 +499,9 @@ def _build(cls, values: dict, prefix: str):
     return cls(**kwargs)
 
 
-def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
-    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
+def compose_node(overrides: tuple[str, ...] | list[str] = (), return_hydra_config: bool = False):
+    """The OmegaConf node ``cusgs-train <overrides>`` composes (Hydra's compose API); with
+    ``return_hydra_config`` it also holds the ``hydra`` node (launcher, sweeper)."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
 
@@ -508,4 +509,9 @@ def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
     if GlobalHydra.instance().is_initialized():
         GlobalHydra.instance().clear()
     with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
-        return from_omegaconf(compose("config", overrides=list(overrides)))
+        return compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
+    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
+    return from_omegaconf(compose_node(overrides))

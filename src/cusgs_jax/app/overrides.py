@@ -80,14 +80,11 @@ _EXTRAS = {"hydra/launcher/ray": "ray", "hydra/launcher/submitit": "slurm"}
 
 def _check_sweeper(fixed: list[str]) -> None:
     """``hydra/sweeper=pareto``: its settings, and every end / choice of its search space, must compose."""
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    if GlobalHydra.instance().is_initialized():
-        GlobalHydra.instance().clear()
-    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
-        sweeper = compose("config", overrides=fixed, return_hydra_config=True).hydra.sweeper
+    from cusgs_jax.config import compose_node
+
+    sweeper = compose_node(fixed, return_hydra_config=True).hydra.sweeper
     if not str(sweeper.get("_target_", "")).endswith("ParetoSweeper"):
         return
     try:
