@@ -192,7 +192,12 @@ class SplatConfig:
 
     tile_size: int = 8
     chunk_size: int = 16
-    max_pairs_per_gaussian: float = 3.0  # first tile-pair capacity; grows (and the step replays) when exceeded
+    # First guesses of two work capacities (training/capacity.py; each grows, and the step replays,
+    # when a view needs more, so no work is ever dropped): the share of the decoded S·N Gaussians that
+    # pass the opacity mask and reach the splatter (model/active.py), and the tile–Gaussian pairs per
+    # such active Gaussian.
+    active_fraction: float = 0.375
+    max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
@@ -201,6 +206,9 @@ class SplatConfig:
         _at_least(self, "splat", 1, "tile_size", "chunk_size")
         require(_number(self.max_pairs_per_gaussian) and self.max_pairs_per_gaussian > 0,
                 "splat.max_pairs_per_gaussian", self.max_pairs_per_gaussian, "must be > 0")
+        require(_number(self.active_fraction) and 0 < self.active_fraction <= 1, "splat.active_fraction",
+                self.active_fraction, "must lie in (0, 1] (it only sets the first active-Gaussian capacity, "
+                "which grows when a view has more)")
         require(len(self.background) == 3 and all(_number(c) and 0 <= c <= 1 for c in self.background),
                 "splat.background", self.background, "must be three numbers in [0, 1]",
                 "e.g. splat.background=[1,1,1]")
@@ -234,13 +242,18 @@ class OptimConfig:
     appearance: tuple[float, float] = (0.05, 0.0005)
     features: tuple[float, float] = (0.0005, 0.0005)  # query and memory heads (M3 f_emb)
     eps: float = 1e-15
+    # Row-sparse update (gsplat's "visible Adam"): with one view per step only the anchors the view
+    # decoded — their rows of the per-anchor parameters and Adam moments — are updated; the moments of
+    # unseen anchors stay as they are. false: dense Adam over every alive anchor row (moments decay).
+    sparse: bool = True
 
     def __post_init__(self):
         _tuples(self)
+        require(isinstance(self.sparse, bool), "optim.sparse", self.sparse, "must be true or false")
 
     def groups(self) -> dict[str, tuple[float, float]]:
         """{group: (initial, final)} for every learning-rate group."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "eps"}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("eps", "sparse")}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -46,7 +46,6 @@ from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
 from cusgs_jax.eval.views import count_parameters, evaluate_views
 from cusgs_jax.model.anchors import compact
-from cusgs_jax.model.decode import num_visible_slots
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training import capacity
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
@@ -63,7 +62,7 @@ LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 
 class Session:
     """Host-side context of one run (mutable; the numeric state is ``state``)."""
 
-    cfg: Config
+    cfg: Config  # the user's settings; the grown work capacities live in ``capacities``
     out: pathlib.Path
     scene: object
     world: object  # data.normalize.WorldTransform: COLMAP frame → the normalised training frame
@@ -79,6 +78,7 @@ class Session:
     clock: Clock
     curve: list
     prune: dict  # {"passes", "pruned", "render_ms_before_prune"}
+    capacities: capacity.Capacities = None  # the step's work capacities: owned, grown and checkpointed here
     recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
     replays: int = 0  # steps replayed because a capacity was too small
     step_fn: object = None
@@ -131,14 +131,15 @@ def setup(cfg: Config, output_dir) -> Session:
     session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
                       state=state, ckpt=ckpt, clock=Clock(), curve=[],
-                      prune=dict(passes=0, pruned=0, render_ms_before_prune=None))
+                      prune=dict(passes=0, pruned=0, render_ms_before_prune=None),
+                      capacities=capacity.Capacities.from_config(cfg))
     if cfg.train.resume:
         _resume(session)
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
-    session.render = make_render_fn(session.cfg)
-    session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
+    session.render = make_render_fn(session.cfg, session.capacities)
+    session.feature_render = make_feature_render_fn(session.cfg, session.capacities) if cfg.features.enabled else None
     return session
 
 
@@ -167,7 +168,7 @@ def _resume(session: Session) -> None:
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
-    session.cfg = capacity.with_capacities(session.cfg, meta.get("capacities"))
+    session.capacities = session.capacities.restored(meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
     session.prune = dict(session.prune, **meta.get("prune", {}))
@@ -230,19 +231,18 @@ def _exact_step(session: Session, batch: dict) -> dict:
     """One training step on ``batch`` that dropped no work; returns its metrics (host values).
 
     A step that reported dropped anchors or tile pairs changed nothing; the
-    capacity is grown (:func:`cusgs_jax.training.capacity.grow_for`), the step
+    capacity is grown (:meth:`cusgs_jax.training.capacity.Capacities.grown`), the step
     rebuilt and the same batch replayed.
     """
     while True:
         if session.step_fn is None:
-            session.step_fn = make_train_step(session.cfg, session.tx, session.strategies)
+            session.step_fn = make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
         session.state, metrics = session.step_fn(session.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
-        if not (metrics["dropped_anchors"] or metrics["dropped_pairs"]):
+        if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
             return metrics
-        model = session.cfg.model
-        num_gaussians = num_visible_slots(session.state.anchors.capacity, model.visible_fraction) * model.n_offsets
-        session.cfg = capacity.grow_for(session.cfg, metrics, session.state.anchors.capacity, num_gaussians)
+        session.capacities = session.capacities.grown(metrics, session.state.anchors.capacity,
+                                                      session.cfg.model.n_offsets)
         session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
 
 
@@ -346,7 +346,7 @@ def _psnr_label(session: Session) -> str:
 def _save(session: Session, step: int) -> None:
     meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
                 prune=session.prune, recompilations=session.recompilations, replays=session.replays,
-                capacities=capacity.capacities(session.cfg), voxel_size=session.cfg.model.voxel_size,
+                capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
                 # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
                 train_cameras=_cameras(session, session.train_idx),
@@ -389,7 +389,7 @@ def finalise(session: Session) -> dict:
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_pairs=0, replayed_steps=session.replays,
         recompilations=session.recompilations + session.render.growths
         + (session.feature_render.growths if session.feature_render else 0),
-        capacities=capacity.capacities(session.cfg), voxel_size=cfg.model.voxel_size,
+        capacities=session.capacities.as_dict(), voxel_size=cfg.model.voxel_size,
         world_transform=session.world.as_dict(), iterations=cfg.train.iterations,
         batch_size=cfg.train.batch_size, devices=_devices(session), width=session.scene.width,
         height=session.scene.height, held_out_views=len(session.scene.test_indices),

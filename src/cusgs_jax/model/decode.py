@@ -100,18 +100,23 @@ def num_visible_slots(capacity: int, visible_fraction: float) -> int:
     return max(1, min(capacity, int(-(-visible_fraction * capacity // 1))))
 
 
-def visible_slots(anchors: AnchorState, camera: Camera, *, visible_fraction: float,
-                  margin: float) -> VisibleSlots:
-    """Slots of the alive anchors in the camera's frustum, compacted to S entries."""
+def visible_slots(anchors: AnchorState, camera: Camera, *, num_slots: int, margin: float) -> VisibleSlots:
+    """Slots of the alive anchors in the camera's frustum, compacted to S = ``num_slots`` entries (static)."""
     capacity = anchors.capacity
     visible = frustum_mask(anchors.centers, camera.world_to_camera, camera.K, camera.width, camera.height,
                            margin=margin) & anchors.alive
-    count = num_visible_slots(capacity, visible_fraction)
-    if count >= capacity:
+    if num_slots >= capacity:
         return VisibleSlots(jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0))
-    (slots,) = jnp.nonzero(visible, size=count, fill_value=0)
-    valid = jnp.arange(count) < jnp.sum(visible)
-    return VisibleSlots(slots.astype(jnp.int32), valid, jnp.maximum(jnp.sum(visible) - count, 0).astype(jnp.int32))
+    (slots,) = jnp.nonzero(visible, size=num_slots, fill_value=0)
+    valid = jnp.arange(num_slots) < jnp.sum(visible)
+    return VisibleSlots(slots.astype(jnp.int32), valid,
+                        jnp.maximum(jnp.sum(visible) - num_slots, 0).astype(jnp.int32))
+
+
+def view_directions(centers: jax.Array, camera_center: jax.Array) -> jax.Array:
+    """[S, 3] unit directions from the camera to the anchor centres [S, 3] (the decoders' view input)."""
+    direction = centers - camera_center
+    return direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
 
 
 def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Array, decoded: jax.Array,
@@ -130,8 +135,7 @@ def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Arr
       :class:`Gaussians` with G = S·N.
     """
     num, n = centers.shape[0], cfg.n_offsets
-    direction = centers - camera_center
-    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+    direction = view_directions(centers, camera_center)
     base = jnp.concatenate([anchor_params.latent, direction], axis=-1)  # [S, F+3]
     opacity = jnp.tanh(apply_mlp(params["opacity"], base))  # [S, N]
     cov = apply_mlp(params["cov"], base).reshape(num, n, 7)
@@ -157,21 +161,40 @@ def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Arr
     )
 
 
+def gather_visible(anchors: AnchorState, view: VisibleSlots) -> tuple[AnchorParams, jax.Array, jax.Array]:
+    """(learnable rows [S, …], centres [S, 3], decoded [S] bool) of the visible slots."""
+    rows = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
+    return rows, anchors.centers[view.slots], anchors.alive[view.slots] & view.valid
+
+
+def decode_rows(nets: dict, rows: AnchorParams, centers: jax.Array, decoded: jax.Array, camera: Camera,
+                appearance_index: jax.Array, cfg) -> Gaussians:
+    """Decode gathered anchor rows (:func:`gather_visible`) at ``camera``.
+
+    The training step differentiates with respect to ``rows`` directly, so the anchors'
+    gradients have S rows, not A (the row-sparse update of :mod:`cusgs_jax.training.step`).
+
+    Args:
+      nets: {"decoder", "appearance"?: [V, E]}; cfg: :class:`cusgs_jax.config.ModelConfig` (static).
+    Returns:
+      Gaussians with G = S·N in slot order.
+    """
+    appearance = nets["appearance"][appearance_index] if cfg.appearance else None
+    return decode_gaussians(nets["decoder"], rows, centers, decoded, camera.center, appearance, cfg.decoder())
+
+
 def decode_view(nets: dict, anchors: AnchorState, camera: Camera, appearance_index: jax.Array,
-                cfg) -> tuple[Gaussians, VisibleSlots]:
-    """Frustum-cull the anchors, gather the visible ones and decode the view's Gaussians.
+                cfg, num_slots: int) -> tuple[Gaussians, VisibleSlots]:
+    """Frustum-cull the anchors, gather the visible ones into S = ``num_slots`` and decode the view's Gaussians.
 
     Args:
       nets: {"decoder", "appearance"?: [V, E]} network parameters.
       appearance_index: [] int32 training view whose appearance embedding is used.
       cfg: :class:`cusgs_jax.config.ModelConfig` (static).
+      num_slots: static S (:meth:`cusgs_jax.training.capacity.Capacities.visible_slots`).
     Returns:
       (Gaussians with G = S·N in slot order, VisibleSlots).
     """
-    view = visible_slots(anchors, camera, visible_fraction=cfg.visible_fraction, margin=cfg.frustum_margin)
-    gathered = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
-    decoded = anchors.alive[view.slots] & view.valid
-    appearance = nets["appearance"][appearance_index] if cfg.appearance else None
-    gaussians = decode_gaussians(nets["decoder"], gathered, anchors.centers[view.slots], decoded, camera.center,
-                                 appearance, cfg.decoder())
-    return gaussians, view
+    view = visible_slots(anchors, camera, num_slots=num_slots, margin=cfg.frustum_margin)
+    rows, centers, decoded = gather_visible(anchors, view)
+    return decode_rows(nets, rows, centers, decoded, camera, appearance_index, cfg), view

@@ -1,15 +1,25 @@
-"""Work capacities that must never drop work: visible-anchor slots and tile–Gaussian pairs.
+"""Work capacities that must never drop work: visible-anchor slots, active Gaussians and tile pairs.
 
-A jitted step has static shapes, so two amounts of per-view work have a fixed
-capacity: the S visible slots the frustum gather decodes
-(``model.visible_fraction`` of the anchor capacity A) and the tile–Gaussian
-pairs the splatter sorts (``splat.max_pairs_per_gaussian`` per decoded
-Gaussian). Both only set the *first* capacity. As in jax-md's neighbour lists,
-the step reports what did not fit (``dropped_anchors``, ``dropped_pairs``) and
-then changes nothing; the host grows the capacity to a bucketed size (so a
-run recompiles a handful of times at most), rebuilds the step and replays it
-(:func:`grow_for`). Evaluation renders do the same (:class:`ExactRender`).
-No update or metric is ever computed from a truncated set.
+A jitted step has static shapes, so three amounts of per-view work have a fixed
+capacity, held by one :class:`Capacities` value that the shell owns, passes to
+``make_train_step`` and to every renderer, checkpoints and grows:
+
+* the S visible slots the frustum gather decodes (``visible_fraction`` of the
+  anchor capacity A);
+* the G_act active Gaussians — those that pass Scaffold's opacity mask — that
+  reach the splatter (``active_fraction`` of the S·N decoded ones,
+  :mod:`cusgs_jax.model.active`);
+* the tile–Gaussian pairs the splatter sorts (``pairs_per_active`` per active
+  Gaussian, so it follows the compaction).
+
+The user's config (``model.visible_fraction``, ``splat.active_fraction``,
+``splat.max_pairs_per_gaussian``) only gives the *first* guesses
+(:meth:`Capacities.from_config`). As in jax-md's neighbour lists, the step
+reports what did not fit (``dropped_anchors``, ``dropped_gaussians``,
+``dropped_pairs``) and then changes nothing; the shell grows the capacity to a
+bucketed size (so a run recompiles a handful of times at most), rebuilds the
+step and replays it (:meth:`Capacities.grown`). Evaluation renders do the same
+(:class:`ExactRender`). No update or metric is ever computed from a truncated set.
 """
 
 from __future__ import annotations
@@ -20,11 +30,13 @@ import math
 from typing import Callable
 
 from cusgs_jax.config import Config
+from cusgs_jax.model.decode import num_visible_slots
 
 log = logging.getLogger("cusgs_jax")
 
 PAIR_SLACK = 4096  # pairs added to ``max_pairs_per_gaussian · G`` (covers tiny scenes)
 FRACTION_BUCKET = 8  # visible_fraction grows in steps of 1/8
+ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 
 
 def max_pairs(pairs_per_gaussian: float, num_gaussians: int) -> int:
@@ -47,71 +59,133 @@ def grown_visible_fraction(current: float, needed_slots: int, capacity: int) -> 
     return min(1.0, math.ceil(want * FRACTION_BUCKET) / FRACTION_BUCKET)
 
 
-def grow_for(cfg: Config, metrics: dict, capacity: int, num_gaussians: int) -> Config:
-    """The configuration whose capacities fit the work a step reported as dropped.
+def grown_active_fraction(current: float, needed: int, decoded: int) -> float:
+    """An active fraction of the ``decoded`` = S·N Gaussians that holds ``needed`` with 15 % headroom.
 
-    Args:
-      metrics: host values of the step's ``visible_anchors``, ``dropped_anchors``,
-        ``pairs`` and ``dropped_pairs``.
-      capacity: anchor capacity A; num_gaussians: G = S·N decoded by that step.
-    Returns:
-      ``cfg`` with ``model.visible_fraction`` grown when anchors were dropped
-      (the replay then measures the pairs anew), else with
-      ``splat.max_pairs_per_gaussian`` grown when pairs were dropped.
+    Grows by at least one bucket of 1/16 and never beyond 1 (every decoded Gaussian).
     """
-    if metrics["dropped_anchors"] > 0:
-        needed = int(metrics["visible_anchors"]) + int(metrics["dropped_anchors"])
-        fraction = grown_visible_fraction(cfg.model.visible_fraction, needed, capacity)
-        log.info("a view sees %d anchors, more than %d visible slots: model.visible_fraction %.3g -> %.3g "
-                 "(the step recompiles and replays)", needed, int(metrics["visible_anchors"]),
-                 cfg.model.visible_fraction, fraction)
-        return cfg.replace(model=dict(visible_fraction=fraction))
-    if metrics["dropped_pairs"] > 0:
-        needed = int(metrics["pairs"]) + int(metrics["dropped_pairs"])
-        pairs = grown_pairs_per_gaussian(cfg.splat.max_pairs_per_gaussian, needed, num_gaussians)
-        log.info("a view needs %d tile pairs, more than %d: splat.max_pairs_per_gaussian %.3g -> %.3g "
-                 "(recompiles and replays)", needed, int(metrics["pairs"]), cfg.splat.max_pairs_per_gaussian, pairs)
-        return cfg.replace(splat=dict(max_pairs_per_gaussian=pairs))
-    return cfg
+    want = max(current + 1.0 / ACTIVE_BUCKET, 1.15 * needed / max(decoded, 1))
+    return min(1.0, math.ceil(want * ACTIVE_BUCKET) / ACTIVE_BUCKET)
 
 
-def capacities(cfg: Config) -> dict:
-    """The grown capacities, as checkpoint metadata and ``eval.json`` record them."""
-    return dict(visible_fraction=cfg.model.visible_fraction, max_pairs_per_gaussian=cfg.splat.max_pairs_per_gaussian)
+@dataclasses.dataclass(frozen=True)
+class Capacities:
+    """The static work capacities of a step or render (hashable; closed over, never traced).
 
+    Attributes:
+      visible_fraction: S = ceil(f · A) visible slots are decoded per view.
+      active_fraction: G_act = ceil(f · S·N) active Gaussians are rasterised per view.
+      pairs_per_active: P = ceil(p · G_act) + ``PAIR_SLACK`` tile–Gaussian pairs.
+    """
 
-def with_capacities(cfg: Config, saved: dict | None) -> Config:
-    """``cfg`` with capacities restored from checkpoint metadata (never smaller than configured)."""
-    if not saved:
-        return cfg
-    return cfg.replace(
-        model=dict(visible_fraction=max(cfg.model.visible_fraction, float(saved["visible_fraction"]))),
-        splat=dict(max_pairs_per_gaussian=max(cfg.splat.max_pairs_per_gaussian,
-                                              float(saved["max_pairs_per_gaussian"]))))
+    visible_fraction: float
+    active_fraction: float
+    pairs_per_active: float
+
+    @classmethod
+    def from_config(cls, cfg: Config) -> Capacities:
+        """The user's first guesses (``model.visible_fraction``, ``splat.active_fraction``,
+        ``splat.max_pairs_per_gaussian``)."""
+        return cls(float(cfg.model.visible_fraction), float(cfg.splat.active_fraction),
+                   float(cfg.splat.max_pairs_per_gaussian))
+
+    @classmethod
+    def every_slot(cls, cfg: Config) -> Capacities:
+        """First guesses for rendering a compacted model: every slot decoded (frustum-culled ones masked)."""
+        return dataclasses.replace(cls.from_config(cfg), visible_fraction=1.0)
+
+    def visible_slots(self, anchor_capacity: int) -> int:
+        """S for an anchor capacity A."""
+        return num_visible_slots(anchor_capacity, self.visible_fraction)
+
+    def active_gaussians(self, anchor_capacity: int, n_offsets: int) -> int:
+        """G_act for an anchor capacity A and N offsets, at least 1 and at most S·N."""
+        decoded = self.visible_slots(anchor_capacity) * n_offsets
+        return max(1, min(decoded, int(-(-self.active_fraction * decoded // 1))))
+
+    def pairs(self, anchor_capacity: int, n_offsets: int) -> int:
+        """P for an anchor capacity A and N offsets."""
+        return max_pairs(self.pairs_per_active, self.active_gaussians(anchor_capacity, n_offsets))
+
+    def grown(self, metrics: dict, anchor_capacity: int, n_offsets: int) -> Capacities:
+        """The capacities that fit the work a step or render reported as dropped.
+
+        Args:
+          metrics: host values of ``visible_anchors``, ``dropped_anchors``, ``active_gaussians``,
+            ``dropped_gaussians``, ``pairs`` and ``dropped_pairs``.
+          anchor_capacity: A of that step; n_offsets: N.
+        Returns:
+          ``self`` with the first capacity that overflowed grown, in the order the work is done
+          (slots, then active Gaussians, then pairs: the replay measures the later ones anew).
+        """
+        if metrics.get("dropped_anchors", 0) > 0:
+            needed = int(metrics["visible_anchors"]) + int(metrics["dropped_anchors"])
+            fraction = grown_visible_fraction(self.visible_fraction, needed, anchor_capacity)
+            log.info("a view sees %d anchors, more than %d visible slots: visible fraction %.3g -> %.3g "
+                     "(the step recompiles and replays)", needed, int(metrics["visible_anchors"]),
+                     self.visible_fraction, fraction)
+            return dataclasses.replace(self, visible_fraction=fraction)
+        if metrics.get("dropped_gaussians", 0) > 0:
+            needed = int(metrics["active_gaussians"]) + int(metrics["dropped_gaussians"])
+            decoded = self.visible_slots(anchor_capacity) * n_offsets
+            fraction = grown_active_fraction(self.active_fraction, needed, decoded)
+            log.info("a view has %d active Gaussians, more than %d: active fraction %.3g -> %.3g "
+                     "(recompiles and replays)", needed, self.active_gaussians(anchor_capacity, n_offsets),
+                     self.active_fraction, fraction)
+            return dataclasses.replace(self, active_fraction=fraction)
+        if metrics.get("dropped_pairs", 0) > 0:
+            needed = int(metrics["pairs"]) + int(metrics["dropped_pairs"])
+            pairs = grown_pairs_per_gaussian(self.pairs_per_active, needed,
+                                             self.active_gaussians(anchor_capacity, n_offsets))
+            log.info("a view needs %d tile pairs, more than %d: pairs per active Gaussian %.3g -> %.3g "
+                     "(recompiles and replays)", needed, int(metrics["pairs"]), self.pairs_per_active, pairs)
+            return dataclasses.replace(self, pairs_per_active=pairs)
+        return self
+
+    def as_dict(self) -> dict:
+        """Checkpoint metadata and ``eval.json``'s ``capacities``."""
+        return dataclasses.asdict(self)
+
+    def restored(self, saved: dict | None) -> Capacities:
+        """These capacities, never smaller than those of checkpoint metadata ``saved``.
+
+        Metadata written before active-Gaussian compaction (``max_pairs_per_gaussian`` per
+        decoded Gaussian, no active fraction) restores the visible fraction only.
+        """
+        if not saved:
+            return self
+        grown = dict(visible_fraction=max(self.visible_fraction, float(saved["visible_fraction"])))
+        if "active_fraction" in saved:
+            grown.update(active_fraction=max(self.active_fraction, float(saved["active_fraction"])),
+                         pairs_per_active=max(self.pairs_per_active, float(saved["pairs_per_active"])))
+        return dataclasses.replace(self, **grown)
 
 
 @dataclasses.dataclass
 class ExactRender:
     """A jitted render that never returns a truncated image.
 
-    ``build(cfg)`` returns a jitted ``fn(anchors, ...) -> (*outputs, dropped_pairs, pairs)``
-    rendering every slot of ``anchors`` (G = A·N Gaussians). Calling this object
-    returns ``outputs`` (a tuple); when pairs were dropped it grows
-    ``splat.max_pairs_per_gaussian``, rebuilds and renders again (``growths`` counts it).
+    ``build(capacities)`` returns a jitted ``fn(anchors, ...) -> (*outputs, metrics)`` rendering
+    ``anchors`` with those capacities, where ``metrics`` holds the render's ``dropped_*`` counts
+    and what was needed (the keys :meth:`Capacities.grown` reads). Calling this object returns
+    ``outputs`` (a tuple); when work was dropped it grows its capacities, rebuilds and renders
+    again (``growths`` counts it). It starts from the capacities it is given (the shell's) and
+    keeps the grown ones for the next call.
     """
 
-    build: Callable[[Config], Callable]
-    cfg: Config
+    build: Callable[[Capacities], Callable]
+    capacities: Capacities
+    n_offsets: int
     growths: int = 0
     fn: Callable | None = None
 
     def __call__(self, anchors, *args):
         while True:
             if self.fn is None:
-                self.fn = self.build(self.cfg)
-            *outputs, dropped, pairs = self.fn(anchors, *args)
-            if int(dropped) == 0:
+                self.fn = self.build(self.capacities)
+            *outputs, metrics = self.fn(anchors, *args)
+            metrics = {k: int(v) for k, v in metrics.items()}
+            if not any(metrics[k] for k in ("dropped_anchors", "dropped_gaussians", "dropped_pairs")):
                 return tuple(outputs)
-            metrics = dict(dropped_anchors=0, dropped_pairs=int(dropped), pairs=int(pairs))
-            self.cfg = grow_for(self.cfg, metrics, anchors.capacity, anchors.capacity * self.cfg.model.n_offsets)
+            self.capacities = self.capacities.grown(metrics, anchors.capacity, self.n_offsets)
             self.fn, self.growths = None, self.growths + 1

@@ -12,97 +12,128 @@ import jax.numpy as jnp
 
 from cusgs_jax.config import Config, SplatConfig
 from cusgs_jax.model.anchors import AnchorState
-from cusgs_jax.model.decode import Gaussians, VisibleSlots, decode_view
+from cusgs_jax.model.active import ActiveSet, compact_gaussians, gather_active, select_active
+from cusgs_jax.model.decode import (Gaussians, VisibleSlots, decode_rows, gather_visible, view_directions,
+                                    visible_slots)
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import RenderOutput, rasterize
-from cusgs_jax.training.capacity import ExactRender, max_pairs
+from cusgs_jax.training.capacity import Capacities, ExactRender, max_pairs
 from cusgs_jax.types import Camera
 
 
-def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, means2d_delta=None,
-                     extra_channels=None) -> RenderOutput:
-    """Rasterise decoded Gaussians with the configured splatter settings.
+def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, active_capacity: int | None = None,
+                     pair_capacity: int | None = None, means2d_delta=None,
+                     extra_channels=None) -> tuple[RenderOutput, ActiveSet]:
+    """Rasterise the active decoded Gaussians with the configured splatter settings.
+
+    Only the Gaussians that pass the opacity mask (``gaussians.active``) are rasterised: they
+    are gathered into G_act = ``active_capacity`` entries first (:mod:`cusgs_jax.model.active`),
+    so projection, sorting, binning and compositing pay for the active ones only.
 
     Args:
+      gaussians: decoded Gaussians [G].
+      active_capacity: static G_act (default G: nothing can be dropped).
+      pair_capacity: static tile-pair capacity (default ``splat.max_pairs_per_gaussian`` per
+        active entry, :func:`~cusgs_jax.training.capacity.max_pairs`).
+      means2d_delta: [G_act, 2] or None (differentiate with respect to it for ∂L/∂μ_2D).
       extra_channels: [G, Q] or None, composited in the same pass after RGB
         (background 0), e.g. the feature queries; ``image`` is then [H, W, 3+Q].
+    Returns:
+      (the render of the compacted Gaussians — per-Gaussian fields [G_act]; ``expand_render``
+      maps them back to [G] —, the :class:`~cusgs_jax.model.active.ActiveSet`).
     """
     num = gaussians.means.shape[0]
-    colors, background = gaussians.colors, jnp.asarray(cfg.background, jnp.float32)
+    active_capacity = num if active_capacity is None else int(active_capacity)
+    if pair_capacity is None:
+        pair_capacity = max_pairs(cfg.max_pairs_per_gaussian, active_capacity)
+    chosen = select_active(gaussians.active, active_capacity)
+    compact = compact_gaussians(gaussians, chosen)
+    colors, background = compact.colors, jnp.asarray(cfg.background, jnp.float32)
     if extra_channels is not None:
-        colors = jnp.concatenate([colors, extra_channels], axis=-1)
+        colors = jnp.concatenate([colors, gather_active(extra_channels, chosen)], axis=-1)
         background = jnp.concatenate([background, jnp.zeros(extra_channels.shape[-1], jnp.float32)])
-    return rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, colors,
-                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
-                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                     max_pairs=max_pairs(cfg.max_pairs_per_gaussian, num), means2d_delta=means2d_delta)
+    out = rasterize(compact.means, compact.quats, compact.scales, compact.opacities, colors,
+                    camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
+                    antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
+                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta)
+    return out, chosen
 
 
-def view_queries(nets: dict, anchors: AnchorState, view: VisibleSlots, camera: Camera, appearance_index,
-                 cfg: Config) -> jax.Array:
-    """[S·N, Q] per-Gaussian feature queries of the decoded (gathered) anchors."""
-    gathered = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
-    direction = anchors.centers[view.slots] - camera.center
-    direction = direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
+def view_queries(nets: dict, rows, centers: jax.Array, camera: Camera, appearance_index, cfg: Config) -> jax.Array:
+    """[S·N, Q] per-Gaussian feature queries of the gathered anchor rows [S] (:func:`gather_visible`)."""
     appearance = nets["appearance"][appearance_index] if cfg.model.appearance else None
-    return decode_queries(nets.get("queries"), gathered, direction, appearance)
+    return decode_queries(nets.get("queries"), rows, view_directions(centers, camera.center), appearance)
+
+
+def work_metrics(view: VisibleSlots, chosen: ActiveSet, out: RenderOutput) -> dict:
+    """What one view needed and what did not fit (the keys :meth:`Capacities.grown` reads)."""
+    return dict(visible_anchors=jnp.sum(view.valid), dropped_anchors=view.overflow,
+                active_gaussians=chosen.count, dropped_gaussians=chosen.overflow,
+                pairs=out.num_pairs, dropped_pairs=out.overflow)
 
 
 def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_index, cfg: Config,
-                 banks: dict | None = None) -> tuple[RenderOutput, dict]:
-    """Decode every visible slot at ``camera`` and rasterise (traceable; ``cfg`` from :func:`render_config`).
+                 capacities: Capacities, banks: dict | None = None) -> tuple[RenderOutput, dict, dict]:
+    """Decode the visible slots at ``camera`` and rasterise the active Gaussians (traceable).
 
     Returns:
       (RenderOutput with ``image`` [H, W, 3] — [H, W, 3+Q] when ``banks`` is given —, features
-      {model: [H, W, D]} retrieved through the memory heads, or {} without ``banks``).
+      {model: [H, W, D]} retrieved through the memory heads, or {} without ``banks``,
+      :func:`work_metrics`).
     """
-    gaussians, view = decode_view(nets, anchors, camera, appearance_index, cfg.model)
-    queries = None if banks is None else view_queries(nets, anchors, view, camera, appearance_index, cfg)
-    out = render_gaussians(gaussians, camera, cfg.splat, extra_channels=queries)
+    model = cfg.model
+    view = visible_slots(anchors, camera, num_slots=capacities.visible_slots(anchors.capacity),
+                         margin=model.frustum_margin)
+    rows, centers, decoded = gather_visible(anchors, view)
+    gaussians = decode_rows(nets, rows, centers, decoded, camera, appearance_index, model)
+    queries = None if banks is None else view_queries(nets, rows, centers, camera, appearance_index, cfg)
+    out, chosen = render_gaussians(gaussians, camera, cfg.splat,
+                                   active_capacity=capacities.active_gaussians(anchors.capacity, model.n_offsets),
+                                   pair_capacity=capacities.pairs(anchors.capacity, model.n_offsets),
+                                   extra_channels=queries)
     features = {} if banks is None else retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
-    return out, features
+    return out, features, work_metrics(view, chosen, out)
 
 
-def render_config(cfg: Config) -> Config:
-    """The config for rendering a :func:`cusgs_jax.model.anchors.compact` model (every slot decoded)."""
-    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, visible_fraction=1.0))
-
-
-def make_render_fn(cfg: Config) -> ExactRender:
+def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1],)``.
 
     Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`): every
-    slot is decoded, and a render whose tile pairs would overflow is redone with
-    a larger capacity (:class:`~cusgs_jax.training.capacity.ExactRender`), so the
-    image is always exact.
+    slot is decoded (frustum-culled ones masked), and a render that would drop
+    active Gaussians or tile pairs is redone with larger capacities
+    (:class:`~cusgs_jax.training.capacity.ExactRender`), so the image is always exact.
+    ``capacities``: the first ones (default :meth:`Capacities.every_slot`).
     """
-    def build(cfg: Config):
-        cfg = render_config(cfg)
-
+    def build(capacities: Capacities):
         @jax.jit
         def render(anchors, nets, camera, appearance_index):
-            out, _ = render_model(anchors, nets, camera, appearance_index, cfg)
-            return jnp.clip(out.image, 0.0, 1.0), out.overflow, out.num_pairs
+            out, _, work = render_model(anchors, nets, camera, appearance_index, cfg, capacities)
+            return jnp.clip(out.image, 0.0, 1.0), work
 
         return render
 
-    return ExactRender(build, cfg)
+    return ExactRender(build, _every_slot(cfg, capacities), cfg.model.n_offsets)
 
 
-def make_feature_render_fn(cfg: Config) -> ExactRender:
+def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``.
 
     Like :func:`make_render_fn`: every slot decoded, never a truncated render.
     """
-    def build(cfg: Config):
-        cfg = render_config(cfg)
-
+    def build(capacities: Capacities):
         @jax.jit
         def render(anchors, nets, camera, appearance_index, banks):
-            out, features = render_model(anchors, nets, camera, appearance_index, cfg, banks)
-            return jnp.clip(out.image[..., :3], 0.0, 1.0), features, out.overflow, out.num_pairs
+            out, features, work = render_model(anchors, nets, camera, appearance_index, cfg, capacities, banks)
+            return jnp.clip(out.image[..., :3], 0.0, 1.0), features, work
 
         return render
 
-    return ExactRender(build, cfg)
+    return ExactRender(build, _every_slot(cfg, capacities), cfg.model.n_offsets)
+
+
+def _every_slot(cfg: Config, capacities: Capacities | None) -> Capacities:
+    """Capacities for a compacted model: every slot decoded (the given active and pair capacities kept)."""
+    if capacities is None:
+        return Capacities.every_slot(cfg)
+    return dataclasses.replace(capacities, visible_fraction=1.0)

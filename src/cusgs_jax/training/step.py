@@ -1,9 +1,21 @@
-"""One jitted training step: decode → rasterize → loss → masked optax update → statistics.
+"""One jitted training step: cull → decode → compact → rasterize → loss → update → statistics.
 
-``make_train_step(cfg, tx, strategies)`` closes over the static configuration
-(nothing in it is traced) and returns ``step(state, batch) -> (state, metrics)``,
-jitted with the state donated. Naming (:mod:`cusgs_jax.types`): A anchor
-capacity, S visible slots, N offsets, G = S·N, H×W image.
+``make_train_step(cfg, tx, strategies, capacities)`` closes over the static configuration
+and capacities (nothing in them is traced) and returns ``step(state, batch) -> (state,
+metrics)``, jitted with the state donated. Naming (:mod:`cusgs_jax.types`): A anchor
+capacity, S visible slots, N offsets, G = S·N decoded Gaussians, G_act active Gaussians,
+B views per step, H×W image.
+
+What a step pays for follows what the view shows:
+
+* the frustum gather decodes S slots (not A);
+* only the G_act Gaussians that pass the opacity mask are projected, sorted, binned and
+  composited (:mod:`cusgs_jax.model.active`), with a pair capacity per active Gaussian;
+* the loss is differentiated with respect to the S gathered anchor rows, so the anchors'
+  gradients have S rows, and the update (``optim.sparse``, the default) touches only those
+  rows of the parameters and Adam moments (gsplat's ``visible_adam``): the finite check and
+  the apply-or-keep select are O(S) too. ``optim.sparse=false`` scatters the S rows into a
+  dense [A] gradient and runs Adam over every alive row, as before.
 """
 
 from __future__ import annotations
@@ -14,38 +26,80 @@ import jax.numpy as jnp
 from cusgs_jax import losses
 from cusgs_jax.config import Config
 from cusgs_jax.densify.base import Strategy, ViewRecord
-from cusgs_jax.model.decode import decode_view, num_visible_slots
+from cusgs_jax.model.active import expand_render, scatter_back
+from cusgs_jax.model.anchors import is_per_anchor
+from cusgs_jax.model.decode import decode_rows, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
-from cusgs_jax.training.render import render_gaussians, view_queries
+from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training.render import render_gaussians, view_queries, work_metrics
 from cusgs_jax.training.state import TrainState
 
 
-def _loss_fn(cfg: Config):
-    """``loss(trainable, delta, anchors, batch, key) -> (loss, aux)`` for the configuration."""
-    features = cfg.features
+def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
+    """``one(trainable, anchors, batch, key) -> (loss, grads, parts)`` for one view.
 
-    def loss_fn(trainable, delta, anchors, batch, key):
-        anchors = anchors.replace(params=trainable["anchor"])
+    ``grads``: the trainable tree's gradient with the anchor rows of the view's S visible
+    slots only ({"anchor": AnchorParams [S, …], networks dense}). ``parts``: what the record,
+    the metrics and the update need (the visible slots, decoded Gaussians, the render with its
+    per-Gaussian fields in decoded order, ∂L/∂μ_2D [G, 2], the loss terms, the work counts).
+    """
+    model, features = cfg.model, cfg.features
+    num_slots = capacities.visible_slots(anchor_capacity)
+    active_capacity = capacities.active_gaussians(anchor_capacity, model.n_offsets)
+    pair_capacity = capacities.pairs(anchor_capacity, model.n_offsets)
+
+    def loss_fn(local, delta, centers, decoded, batch, key):
         camera = batch["camera"]
-        gaussians, view = decode_view(trainable, anchors, camera, batch["index"], cfg.model)
+        gaussians = decode_rows(local, local["anchor"], centers, decoded, camera, batch["index"], model)
         queries = None
         if features.enabled:  # static: a scene without feature models traces none of this
-            queries = view_queries(trainable, anchors, view, camera, batch["index"], cfg)
-        out = render_gaussians(gaussians, camera, cfg.splat, delta, queries)
+            queries = view_queries(local, local["anchor"], centers, camera, batch["index"], cfg)
+        out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
+                                       pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
                                         l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
                                         volume_weight=cfg.loss.volume_weight)
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
-                                                                trainable["memory"], batch["banks"], key, features)
+                                                                local["memory"], batch["banks"], key, features)
             loss = loss + features.weight * feature_total
             terms.update(feature_terms, feature=feature_total)
-        return loss, (out, gaussians, view, terms)
+        return loss, (out, gaussians, chosen, terms)
 
-    return loss_fn
+    def one(trainable, anchors, batch, key):
+        camera = batch["camera"]
+        view = visible_slots(anchors, camera, num_slots=num_slots, margin=model.frustum_margin)
+        local = dict(trainable, anchor=jax.tree_util.tree_map(lambda x: x[view.slots], trainable["anchor"]))
+        centers, decoded = anchors.centers[view.slots], anchors.alive[view.slots] & view.valid
+        delta = jnp.zeros((active_capacity, 2), jnp.float32)
+        (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
+            loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key)
+        mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
+        parts = dict(view=view, gaussians=gaussians, render=expand_render(out, chosen),
+                     grad2d=scatter_back(grad2d, chosen), terms=terms, work=work_metrics(view, chosen, out), mse=mse)
+        return loss, grads, parts
+
+    return one
 
 
-def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
+def _record(parts: dict, latent_grad, capacity: int, camera, step, finite) -> ViewRecord:
+    return ViewRecord(slots=parts["view"], gaussians=parts["gaussians"], render=parts["render"],
+                      grad2d=parts["grad2d"], latent_grad=latent_grad, capacity=capacity,
+                      width=camera.width, height=camera.height, step=step, finite=finite)
+
+
+def _metrics(loss, finite, parts: dict, reduce) -> dict:
+    """Step metrics; ``reduce`` folds a per-view value over the batch (identity for one view)."""
+    work = parts["work"]
+    mse = reduce(parts["mse"], jnp.mean)
+    terms = parts["terms"]
+    return dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
+                **{k: reduce(v, jnp.max) for k, v in work.items()},
+                loss_image=reduce(terms["loss"], jnp.mean),
+                **{f"loss_{k}": reduce(v, jnp.mean) for k, v in terms.items() if k != "loss"})
+
+
+def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None):
     """One jitted, state-donating training step.
 
     The returned ``step(state, batch)`` takes ``batch = {"image": [H, W, 3]
@@ -56,43 +110,43 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
     and optimiser state untouched and increments ``state.skipped``. Every
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
 
+    ``capacities``: the static work capacities (:class:`~cusgs_jax.training.capacity.Capacities`,
+    owned and grown by the caller; default: the config's first guesses).
+
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
     [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``
     shared) and the step is :func:`make_batched_step`'s.
 
     **No truncated step.** When the view has more visible anchors than the
-    static visible slots or more tile pairs than the pair capacity, the step
-    changes nothing at all (not even ``state.step``) and reports the shortfall
-    in ``metrics["dropped_anchors"]`` / ``metrics["dropped_pairs"]``; the caller
-    grows the capacity and replays the same batch
-    (:mod:`cusgs_jax.training.capacity`).
+    static visible slots, more active Gaussians than G_act or more tile pairs than
+    the pair capacity, the step changes nothing at all (not even ``state.step``)
+    and reports the shortfall in ``metrics["dropped_anchors"]`` /
+    ``["dropped_gaussians"]`` / ``["dropped_pairs"]``; the caller grows the
+    capacities (:meth:`Capacities.grown`) and replays the same batch.
     """
+    capacities = Capacities.from_config(cfg) if capacities is None else capacities
     if cfg.train.batch_size > 1:
-        return make_batched_step(cfg, tx, strategies)
-    loss_fn = _loss_fn(cfg)
+        return make_batched_step(cfg, tx, strategies, capacities)
 
     def step(state: TrainState, batch):
         camera = batch["camera"]
         capacity = state.anchors.capacity
-        delta = jnp.zeros((num_visible_slots(capacity, cfg.model.visible_fraction) * cfg.model.n_offsets, 2),
-                          jnp.float32)
+        one = _view_pass(cfg, capacities, capacity)
         key = jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), state.step)
-        trainable = state.trainable
-        (loss, (out, gaussians, view, terms)), (grads, grad2d) = jax.value_and_grad(
-            loss_fn, argnums=(0, 1), has_aux=True)(trainable, delta, state.anchors, batch, key)
-        finite = _all_finite(loss, grads)
-        complete = (view.overflow == 0) & (out.overflow == 0)  # nothing was left out of this view
-        record = ViewRecord(slots=view, gaussians=gaussians, render=out, grad2d=grad2d,
-                            latent_grad=grads["anchor"].latent[view.slots], capacity=capacity,
-                            width=camera.width, height=camera.height, step=state.step, finite=finite & complete)
+        loss, grads, parts = one(state.trainable, state.anchors, batch, key)
+        finite = _all_finite(loss, grads)  # O(S): the anchor gradients have S rows
+        work = parts["work"]
+        complete = (work["dropped_anchors"] == 0) & (work["dropped_gaussians"] == 0) & (work["dropped_pairs"] == 0)
+        record = _record(parts, grads["anchor"].latent, capacity, camera, state.step, finite & complete)
         densify = {s.name: s.accumulate(state.densify[s.name], record) for s in strategies}  # gated by record.finite
-        mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
-        metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
-                       visible_anchors=jnp.sum(view.valid), dropped_anchors=view.overflow,
-                       pairs=out.num_pairs, dropped_pairs=out.overflow,
-                       loss_image=terms["loss"], **{f"loss_{k}": v for k, v in terms.items() if k != "loss"})
-        return _apply(state, tx, grads, finite, complete, densify), metrics
+        metrics = _metrics(loss, finite, parts, lambda v, _: v)
+        view = parts["view"]
+        if cfg.optim.sparse:
+            state = _apply_rows(state, tx, grads, view.slots, view.valid, finite & complete)
+        else:
+            state = _apply(state, tx, _dense(grads, view.slots, view.valid, capacity), finite & complete)
+        return _finish(state, finite, complete, densify), metrics
 
     return jax.jit(step, donate_argnums=0)
 
@@ -101,9 +155,25 @@ def _all_finite(loss, grads) -> jax.Array:
     return jnp.isfinite(loss) & jnp.all(jnp.array([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
 
 
-def _apply(state: TrainState, tx, grads, finite, complete, densify) -> TrainState:
-    """The masked optax update: applied only when finite and complete; dead anchor slots never move."""
-    apply = finite & complete
+def _scatter_index(slots, valid, capacity: int):
+    """[S] row of each visible slot, ``capacity`` (dropped by ``mode="drop"``) for padding entries."""
+    return jnp.where(valid, slots, capacity)
+
+
+def _dense(grads, slots, valid, capacity: int):
+    """The gradient with the anchor rows [S] scattered into the anchor capacity [A] (zero elsewhere)."""
+    index = _scatter_index(slots, valid, capacity)
+    anchor = jax.tree_util.tree_map(
+        lambda g: jnp.zeros((capacity,) + g.shape[1:], g.dtype).at[index].set(g, mode="drop"), grads["anchor"])
+    return dict(grads, anchor=anchor)
+
+
+def _select(apply, new, old):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(apply, a, b), new, old)
+
+
+def _apply(state: TrainState, tx, grads, apply) -> TrainState:
+    """Dense masked optax update: applied only when ``apply``; dead anchor slots never move."""
     trainable = state.trainable
     updates, new_opt = tx.update(grads, state.opt_state, trainable)
     # dead anchor slots never move (their Adam moments may still be non-zero)
@@ -111,13 +181,51 @@ def _apply(state: TrainState, tx, grads, finite, complete, densify) -> TrainStat
     updates["anchor"] = jax.tree_util.tree_map(
         lambda u: jnp.where(alive.reshape((-1,) + (1,) * (u.ndim - 1)), u, 0.0), updates["anchor"])
     new_trainable = jax.tree_util.tree_map(lambda p, u: p + u, trainable, updates)
-    keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(apply, a, b), new, old)  # noqa: E731
-    return state.with_trainable(keep(new_trainable, trainable)).replace(
-        opt_state=keep(new_opt, state.opt_state), densify=densify, step=state.step + complete.astype(jnp.int32),
-        skipped=state.skipped + (complete & ~finite).astype(jnp.int32))
+    return state.with_trainable(_select(apply, new_trainable, trainable)).replace(
+        opt_state=_select(apply, new_opt, state.opt_state))
 
 
-def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
+def _apply_rows(state: TrainState, tx, grads, slots, valid, apply) -> TrainState:
+    """Row-sparse optax update over the S visible slots (gsplat ``visible_adam`` / selective Adam).
+
+    Every per-anchor leaf of the parameters and of the optimiser state (found by type,
+    :func:`cusgs_jax.model.anchors.is_per_anchor`) is gathered at ``slots``, the optimiser
+    runs on those rows and the networks, and the rows are written back — only the
+    ``valid`` ones, and only when ``apply``. Adam is elementwise, so a seen row gets exactly
+    the dense update; an unseen row keeps its parameters and moments (the dense update would
+    decay its moments and keep moving it on momentum). Step counts advance as in the dense
+    update. Cost O(S) per per-anchor leaf.
+
+    Args:
+      grads: {"anchor": AnchorParams [S, …], networks}; slots: [S] int32; valid: [S] bool.
+    """
+    capacity = state.anchors.capacity
+    take = lambda tree: jax.tree_util.tree_map(  # noqa: E731
+        lambda node: jax.tree_util.tree_map(lambda x: x[slots], node) if is_per_anchor(node) else node,
+        tree, is_leaf=is_per_anchor)
+    trainable = state.trainable
+    rows, opt_rows = take(trainable), take(state.opt_state)
+    updates, new_opt_rows = tx.update(grads, opt_rows, rows)
+    new_rows = jax.tree_util.tree_map(lambda p, u: p + u, rows, updates)
+    index = jnp.where(apply, _scatter_index(slots, valid, capacity), capacity)
+
+    def put(full, new):
+        def visit(full_node, new_node):
+            if is_per_anchor(full_node):
+                return jax.tree_util.tree_map(lambda f, n: f.at[index].set(n, mode="drop"), full_node, new_node)
+            return jax.tree_util.tree_map(lambda f, n: jnp.where(apply, n, f), full_node, new_node)
+
+        return jax.tree_util.tree_map(visit, full, new, is_leaf=is_per_anchor)
+
+    return state.with_trainable(put(trainable, new_rows)).replace(opt_state=put(state.opt_state, new_opt_rows))
+
+
+def _finish(state: TrainState, finite, complete, densify) -> TrainState:
+    return state.replace(densify=densify, step=state.step + complete.astype(jnp.int32),
+                         skipped=state.skipped + (complete & ~finite).astype(jnp.int32))
+
+
+def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None):
     """The step on B = ``train.batch_size`` views, sharded over the views mesh (B > 1).
 
     ``step(state, batch)`` with the batch of :func:`make_train_step` (leading view axis B).
@@ -125,13 +233,15 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
     ``"views"`` axis of :func:`cusgs_jax.training.parallel.view_mesh`, B/D views per device,
     one after another with ``lax.map``: one view's intermediates in memory at a time, and the
     same per-view program as on another device count — ``vmap`` measured further apart);
-    the loss is the mean of the B view losses, its gradient the mean of theirs (a ``psum``
-    over the mesh), applied once by the replicated optimiser. Each view's record — its own
-    ∂L_b/∂μ_2D and ∂L_b/∂z, as a single-view step would see them — is added to the
-    densification statistics in view order, so growing and pruning count every view
-    (gsplat's strategies rescale the batch-mean gradient by the number of cameras for the
-    same reason). The step is complete only when no view dropped work; the metrics report
-    the worst view's shortfall. The view-b key is ``fold_in(key(step), b)``.
+    the loss is the mean of the B view losses, its gradient the mean of theirs (each view's
+    S anchor rows scattered into [A], then a ``psum`` over the mesh), applied once by the
+    replicated optimiser — densely over the alive rows whatever ``optim.sparse`` says (the
+    views see different slots). Each view's record — its own ∂L_b/∂μ_2D and ∂L_b/∂z, as a
+    single-view step would see them — is added to the densification statistics in view
+    order, so growing and pruning count every view (gsplat's strategies rescale the
+    batch-mean gradient by the number of cameras for the same reason). The step is complete
+    only when no view dropped work; the metrics report the worst view's shortfall. The
+    view-b key is ``fold_in(key(step), b)``.
 
     Inputs are placed on the mesh before the jitted call (state replicated, views split), so
     arrays coming back from host-side growing and pruning never change the compiled step.
@@ -140,54 +250,48 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
 
     from cusgs_jax.training import parallel
 
-    loss_fn = _loss_fn(cfg)
+    capacities = Capacities.from_config(cfg) if capacities is None else capacities
     mesh = parallel.view_mesh(cfg)
     batch_size = cfg.train.batch_size
-
-    def local_views(trainable, anchors, views, banks, keys, deltas):
-        """On one device: its B/D views' losses, aux and own gradients, and the gradient sum over the mesh."""
-        def one(view, key, delta):
-            batch = dict(view, banks=banks) if banks is not None else view
-            return jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(trainable, delta, anchors, batch, key)
-
-        (loss, aux), (grads, grad2d) = jax.lax.map(lambda args: one(*args), (views, keys, deltas))
-        latent_grad = jax.vmap(lambda g, slots: g[slots])(grads["anchor"].latent, aux[2].slots)
-        total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), grads)
-        return loss, aux, grad2d, latent_grad, total
-
-    sharded = jax.shard_map(local_views, mesh=mesh, in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS),
-                                                              P(parallel.AXIS)),
-                            out_specs=(P(parallel.AXIS),) * 4 + (P(),),
-                            check_vma=False)  # the splatter's scans carry values that vary over views
 
     def step(state: TrainState, batch):
         camera = batch["camera"]
         capacity = state.anchors.capacity
-        num_gaussians = num_visible_slots(capacity, cfg.model.visible_fraction) * cfg.model.n_offsets
-        deltas = jnp.zeros((batch_size, num_gaussians, 2), jnp.float32)
+        one = _view_pass(cfg, capacities, capacity)
+
+        def local_views(trainable, anchors, views, banks, keys):
+            """On one device: its B/D views' losses, parts and row gradients, and the dense gradient sum."""
+            def visit(args):
+                view, key = args
+                loss, grads, parts = one(trainable, anchors, dict(view, banks=banks) if banks is not None else view,
+                                         key)
+                slots = parts["view"]
+                return loss, grads, parts, _dense(grads, slots.slots, slots.valid, capacity)
+
+            loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
+            total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), dense)
+            return loss, grads["anchor"].latent, parts, total
+
+        sharded = jax.shard_map(local_views, mesh=mesh, in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS)),
+                                out_specs=(P(parallel.AXIS),) * 3 + (P(),),
+                                check_vma=False)  # the splatter's scans carry values that vary over views
         key = jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), state.step)
         keys = jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch_size))
         views = {k: v for k, v in batch.items() if k != "banks"}
-        losses, (out, gaussians, view, terms), grad2d, latent_grad, total = sharded(
-            state.trainable, state.anchors, views, batch.get("banks"), keys, deltas)
-        loss = jnp.mean(losses)
+        losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, views, batch.get("banks"), keys)
+        loss = jnp.mean(losses_b)
         grads = jax.tree_util.tree_map(lambda g: g / batch_size, total)
         finite = _all_finite(loss, grads)
-        complete = jnp.all(view.overflow == 0) & jnp.all(out.overflow == 0)
+        work = parts["work"]
+        complete = (jnp.all(work["dropped_anchors"] == 0) & jnp.all(work["dropped_gaussians"] == 0)
+                    & jnp.all(work["dropped_pairs"] == 0))
         densify = dict(state.densify)
         for b in range(batch_size):  # statistics of every view, in view order (static unroll)
             pick = lambda tree: jax.tree_util.tree_map(lambda x: x[b], tree)  # noqa: E731, B023
-            record = ViewRecord(slots=pick(view), gaussians=pick(gaussians), render=pick(out), grad2d=grad2d[b],
-                                latent_grad=latent_grad[b], capacity=capacity, width=camera.width,
-                                height=camera.height, step=state.step, finite=finite & complete)
+            record = _record(pick(parts), latent_grad[b], capacity, camera, state.step, finite & complete)
             densify = {s.name: s.accumulate(densify[s.name], record) for s in strategies}
-        mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
-        metrics = dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
-                       visible_anchors=jnp.max(jnp.sum(view.valid, axis=-1)), dropped_anchors=jnp.max(view.overflow),
-                       pairs=jnp.max(out.num_pairs), dropped_pairs=jnp.max(out.overflow),
-                       loss_image=jnp.mean(terms["loss"]),
-                       **{f"loss_{k}": jnp.mean(v) for k, v in terms.items() if k != "loss"})
-        return _apply(state, tx, grads, finite, complete, densify), metrics
+        metrics = _metrics(loss, finite, parts, lambda v, fold: fold(v))
+        return _finish(_apply(state, tx, grads, finite & complete), finite, complete, densify), metrics
 
     jitted = jax.jit(step, donate_argnums=0)
 
@@ -198,3 +302,4 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...]):
     placed_step.jitted = jitted  # for compile counts (``jitted._cache_size()``)
     placed_step.mesh = mesh
     return placed_step
+

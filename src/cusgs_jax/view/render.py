@@ -119,7 +119,10 @@ class ViewRenderer:
     def __init__(self, cfg):
         from cusgs_jax.training.capacity import ExactRender
 
-        self._render = ExactRender(_build, cfg)
+        from cusgs_jax.training.capacity import Capacities
+
+        self._render = ExactRender(lambda capacities: _build(cfg, capacities), Capacities.every_slot(cfg),
+                                   cfg.model.n_offsets)
 
     def render(self, model: ViewModel, camera, *, features: bool = False):
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
@@ -131,20 +134,18 @@ class ViewRenderer:
                      features={name: np.asarray(f) for name, f in feats.items()})
 
 
-def _build(cfg):
-    """``build(cfg)`` for :class:`~cusgs_jax.training.capacity.ExactRender`: ``render(anchors, nets, camera,
-    banks or None) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, dropped, pairs)`` with the
+def _build(cfg, capacities):
+    """``build(capacities)`` for :class:`~cusgs_jax.training.capacity.ExactRender`: ``render(anchors, nets, camera,
+    banks or None) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, work metrics)`` with the
     mean appearance embedding (index 0 of :func:`mean_appearance_nets`)."""
     import jax
     import jax.numpy as jnp
 
-    from cusgs_jax.training.render import render_config, render_model
-
-    cfg = render_config(cfg)
+    from cusgs_jax.training.render import render_model
 
     @jax.jit
     def render(anchors, nets, camera, banks):
-        out, feats = render_model(anchors, nets, camera, jnp.int32(0), cfg, banks)
-        return jnp.clip(out.image[..., :3], 0.0, 1.0), out.depth, out.alpha, feats, out.overflow, out.num_pairs
+        out, feats, work = render_model(anchors, nets, camera, jnp.int32(0), cfg, capacities, banks)
+        return jnp.clip(out.image[..., :3], 0.0, 1.0), out.depth, out.alpha, feats, work
 
     return render
