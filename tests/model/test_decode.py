@@ -135,7 +135,8 @@ def test_camera_center():
 @jax.jit(static_argnums=3)
 def _decode_and_reference(nets, anchors, camera, cfg):
     """decode_view with appearance index 2, and decode_gaussians on the slots it gathered."""
-    gaussians, view = decode_view(nets, anchors, camera, jnp.int32(2), cfg)
+    gaussians, view = decode_view(nets, anchors, camera, jnp.int32(2), cfg,
+                                  num_visible_slots(anchors.capacity, cfg.visible_fraction))
     gathered = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
     want = decode_gaussians(nets["decoder"], gathered, anchors.centers[view.slots], view.valid, camera.center,
                             nets["appearance"][2], cfg.decoder())
@@ -164,7 +165,7 @@ def test_decode_view_gathers_visible_alive_slots():
 
 
 def test_decode_view_appearance_changes_colour_only():
-    run = jax.jit(decode_view, static_argnums=4)
+    run = jax.jit(lambda *args: decode_view(*args, 8), static_argnums=4)
     cfg, anchors, nets, camera = _view_setup(1.0)
     a, _ = run(nets, anchors, camera, jnp.int32(0), cfg)
     b, _ = run(nets, anchors, camera, jnp.int32(3), cfg)
@@ -180,7 +181,7 @@ def test_decode_view_appearance_changes_colour_only():
 
 def test_visible_slots_jits_once_over_alive_masks():
     cfg, anchors, _, camera = _view_setup(0.5)
-    run = jax.jit(lambda an, cam: visible_slots(an, cam, visible_fraction=0.5, margin=cfg.frustum_margin))
+    run = jax.jit(lambda an, cam: visible_slots(an, cam, num_slots=4, margin=cfg.frustum_margin))
     for kill in ([], [1], [1, 2, 4, 7]):
         alive = np.asarray(anchors.alive).copy()
         alive[kill] = False

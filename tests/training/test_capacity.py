@@ -25,23 +25,50 @@ def test_pair_capacity_grows_by_half_steps_with_headroom():
     assert capacity.grown_pairs_per_gaussian(3.0, needed_pairs=10, num_gaussians=10) == 4.5  # ≥ 1.5×
 
 
-def test_grow_for_grows_the_slots_first_then_the_pairs():
-    cfg = Config().replace(model=dict(visible_fraction=0.25))
-    both = dict(visible_anchors=250, dropped_anchors=100, pairs=900, dropped_pairs=50)
-    grown = capacity.grow_for(cfg, both, capacity=1000, num_gaussians=2500)
-    assert grown.model.visible_fraction > 0.25 and grown.splat == cfg.splat  # the replay measures pairs anew
-    pairs_only = dict(visible_anchors=250, dropped_anchors=0, pairs=9000, dropped_pairs=5000)
-    grown = capacity.grow_for(cfg, pairs_only, capacity=1000, num_gaussians=250)
-    assert grown.model == cfg.model and grown.splat.max_pairs_per_gaussian > cfg.splat.max_pairs_per_gaussian
-    assert capacity.grow_for(cfg, dict(visible_anchors=3, dropped_anchors=0, pairs=1, dropped_pairs=0), 10, 40) == cfg
+def test_active_fraction_grows_in_sixteenths_with_headroom_and_stops_at_one():
+    grown = capacity.grown_active_fraction(0.25, needed=400, decoded=1000)
+    assert grown * 1000 >= 1.15 * 400 and grown * capacity.ACTIVE_BUCKET == int(grown * capacity.ACTIVE_BUCKET)
+    assert capacity.grown_active_fraction(0.25, needed=251, decoded=1000) == 0.3125  # at least one bucket
+    assert capacity.grown_active_fraction(0.9, needed=1000, decoded=1000) == 1.0
 
 
-def test_saved_capacities_are_restored_but_never_shrink_the_configured_ones():
-    grown = Config().replace(model=dict(visible_fraction=0.875), splat=dict(max_pairs_per_gaussian=6.0))
-    saved = capacity.capacities(grown)
-    assert capacity.with_capacities(Config(), saved) == grown
-    bigger = Config().replace(model=dict(visible_fraction=1.0))
-    assert capacity.with_capacities(bigger, saved).model.visible_fraction == 1.0
-    assert capacity.with_capacities(Config(), None) == Config()
+def test_capacities_give_static_sizes_that_follow_the_anchor_capacity():
+    caps = capacity.Capacities(visible_fraction=0.5, active_fraction=0.25, pairs_per_active=4.0)
+    assert caps.visible_slots(1000) == 500 and caps.active_gaussians(1000, 10) == 1250
+    assert caps.pairs(1000, 10) == 4 * 1250 + capacity.PAIR_SLACK
+    assert caps.visible_slots(2000) == 1000  # a grown anchor capacity keeps the fractions
+    assert capacity.Capacities(1.0, 1.0, 1.0).active_gaussians(3, 2) == 6  # never more than S·N
+    assert capacity.Capacities.from_config(Config()) == capacity.Capacities(
+        Config().model.visible_fraction, Config().splat.active_fraction, Config().splat.max_pairs_per_gaussian)
+    assert capacity.Capacities.every_slot(Config()).visible_fraction == 1.0
+
+
+def test_capacities_grow_the_slots_first_then_the_active_gaussians_then_the_pairs():
+    caps = capacity.Capacities(visible_fraction=0.25, active_fraction=0.25, pairs_per_active=3.0)
+    everything = dict(visible_anchors=250, dropped_anchors=100, active_gaussians=600, dropped_gaussians=70,
+                      pairs=900, dropped_pairs=50)
+    grown = caps.grown(everything, anchor_capacity=1000, n_offsets=10)
+    assert grown.visible_fraction > 0.25 and (grown.active_fraction, grown.pairs_per_active) == (0.25, 3.0)
+    active = dict(everything, dropped_anchors=0)
+    grown = caps.grown(active, anchor_capacity=1000, n_offsets=10)  # S·N = 2500, G_act = 625 < 670 needed
+    assert grown.active_fraction > 0.25 and (grown.visible_fraction, grown.pairs_per_active) == (0.25, 3.0)
+    assert grown.active_gaussians(1000, 10) >= 670
+    pairs_only = dict(active, dropped_gaussians=0, pairs=9000, dropped_pairs=5000)
+    grown = caps.grown(pairs_only, anchor_capacity=1000, n_offsets=10)
+    assert grown.pairs_per_active > 3.0 and grown.pairs(1000, 10) >= 14_000
+    assert caps.grown(dict(visible_anchors=3, dropped_anchors=0, active_gaussians=4, dropped_gaussians=0,
+                           pairs=1, dropped_pairs=0), 10, 4) == caps
+
+
+def test_saved_capacities_are_restored_but_never_shrink_the_first_ones():
+    first = capacity.Capacities.from_config(Config())
+    grown = capacity.Capacities(visible_fraction=0.875, active_fraction=0.5, pairs_per_active=9.0)
+    assert first.restored(grown.as_dict()) == grown
+    bigger = capacity.Capacities(1.0, 1.0, 20.0)
+    assert bigger.restored(grown.as_dict()) == bigger
+    assert first.restored(None) == first
+    # metadata written before compaction (pairs per decoded Gaussian) restores the slots only
+    old = first.restored({"visible_fraction": 0.875, "max_pairs_per_gaussian": 4.5})
+    assert old == capacity.Capacities(0.875, first.active_fraction, first.pairs_per_active)
     with pytest.raises(KeyError):
-        capacity.with_capacities(Config(), {"visible_fraction": 1.0})
+        first.restored({"max_pairs_per_gaussian": 1.0})

@@ -12,8 +12,9 @@ from cusgs_jax.config import Config
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, anchor_scores, prune_due
 from cusgs_jax.model.anchors import compact
-from cusgs_jax.model.decode import decode_view
-from cusgs_jax.training.render import make_render_fn, render_gaussians
+from cusgs_jax.model.decode import decode_view, num_visible_slots
+from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training.render import make_render_fn, render_gaussians, render_model
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
@@ -159,8 +160,8 @@ def _train_render(cfg):
 
     @jax.jit
     def render(anchors, nets, camera, index):
-        gaussians, _ = decode_view(nets, anchors, camera, index, cfg.model)
-        return jnp.clip(render_gaussians(gaussians, camera, cfg.splat).image, 0.0, 1.0)
+        out, _, _ = render_model(anchors, nets, camera, index, cfg, Capacities.from_config(cfg))
+        return jnp.clip(out.image, 0.0, 1.0)
 
     return render
 
@@ -178,8 +179,9 @@ def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
     trainable, anchors = jax.device_get(state0.trainable), state0.anchors
 
     def loss_of(p):
-        g, view = decode_view(p, anchors.replace(params=p["anchor"]), camera, batch["index"], cfg.model)
-        out = render_gaussians(g, camera, cfg.splat)
+        g, view = decode_view(p, anchors.replace(params=p["anchor"]), camera, batch["index"], cfg.model,
+                              num_visible_slots(anchors.capacity, cfg.model.visible_fraction))
+        out, _ = render_gaussians(g, camera, cfg.splat)
         loss, _ = losses.image_loss(out.image, batch["image"], g.scales, g.active, l1_weight=cfg.loss.l1_weight,
                                     ssim_weight=cfg.loss.ssim_weight, volume_weight=cfg.loss.volume_weight)
         return loss, (g, view)
@@ -287,29 +289,32 @@ def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)
 
 
-def test_a_step_that_would_drop_work_changes_nothing_and_the_grown_replay_is_exact():
-    """Too few visible slots and tile pairs: the step reports the shortfall and leaves the state as it was;
-    replayed with the capacities grown by the shell's rule it equals a step that never lacked room."""
-    from cusgs_jax.model.decode import num_visible_slots
+def test_a_step_that_would_drop_work_changes_nothing_and_the_grown_replay_is_exact(monkeypatch):
+    """Too few visible slots, active Gaussians and tile pairs: the step reports the shortfall and leaves the
+    state as it was; replayed with the capacities grown by the shell's rule it equals a step that never
+    lacked room."""
     from cusgs_jax.training import capacity
 
-    cfg = _cfg().replace(model=dict(visible_fraction=0.05), splat=dict(max_pairs_per_gaussian=0.05))
+    monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # the fixed slack alone holds this tiny view's pairs
+    cfg = _cfg()
     strategies, state, tx = _init(cfg)
     batch = _batch(3)
     before = _copy(state)
-    after, metrics = make_train_step(cfg, tx, strategies)(_copy(state), batch)
+    tight = Capacities(visible_fraction=0.05, active_fraction=0.05, pairs_per_active=0.05)
+    after, metrics = make_train_step(cfg, tx, strategies, tight)(_copy(state), batch)
     assert int(metrics["dropped_anchors"]) > 0
     for old, new in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after)):
         np.testing.assert_array_equal(np.asarray(old), np.asarray(new))  # not even state.step moved
-    grown, replays = cfg, 0
-    while int(metrics["dropped_anchors"]) or int(metrics["dropped_pairs"]):
-        gaussians = num_visible_slots(state.anchors.capacity, grown.model.visible_fraction) * grown.model.n_offsets
-        grown = capacity.grow_for(grown, jax.device_get(metrics), state.anchors.capacity, gaussians)
-        replayed, metrics = make_train_step(grown, tx, strategies)(_copy(state), batch)
+    grown, replays, kinds = tight, 0, set()
+    while int(metrics["dropped_anchors"]) or int(metrics["dropped_gaussians"]) or int(metrics["dropped_pairs"]):
+        kinds |= {k for k in ("dropped_anchors", "dropped_gaussians", "dropped_pairs") if int(metrics[k])}
+        grown = grown.grown(jax.device_get(metrics), state.anchors.capacity, cfg.model.n_offsets)
+        replayed, metrics = make_train_step(cfg, tx, strategies, grown)(_copy(state), batch)
         replays += 1
-    assert replays <= 4 and int(replayed.step) == 1 and int(replayed.skipped) == 0
-    roomy = cfg.replace(model=dict(visible_fraction=1.0), splat=dict(max_pairs_per_gaussian=50.0))
-    reference, ref_metrics = make_train_step(roomy, tx, strategies)(_copy(state), batch)
+    assert kinds == {"dropped_anchors", "dropped_gaussians", "dropped_pairs"}  # every capacity ran out once
+    assert replays <= 8 and int(replayed.step) == 1 and int(replayed.skipped) == 0
+    roomy = Capacities(visible_fraction=1.0, active_fraction=1.0, pairs_per_active=50.0)
+    reference, ref_metrics = make_train_step(cfg, tx, strategies, roomy)(_copy(state), batch)
     np.testing.assert_allclose(float(metrics["loss"]), float(ref_metrics["loss"]), rtol=1e-5)
     for a, b in zip(jax.tree_util.tree_leaves(replayed.anchors.params), jax.tree_util.tree_leaves(reference.anchors.params)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-5)

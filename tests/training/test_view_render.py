@@ -12,9 +12,11 @@ import pytest
 from cusgs_jax.config import Config
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.model.anchors import compact
-from cusgs_jax.model.decode import decode_view
+from cusgs_jax.model.decode import decode_view, gather_visible
+from cusgs_jax.splat import rasterize
 from cusgs_jax.model.field import retrieve
-from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, render_config, render_gaussians,
+from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, render_gaussians, render_model,
                                        view_queries)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.types import Camera
@@ -43,10 +45,11 @@ def _state(cfg, banks=None):
     return state.replace(anchors=state.anchors.replace(params=params, alive=jnp.asarray(alive)))
 
 
-def test_render_config_decodes_every_slot_and_changes_nothing_else():
-    cfg = render_config(CFG)
-    assert CFG.model.visible_fraction < 1.0 and cfg.model.visible_fraction == 1.0
-    assert cfg.replace(model=dict(visible_fraction=CFG.model.visible_fraction)) == CFG
+def test_evaluation_renders_decode_every_slot_and_keep_the_shells_other_capacities():
+    assert make_render_fn(CFG).capacities == Capacities.every_slot(CFG)
+    assert Capacities.every_slot(CFG).visible_fraction == 1.0 > CFG.model.visible_fraction
+    shell = Capacities(visible_fraction=0.5, active_fraction=0.75, pairs_per_active=9.0)
+    assert make_render_fn(CFG, shell).capacities == Capacities(1.0, 0.75, 9.0)
 
 
 def test_compact_render_equals_the_full_model_and_the_direct_path():
@@ -56,15 +59,19 @@ def test_compact_render_equals_the_full_model_and_the_direct_path():
     assert anchors.capacity < state.anchors.capacity
     (image,) = render(anchors, state.nets, CAMERA, jnp.int32(1))
     image = np.asarray(image)
-    assert image.shape == (H, W, 3) and render.growths == 0
+    assert image.shape == (H, W, 3)
     assert image.min() >= 0.0 and image.max() <= 1.0 and image.std() > 0.01  # something was drawn
     (full,) = render(state.anchors, state.nets, CAMERA, jnp.int32(1))
     np.testing.assert_allclose(np.asarray(full), image, atol=1e-6)
     # the train step's path at visible_fraction < 1 (no visible anchor dropped here) agrees
-    gaussians, view = decode_view(state.nets, state.anchors, CAMERA, jnp.int32(1), CFG.model)
-    assert int(view.overflow) == 0
-    direct = np.clip(np.asarray(render_gaussians(gaussians, CAMERA, CFG.splat).image), 0, 1)
-    np.testing.assert_allclose(direct, image, atol=1e-6)
+    out, _, work = render_model(state.anchors, state.nets, CAMERA, jnp.int32(1), CFG, Capacities.from_config(CFG))
+    assert int(work["dropped_anchors"]) == int(work["dropped_gaussians"]) == int(work["dropped_pairs"]) == 0
+    np.testing.assert_allclose(np.clip(np.asarray(out.image), 0, 1), image, atol=1e-6)
+    # and so does rasterising every decoded Gaussian without compaction (masked ones are culled)
+    gaussians, view = decode_view(state.nets, state.anchors, CAMERA, jnp.int32(1), CFG.model, state.anchors.capacity)
+    plain = rasterize(gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities, gaussians.colors,
+                      CAMERA.world_to_camera, CAMERA.K, W, H, tile_size=CFG.splat.tile_size)
+    np.testing.assert_allclose(np.clip(np.asarray(plain.image), 0, 1), image, atol=1e-6)
     # the appearance embedding matters
     (other,) = render(anchors, state.nets, CAMERA, jnp.int32(0))
     assert not np.allclose(np.asarray(other), image)
@@ -82,12 +89,12 @@ def test_feature_render_matches_rgb_and_retrieves_every_model(granularity):
     assert set(features) == {"a", "b"}
     assert features["a"].shape == (H, W, 3) and features["b"].shape == (H, W, 2)
     # the features are the memory read-out of the composited queries (eager vs jitted: float32 rounding)
-    full = render_config(cfg)
-    gaussians, view = decode_view(state.nets, anchors, CAMERA, jnp.int32(1), full.model)
-    queries = view_queries(state.nets, anchors, view, CAMERA, jnp.int32(1), full)
+    gaussians, view = decode_view(state.nets, anchors, CAMERA, jnp.int32(1), cfg.model, anchors.capacity)
+    rows, centers, _ = gather_visible(anchors, view)
+    queries = view_queries(state.nets, rows, centers, CAMERA, jnp.int32(1), cfg)
     assert queries.shape == (gaussians.means.shape[0], 10)
-    rendered = render_gaussians(gaussians, CAMERA, full.splat, extra_channels=queries).image[..., 3:]
-    expected = retrieve(state.nets["memory"], banks, rendered, full.features)
+    rendered = render_gaussians(gaussians, CAMERA, cfg.splat, extra_channels=queries)[0].image[..., 3:]
+    expected = retrieve(state.nets["memory"], banks, rendered, cfg.features)
     for name in ("a", "b"):
         assert np.all(np.isfinite(np.asarray(features[name])))
         np.testing.assert_allclose(np.asarray(features[name]), np.asarray(expected[name]), atol=1e-5)
@@ -100,10 +107,11 @@ def test_a_render_that_would_drop_tile_pairs_grows_its_capacity_and_is_exact(mon
     state = _state(CFG)
     anchors = compact(state.anchors)
     (exact,) = make_render_fn(CFG)(anchors, state.nets, CAMERA, jnp.int32(1))
-    tight = make_render_fn(CFG.replace(splat=dict(max_pairs_per_gaussian=0.01)))
-    # the first capacity cannot hold this view's pairs: the raw jitted render would drop some
-    raw = tight.build(tight.cfg)(anchors, state.nets, CAMERA, jnp.int32(1))
-    assert int(raw[-2]) > 0
+    tight = make_render_fn(CFG, Capacities(visible_fraction=1.0, active_fraction=0.05, pairs_per_active=0.01))
+    # the first capacities cannot hold this view's Gaussians and pairs: the raw jitted render would drop some
+    raw = tight.build(tight.capacities)(anchors, state.nets, CAMERA, jnp.int32(1))
+    assert int(raw[-1]["dropped_gaussians"]) > 0
     (image,) = tight(anchors, state.nets, CAMERA, jnp.int32(1))
-    assert tight.growths >= 1 and tight.cfg.splat.max_pairs_per_gaussian > 0.01
+    assert tight.growths >= 2 and tight.capacities.pairs_per_active > 0.01
+    assert tight.capacities.active_fraction > 0.05
     np.testing.assert_allclose(np.asarray(image), np.asarray(exact), atol=1e-6)

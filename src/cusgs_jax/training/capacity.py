@@ -41,7 +41,7 @@ ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 
 def max_pairs(pairs_per_gaussian: float, num_gaussians: int) -> int:
     """Static tile–Gaussian pair capacity for G = ``num_gaussians`` decoded Gaussians."""
-    return int(pairs_per_gaussian * num_gaussians) + PAIR_SLACK
+    return max(1, int(pairs_per_gaussian * num_gaussians) + PAIR_SLACK)
 
 
 def grown_pairs_per_gaussian(current: float, needed_pairs: int, num_gaussians: int) -> float:
