@@ -62,7 +62,7 @@ def _restore(run: pathlib.Path, scratch: str):
 def _prune_statistics(session) -> tuple[object, float]:
     """PruneStats over every training view once, from the trained parameters (which stay untouched)."""
     cfg, scene, idx = session.cfg, session.scene, session.train_idx
-    step = make_train_step(cfg, session.tx, session.strategies)
+    step = make_train_step(cfg, session.tx, session.strategies, session.capacities)
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     start = time.perf_counter()
     stats_state = session.state.replace(step=jnp.int32(cfg.prune.start))  # inside the statistics window

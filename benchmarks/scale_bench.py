@@ -26,7 +26,7 @@ point runs in a fresh subprocess (the script calls itself with
 3. breaks one step into stages, each its own jitted function on the same
    inputs (median of ``--stage-repeats`` calls after a compiling call):
    ``decode`` (``model.decode.decode_view``), ``project_sort``
-   (``splat.project.project_gaussians`` + ``splat.tiles.intersect_tiles``),
+   (``model.active`` compaction + ``splat.project.project_gaussians`` + ``splat.tiles.intersect_tiles``),
    ``composite_fwd`` (``splat.composite.composite_tiles``),
    ``loss_rest_fwd`` (forward loss minus those three: gathers, SSIM, …),
    ``backward`` (``value_and_grad`` of the step loss minus its forward) and
@@ -335,9 +335,8 @@ def _rss() -> dict:
 def short_run(spec: dict, workdir: str):
     """The glue to the app (kept in one place): a short real run, then a fresh step on its final state.
 
-    Returns ``(session, eval_result, info, step_fn, batches, loss_fn)`` where
-    ``loss_fn(trainable, delta, anchors, batch, key) -> (loss, aux)`` is the
-    step's loss.
+    Returns ``(session, eval_result, info, step_fn, batches)``; the step is built with the
+    session's grown capacities (``session.capacities``).
     """
     from cusgs_jax.app import run as app_run
     from cusgs_jax.config import Config
@@ -358,38 +357,9 @@ def short_run(spec: dict, workdir: str):
                 train_views=int(len(session.train_idx)), held_out_views=int(len(session.test_idx)))
     app_run.train(session)
     result = app_run.finalise(session)
-    step_fn = train_step.make_train_step(session.cfg, session.tx, session.strategies)
+    step_fn = train_step.make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
     batches = app_run._batches(session)
-    loss_fn = getattr(train_step, "_loss_fn", None)
-    loss_fn = loss_fn(session.cfg) if loss_fn is not None else _image_loss_fn(session.cfg)
-    return session, result, info, step_fn, batches, loss_fn
-
-
-def _image_loss_fn(cfg):
-    """Fallback step loss (RGB only) from public pieces, if training.step's private one moves."""
-    from cusgs_jax import losses
-    from cusgs_jax.model.decode import decode_view
-    from cusgs_jax.training.render import render_gaussians
-
-    def loss_fn(trainable, delta, anchors, batch, key):
-        anchors = anchors.replace(params=trainable["anchor"])
-        gaussians, view = decode_view(trainable, anchors, batch["camera"], batch["index"], cfg.model)
-        out = render_gaussians(gaussians, batch["camera"], cfg.splat, delta)
-        loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
-                                        l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
-                                        volume_weight=cfg.loss.volume_weight)
-        return loss, terms
-
-    return loss_fn
-
-
-def _max_pairs(per_gaussian: float, num_gaussians: int) -> int:
-    """The tile-pair capacity training.render gives the splatter."""
-    try:
-        from cusgs_jax.training.capacity import max_pairs
-    except ImportError:
-        return int(per_gaussian * num_gaussians) + 4096
-    return max_pairs(per_gaussian, num_gaussians)
+    return session, result, info, step_fn, batches
 
 
 def _timed(fn, *args, repeats: int):
@@ -407,29 +377,42 @@ def _timed(fn, *args, repeats: int):
     return first, float(np.median(times)), out
 
 
-def stage_breakdown(cfg, state, batch, loss_fn, repeats: int) -> tuple[dict, dict]:
-    """Seconds of each stage of one step (``STAGES`` minus ``update_rest``) and their compile seconds."""
+def stage_breakdown(cfg, capacities, state, batch, repeats: int) -> tuple[dict, dict]:
+    """Seconds of each stage of one step (``STAGES`` minus ``update_rest``) and their compile seconds.
+
+    The stages follow the step (``training.step._view_pass``): ``decode`` gathers the visible
+    slots and decodes them, ``project_sort`` compacts the active Gaussians and projects, sorts
+    and bins them with the step's pair capacity, ``composite_fwd`` composites the tiles.
+    """
     import jax
     import jax.numpy as jnp
 
-    from cusgs_jax.model.decode import decode_view, num_visible_slots
+    from cusgs_jax import losses
+    from cusgs_jax.model.active import compact_gaussians, select_active
+    from cusgs_jax.model.decode import decode_view
     from cusgs_jax.splat.composite import composite_tiles, default_lanes
     from cusgs_jax.splat.project import project_gaussians
     from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
+    from cusgs_jax.training.render import render_model
+    from cusgs_jax.training.step import _view_pass
 
     camera, index = batch["camera"], batch["index"]
     trainable, anchors = state.trainable, state.anchors
-    splat = cfg.splat
+    splat, n = cfg.splat, cfg.model.n_offsets
     grid = TileGrid(int(camera.width), int(camera.height), int(splat.tile_size))
+    num_slots = capacities.visible_slots(anchors.capacity)
+    active_capacity = capacities.active_gaussians(anchors.capacity, n)
+    pair_capacity = capacities.pairs(anchors.capacity, n)
 
-    decode = jax.jit(lambda nets, anchors, camera, index: decode_view(nets, anchors, camera, index, cfg.model)[0])
+    decode = jax.jit(lambda nets, anchors, camera, index: decode_view(nets, anchors, camera, index, cfg.model,
+                                                                      num_slots)[0])
 
-    def project_sort(g, camera):  # as splat.render.rasterize, with training.render's max_pairs
-        max_pairs = _max_pairs(splat.max_pairs_per_gaussian, g.means.shape[0])
+    def project_sort(g, camera):  # as training.render.render_gaussians → splat.render.rasterize
+        g = compact_gaussians(g, select_active(g.active, active_capacity))
         proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera.astype(g.means.dtype),
                                  camera.K.astype(g.means.dtype), camera.width, camera.height,
                                  antialiased=splat.antialiased)
-        isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs)
+        isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, pair_capacity)
         depth = jnp.where(proj.visible, proj.depths, 0.0)
         features = jnp.concatenate([g.colors, depth[:, None]], axis=-1)
         order = isect.order
@@ -439,11 +422,18 @@ def stage_breakdown(cfg, state, batch, loss_fn, repeats: int) -> tuple[dict, dic
     lanes = default_lanes(grid.num_tiles)
     composite = jax.jit(lambda *a: composite_tiles(grid, int(splat.chunk_size), lanes, *a))
 
-    delta = jnp.zeros((num_visible_slots(anchors.capacity, cfg.model.visible_fraction) * cfg.model.n_offsets, 2),
-                      jnp.float32)
+    def forward_loss(trainable, anchors, batch):
+        nets = {k: v for k, v in trainable.items() if k != "anchor"}
+        out, _, _ = render_model(anchors.replace(params=trainable["anchor"]), nets, batch["camera"],
+                                 batch["index"], cfg, capacities)
+        return losses.image_loss(out.image[..., :3], batch["image"], jnp.zeros((1, 3)), jnp.zeros(1, bool),
+                                 l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
+                                 volume_weight=0.0)[0]
+
+    one = _view_pass(cfg, capacities, anchors.capacity)
     key = jax.random.PRNGKey(0)
-    forward = jax.jit(lambda *a: loss_fn(*a)[0])
-    both = jax.jit(jax.value_and_grad(lambda *a: loss_fn(*a)[0], argnums=(0, 1)))
+    forward = jax.jit(forward_loss)
+    both = jax.jit(lambda trainable, anchors, batch, key: one(trainable, anchors, batch, key)[:2])
 
     seconds, compile_s = {}, {}
     first, seconds["decode"], gaussians = _timed(decode, trainable, anchors, camera, index, repeats=repeats)
@@ -452,14 +442,15 @@ def stage_breakdown(cfg, state, batch, loss_fn, repeats: int) -> tuple[dict, dic
     compile_s["project_sort"] = first - seconds["project_sort"]
     first, seconds["composite_fwd"], _ = _timed(composite, *sorted_inputs, repeats=repeats)
     compile_s["composite_fwd"] = first - seconds["composite_fwd"]
-    first, fwd, _ = _timed(forward, trainable, delta, anchors, batch, key, repeats=repeats)
+    first, fwd, _ = _timed(forward, trainable, anchors, batch, repeats=repeats)
     compile_s["forward"] = first - fwd
-    first, fwd_bwd, _ = _timed(both, trainable, delta, anchors, batch, key, repeats=repeats)
+    first, fwd_bwd, _ = _timed(both, trainable, anchors, batch, key, repeats=repeats)
     compile_s["value_and_grad"] = first - fwd_bwd
     seconds["loss_rest_fwd"] = max(0.0, fwd - seconds["decode"] - seconds["project_sort"] - seconds["composite_fwd"])
     seconds["backward"] = max(0.0, fwd_bwd - fwd)
     extra = dict(forward_s=fwd, value_and_grad_s=fwd_bwd, gaussians=int(gaussians.means.shape[0]),
-                 active_gaussians=int(jnp.sum(gaussians.active)), tile_pairs=int(sorted_inputs[6][-1]))
+                 active_gaussians=int(jnp.sum(gaussians.active)), active_capacity=active_capacity,
+                 pair_capacity=pair_capacity, tile_pairs=int(sorted_inputs[6][-1]))
     return seconds, dict(stage_compile_s=compile_s, **extra)
 
 
@@ -471,7 +462,7 @@ def measure_point(spec: dict) -> dict:
     baseline = _rss()
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="scale_bench_") as workdir:
-        session, result, info, step_fn, batches, loss_fn = short_run(spec, workdir)
+        session, result, info, step_fn, batches = short_run(spec, workdir)
     run_s = time.perf_counter() - start
     after_run = _rss()
 
@@ -505,7 +496,8 @@ def measure_point(spec: dict) -> dict:
 
     start = time.perf_counter()
     try:
-        stages, stage_info = stage_breakdown(session.cfg, state, batches(0), loss_fn, int(spec["stage_repeats"]))
+        stages, stage_info = stage_breakdown(session.cfg, session.capacities, state, batches(0),
+                                             int(spec["stage_repeats"]))
         stages["update_rest"] = max(0.0, step_s - stage_info["value_and_grad_s"])
     except Exception as exc:  # keep the step numbers of this point
         import traceback
@@ -532,11 +524,11 @@ def measure_point(spec: dict) -> dict:
         stages_s=stages, stage_sum_s=sum(stages[s] for s in STAGES) if stages else None,
         stages_wall_s=stages_wall_s, **stage_info,
         voxel_size=float(session.cfg.model.voxel_size), replayed_steps=result.get("replayed_steps"),
-        dropped_in_timed_steps=dropped)
+        capacities=session.capacities.as_dict(), dropped_in_timed_steps=dropped)
 
 
 # names of the step metrics that count work a step dropped (old and new spellings)
-_DROPPED = ("dropped_anchors", "dropped_pairs", "overflow", "visible_overflow")
+_DROPPED = ("dropped_anchors", "dropped_gaussians", "dropped_pairs")
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ from cusgs_jax.eval.views import count_parameters, evaluate_views
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training import capacity
-from cusgs_jax.training.render import make_feature_render_fn, make_render_fn
+from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, view_work
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
@@ -133,6 +133,7 @@ def setup(cfg: Config, output_dir) -> Session:
                       state=state, ckpt=ckpt, clock=Clock(), curve=[],
                       prune=dict(passes=0, pruned=0, render_ms_before_prune=None),
                       capacities=capacity.Capacities.from_config(cfg))
+    session.capacities = _fitted_capacities(session)
     if cfg.train.resume:
         _resume(session)
     if cfg.train.batch_size > 1:
@@ -141,6 +142,24 @@ def setup(cfg: Config, output_dir) -> Session:
     session.render = make_render_fn(session.cfg, session.capacities)
     session.feature_render = make_feature_render_fn(session.cfg, session.capacities) if cfg.features.enabled else None
     return session
+
+
+def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities:
+    """The step's first work capacities, sized by what up to ``probes`` training views (spread over
+    them) need of the initial model, with headroom (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`);
+    the config's guesses are not used. They grow, and the step replays, when a later view needs more."""
+    scene, state, cfg = session.scene, session.state, session.cfg
+    probe = jax.jit(lambda anchors, nets, camera, index: view_work(anchors, nets, camera, index, cfg))
+    needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
+    for position in _spread(np.arange(len(session.train_idx)), probes):
+        work = jax.device_get(probe(state.anchors, state.nets, Camera.of_scene(scene, int(session.train_idx[position])),
+                                    jnp.int32(position)))
+        needs = {k: max(v, int(work[k])) for k, v in needs.items()}
+    fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
+    log.info("work capacities from %d probed views (at most %d visible anchors, %d active Gaussians, %d tile "
+             "pairs): %s", min(probes, len(session.train_idx)), needs["visible_anchors"], needs["active_gaussians"],
+             needs["pairs"], fitted)
+    return fitted
 
 
 def _output_folder(output_dir) -> pathlib.Path:

@@ -142,6 +142,26 @@ class Capacities:
             return dataclasses.replace(self, pairs_per_active=pairs)
         return self
 
+    @classmethod
+    def fitted(cls, needs: dict, anchor_capacity: int, n_offsets: int) -> Capacities:
+        """Capacities sized by measured need with headroom (the shell's start; jax-md sizes a
+        neighbour list from the first positions the same way).
+
+        Args:
+          needs: the most any probed view needed: ``visible_anchors``, ``active_gaussians``, ``pairs``
+            (:func:`cusgs_jax.training.render.view_work`).
+        Returns:
+          visible slots ≥ 1.1 × the visible anchors (in buckets of 1/8 of A), active Gaussians
+          ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
+          per active Gaussian).
+        """
+        visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity)
+        decoded = num_visible_slots(anchor_capacity, visible) * n_offsets
+        active = grown_active_fraction(0.0, int(needs["active_gaussians"]), decoded)
+        num_active = cls(visible, active, 1.0).active_gaussians(anchor_capacity, n_offsets)
+        per = max(1.25 * (int(needs["pairs"]) - PAIR_SLACK) / max(num_active, 1), 0.5)
+        return cls(visible, active, math.ceil(per * 2.0) / 2.0)
+
     def as_dict(self) -> dict:
         """Checkpoint metadata and ``eval.json``'s ``capacities``."""
         return dataclasses.asdict(self)

@@ -96,6 +96,31 @@ def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_in
     return out, features, work_metrics(view, chosen, out)
 
 
+def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index, cfg: Config) -> dict:
+    """What one view needs, measured without any capacity (traceable; forward only, no sort).
+
+    Every slot is decoded (S = A), every active Gaussian projected, and the tile pairs counted
+    as the splatter would bin them (:func:`cusgs_jax.splat.tiles.tile_bounds`).
+
+    Returns:
+      {"visible_anchors", "active_gaussians", "pairs"}: [] int32 each.
+    """
+    from cusgs_jax.splat.project import project_gaussians
+    from cusgs_jax.splat.tiles import TileGrid, tile_bounds
+
+    model, splat = cfg.model, cfg.splat
+    view = visible_slots(anchors, camera, num_slots=anchors.capacity, margin=model.frustum_margin)
+    rows, centers, decoded = gather_visible(anchors, view)
+    g = decode_rows(nets, rows, centers, decoded, camera, appearance_index, model)
+    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
+                             camera.width, camera.height, antialiased=splat.antialiased)
+    box = tile_bounds(proj.means2d, proj.radii, TileGrid(camera.width, camera.height, splat.tile_size))
+    area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+    return dict(visible_anchors=jnp.sum(view.valid).astype(jnp.int32),
+                active_gaussians=jnp.sum(g.active).astype(jnp.int32),
+                pairs=jnp.sum(jnp.where(proj.visible, area, 0)).astype(jnp.int32))
+
+
 def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1],)``.
 
