@@ -8,6 +8,7 @@ Every public docstring writes shapes with these letters:
 | N | Gaussians (offsets) per anchor |
 | S | visible slots: anchors gathered for one view before decoding, ``ceil(visible_fraction · A)`` |
 | G | Gaussians of one render (``S·N`` after decoding, or any count given to the splatter) |
+| Ga | G_act, active Gaussians: the decoded ones that pass the opacity mask, compacted before rasterising (``model/active.py``) |
 | F | anchor latent size |
 | E | appearance-embedding size |
 | Q | feature-query channels, Σ over feature models of their slice |

@@ -131,9 +131,20 @@ def _chunk(tile, k0, chunk, records, pairs, starts, ends, pixels, inside) -> _Ch
                   raw < MAX_ALPHA, valid)
 
 
+MAX_LANES = 320
+
+
 def default_lanes(num_tiles: int) -> int:
-    """Lanes used when not given: a quarter of the tiles, at least 32 (capped by the tile count)."""
-    return max(1, min(num_tiles, max(32, num_tiles // 4)))
+    """Lanes used when not given: a quarter of the tiles, at least 32 and at most ``MAX_LANES``
+    (capped by the tile count).
+
+    Every loop iteration materialises a few [M, B, S] arrays; past ~300 lanes they fall out of
+    the CPU's caches and the loop becomes memory-bound: at 640×480 (4800 tiles of 8²) fwd+bwd
+    took 2.03 s with 1200 lanes against 1.35 s with 300 (``benchmarks/splat_bench.py``-style
+    measurement of the 60-view target scene's first view, 937k pairs); at 160×120 (300 tiles)
+    75 lanes were fastest (68 ms against 99 ms with 32 and 129 ms with 150).
+    """
+    return max(1, min(num_tiles, MAX_LANES, max(32, num_tiles // 4)))
 
 
 class _Schedule(NamedTuple):
