@@ -69,7 +69,12 @@ def _float_pair(pred, target):
 
 def _filter_valid(x: jnp.ndarray, window: np.ndarray) -> jnp.ndarray:
     """Separable 'valid' correlation of x [H, W, N] with window [K] → [H-K+1, W-K+1, N]."""
-    k = window.shape[0]
+    return _correlate_valid(x, tuple(float(v) for v in window))
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def _correlate_valid(x: jnp.ndarray, window: tuple) -> jnp.ndarray:
+    k = len(window)
     w = [jnp.asarray(v, dtype=x.dtype) for v in window]
     h_out = x.shape[0] - k + 1
     y = w[0] * x[0:h_out]
@@ -80,6 +85,22 @@ def _filter_valid(x: jnp.ndarray, window: np.ndarray) -> jnp.ndarray:
     for i in range(1, k):
         z = z + w[i] * y[:, i:i + w_out]
     return z
+
+
+def _correlate_valid_fwd(x, window):
+    return _correlate_valid(x, window), None
+
+
+def _correlate_valid_bwd(window, _, cotangent):
+    # The filter is linear; its transpose is the 'full' convolution, i.e. the valid correlation of the
+    # cotangent padded by K−1 on both sides of H and W with the flipped window. One fused pass instead of
+    # the K pads per axis that transposing every slice would materialise (~0.4 s per step at 640×480).
+    k = len(window)
+    padded = jnp.pad(cotangent, ((k - 1, k - 1), (k - 1, k - 1), (0, 0)))
+    return (_correlate_valid(padded, window[::-1]),)
+
+
+_correlate_valid.defvjp(_correlate_valid_fwd, _correlate_valid_bwd)
 
 
 @functools.partial(jax.jit, static_argnames=("sigma",))
