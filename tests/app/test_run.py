@@ -7,6 +7,7 @@ import json
 import shutil
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -17,6 +18,7 @@ from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.training.checkpoint import Checkpointer
+from cusgs_jax.types import Camera
 
 TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
         "grow.stats_start=2", "grow.start=10", "grow.stop=30", "grow.interval=10",
@@ -201,24 +203,49 @@ def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_sc
 
 def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_path, monkeypatch):
     """360° case: every anchor is in every view. Tiny first capacities grow, steps replay, nothing is dropped."""
+    from cusgs_jax.app import run as run_module
     from cusgs_jax.testing.scenes import object_scene
     from cusgs_jax.training import capacity
 
     monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # else the fixed slack alone holds this tiny scene's pairs
+    tiny = capacity.Capacities(visible_fraction=0.05, active_fraction=0.05, pairs_per_active=0.05)
+    monkeypatch.setattr(run_module, "_fitted_capacities", lambda session: tiny)  # start far below the need
     scene = object_scene(tmp_path / "object", views=6, width=32, height=24, num_points=300)
     out = tmp_path / "run"
     result = run(_cfg(scene, "train.iterations=6", "train.log_every=1", "train.checkpoint_every=0", "eval.every=0",
-                      "data.holdout_every=0", "model.voxel_size=auto", "model.visible_fraction=0.05",
-                      "splat.max_pairs_per_gaussian=0.05", "eval.save_renders=false"), out)
+                      "data.holdout_every=0", "model.voxel_size=auto", "eval.save_renders=false"), out)
     rows = _jsonl(out / "metrics.jsonl")
     assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
-    assert all(row["dropped_anchors"] == 0 and row["dropped_pairs"] == 0 for row in rows)
+    assert all(row["dropped_anchors"] == row["dropped_gaussians"] == row["dropped_pairs"] == 0 for row in rows)
     assert all(row["visible_anchors"] == row["alive_anchors"] for row in rows)  # every anchor in every view
-    assert result["replayed_steps"] >= 2 and result["recompilations"] >= result["replayed_steps"]
-    assert result["capacities"]["visible_fraction"] > 0.05 and result["capacities"]["max_pairs_per_gaussian"] > 0.05
+    assert result["replayed_steps"] >= 3 and result["recompilations"] >= result["replayed_steps"]
+    grown = result["capacities"]
+    assert grown["visible_fraction"] > 0.05 and grown["active_fraction"] > 0.05 and grown["pairs_per_active"] > 0.05
     assert result["dropped_anchors"] == result["dropped_pairs"] == 0
     # no held-out views (data.holdout_every=0): the evaluation says it measured training views
     assert result["evaluated_on"] == "train" and result["held_out_views"] == 0
+
+
+def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_path, caplog):
+    """The shell probes training views and sizes the capacities by their need, whatever the config guessed."""
+    from cusgs_jax.training.capacity import Capacities
+    from cusgs_jax.training.render import view_work
+
+    cfg = _cfg(tiny_scene, "model.visible_fraction=0.05", "splat.active_fraction=0.05",
+               "splat.max_pairs_per_gaussian=0.05")
+    with caplog.at_level("INFO", logger="cusgs_jax"):
+        session = setup(cfg, tmp_path / "fitted")
+    assert "work capacities from" in caplog.text
+    caps, state = session.capacities, session.state
+    assert caps != Capacities.from_config(session.cfg)
+    n = session.cfg.model.n_offsets
+    assert len(session.train_idx) <= 8  # so every training view was probed
+    for position, view in enumerate(session.train_idx):
+        work = jax.device_get(view_work(state.anchors, state.nets, Camera.of_scene(session.scene, int(view)),
+                                        jnp.int32(position), session.cfg))
+        assert caps.visible_slots(state.anchors.capacity) >= work["visible_anchors"]
+        assert caps.active_gaussians(state.anchors.capacity, n) >= work["active_gaussians"]
+        assert caps.pairs(state.anchors.capacity, n) >= work["pairs"]
 
 
 def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):

@@ -2,8 +2,8 @@
 
 ``run(cfg, output_dir)`` takes a :class:`cusgs_jax.config.Config` and writes into ``output_dir``:
 
-* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors`` and
-  ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
+* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors``,
+  ``dropped_gaussians`` and ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
   capacities, :mod:`cusgs_jax.training.capacity`), … (a resumed run first drops the rows after the
   restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
@@ -321,8 +321,10 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
     row = dict(step=step, wall_s=round(session.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
-               visible_anchors=int(metrics["visible_anchors"]), pruned=session.prune["pruned"],
+               visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
+               pairs=int(metrics["pairs"]), pruned=session.prune["pruned"],
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
+               dropped_gaussians=int(metrics["dropped_gaussians"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
                recompilations=session.recompilations, step_s=round(step_s, 4))
     if step == session.cfg.train.log_every and float(metrics["loss_image"]) > LOSS_ALARM:
@@ -405,7 +407,8 @@ def finalise(session: Session) -> dict:
         render_ms_before_prune=session.prune["render_ms_before_prune"],
         prune=dict(strategy=prune_cfg.strategy, ratio=prune_cfg.ratio, lambda_norm=prune_cfg.lambda_norm,
                    lambda_grad=prune_cfg.lambda_grad, passes=session.prune["passes"], pruned=session.prune["pruned"]),
-        skipped_updates=int(state.skipped), dropped_anchors=0, dropped_pairs=0, replayed_steps=session.replays,
+        skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
+        replayed_steps=session.replays,
         recompilations=session.recompilations + session.render.growths
         + (session.feature_render.growths if session.feature_render else 0),
         capacities=session.capacities.as_dict(), voxel_size=cfg.model.voxel_size,
