@@ -8,7 +8,8 @@ other work on the shared machine affects both alike. A round (``--child``):
 1. loads the scene (``--scene``: ``demo`` = the built-in 160×120 demo scene, or a COLMAP/demo
    scene folder), builds the initial state (anchors from the SfM points, as ``cusgs-train``)
    and the step with that revision's own API, RGB only;
-2. runs ``--warmup`` steps (compilation and any capacity growth with replay happen here),
+2. sizes the work capacities as ``cusgs-train`` does (today's revision: probed views' need with
+   headroom; older revisions: the config's first guesses), runs ``--warmup`` steps (compilation and any capacity growth with replay happen here),
    then times ``--steps`` steps (median, each to ``block_until_ready``), replaying a step
    whose work did not fit — none did in the timed steps of any reported run
    (``replays_timed``);
@@ -69,7 +70,16 @@ def child(args) -> dict:
     train_idx = scene.train_indices
     state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies)
     new_api = "capacities" in inspect.signature(make_train_step).parameters
-    caps = capacity.Capacities.from_config(cfg) if new_api else cfg
+    caps = cfg
+    if new_api:  # the first capacities as the shell sizes them: probed views' need with headroom
+        from cusgs_jax.training.render import view_work
+        probe = jax.jit(lambda a, nets, camera, i: view_work(a, nets, camera, i, cfg))
+        needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
+        for position in np.unique(np.linspace(0, len(train_idx) - 1, min(8, len(train_idx))).round().astype(int)):
+            work = jax.device_get(probe(state.anchors, state.nets, Camera.of_scene(scene, int(train_idx[position])),
+                                        jnp.int32(position)))
+            needs = {k: max(v, int(work[k])) for k, v in needs.items()}
+        caps = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
     images = jnp.asarray(scene.images.astype(np.float32) / 255.0)
 
     def build(caps):
@@ -106,7 +116,7 @@ def child(args) -> dict:
             times.append(elapsed)
     # held-out render of the compacted model
     anchors = compact(state.anchors)
-    render = make_render_fn(cfg)
+    render = make_render_fn(cfg, caps) if new_api else make_render_fn(cfg)
     held_out = scene.test_indices[: args.render_views]
     render_times = []
     for j, v in enumerate([held_out[0]] + list(held_out)):
@@ -115,7 +125,7 @@ def child(args) -> dict:
         jax.block_until_ready(image)
         if j:
             render_times.append(time.perf_counter() - start)
-    return dict(median_step_s=float(np.median(times)), step_times_s=times, compile_s=compile_s,
+    return dict(capacities=caps.as_dict() if new_api else None, median_step_s=float(np.median(times)), step_times_s=times, compile_s=compile_s,
                 replays=replays, replays_timed=replays_timed, alive_anchors=int(np.sum(state.anchors.alive)),
                 capacity=state.anchors.capacity, width=scene.width, height=scene.height,
                 views=len(scene.names), points=len(scene.points), last_loss=float(metrics["loss"]),

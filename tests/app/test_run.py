@@ -303,7 +303,8 @@ def test_a_first_image_loss_far_outside_the_normal_range_is_warned_about(caplog)
     state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
     session = SimpleNamespace(cfg=cfg, state=state, banks=None, clock=SimpleNamespace(total=1.0),
                               prune=dict(pruned=0), replays=0, recompilations=0)
-    metrics = dict(loss=720.0, loss_image=720.0, psnr=9.8, visible_anchors=5, dropped_anchors=0, dropped_pairs=0)
+    metrics = dict(loss=720.0, loss_image=720.0, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
+                   dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)
     with caplog.at_level("WARNING", logger="cusgs_jax"):
         row = _log_row(session, cfg.train.log_every, metrics, 0.1)
         _log_row(session, cfg.train.log_every, dict(metrics, loss=0.3, loss_image=0.3), 0.1)

@@ -40,7 +40,6 @@ def test_capacities_give_static_sizes_that_follow_the_anchor_capacity():
     assert capacity.Capacities(1.0, 1.0, 1.0).active_gaussians(3, 2) == 6  # never more than S·N
     assert capacity.Capacities.from_config(Config()) == capacity.Capacities(
         Config().model.visible_fraction, Config().splat.active_fraction, Config().splat.max_pairs_per_gaussian)
-    assert capacity.Capacities.every_slot(Config()).visible_fraction == 1.0
 
 
 def test_capacities_grow_the_slots_first_then_the_active_gaussians_then_the_pairs():

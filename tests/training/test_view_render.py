@@ -17,7 +17,7 @@ from cusgs_jax.splat import rasterize
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, render_gaussians, render_model,
-                                       view_queries)
+                                       view_queries, view_work)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import random_banks, sfm_points
@@ -45,11 +45,19 @@ def _state(cfg, banks=None):
     return state.replace(anchors=state.anchors.replace(params=params, alive=jnp.asarray(alive)))
 
 
-def test_evaluation_renders_decode_every_slot_and_keep_the_shells_other_capacities():
-    assert make_render_fn(CFG).capacities == Capacities.every_slot(CFG)
-    assert Capacities.every_slot(CFG).visible_fraction == 1.0 > CFG.model.visible_fraction
-    shell = Capacities(visible_fraction=0.5, active_fraction=0.75, pairs_per_active=9.0)
-    assert make_render_fn(CFG, shell).capacities == Capacities(1.0, 0.75, 9.0)
+def test_evaluation_renders_size_their_capacities_by_the_first_view_or_take_given_ones():
+    state = _state(CFG)
+    anchors = compact(state.anchors)
+    render = make_render_fn(CFG)
+    assert render.capacities is None  # nothing sized before a view is seen
+    render(anchors, state.nets, CAMERA, jnp.int32(1))
+    work = jax.device_get(view_work(anchors, state.nets, CAMERA, jnp.int32(1), CFG))
+    caps, n = render.capacities, CFG.model.n_offsets
+    assert render.growths == 0 and caps.visible_slots(anchors.capacity) >= work["visible_anchors"]
+    assert caps.active_gaussians(anchors.capacity, n) >= work["active_gaussians"]
+    assert caps.pairs(anchors.capacity, n) >= work["pairs"]
+    given = Capacities(visible_fraction=1.0, active_fraction=0.75, pairs_per_active=9.0)
+    assert make_render_fn(CFG, given).capacities == given
 
 
 def test_compact_render_equals_the_full_model_and_the_direct_path():

@@ -139,8 +139,8 @@ def setup(cfg: Config, output_dir) -> Session:
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
-    session.render = make_render_fn(session.cfg, session.capacities)
-    session.feature_render = make_feature_render_fn(session.cfg, session.capacities) if cfg.features.enabled else None
+    session.render = make_render_fn(session.cfg)  # capacities of its own: sized by the first evaluated view
+    session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
     return session
 
 

@@ -210,6 +210,38 @@ def _running_sum(terms: jax.Array) -> jax.Array:
     return jnp.stack(out, axis=1)
 
 
+SMALL_CHANNELS = 8  # up to this many channels the per-lane contractions are written out channel by channel
+
+
+def _weighted_sum(weight: jax.Array, feat: jax.Array) -> jax.Array:
+    """Σ_b weight[m, b, s] · feat[m, b, c] → [M, S, C].
+
+    For few channels (RGB + depth) a batched ``dot_general`` of M tiny matrices is slow on CPU
+    (the largest single op of the forward loop at 640×480); one fused multiply-reduce per
+    channel is not.
+    """
+    if feat.shape[-1] > SMALL_CHANNELS:
+        return jnp.einsum("mbs,mbc->msc", weight, feat)
+    return jnp.stack([jnp.sum(weight * feat[:, :, c, None], axis=1) for c in range(feat.shape[-1])], axis=-1)
+
+
+def _channel_dot(lane_g: jax.Array, feat: jax.Array) -> jax.Array:
+    """Σ_c lane_g[m, s, c] · feat[m, b, c] → [M, B, S] (see :func:`_weighted_sum`)."""
+    if feat.shape[-1] > SMALL_CHANNELS:
+        return jnp.einsum("msc,mbc->mbs", lane_g, feat)
+    total = lane_g[:, None, :, 0] * feat[:, :, 0, None]
+    for c in range(1, feat.shape[-1]):
+        total = total + lane_g[:, None, :, c] * feat[:, :, c, None]
+    return total
+
+
+def _pixel_sum(weight: jax.Array, lane_g: jax.Array) -> jax.Array:
+    """Σ_s weight[m, b, s] · lane_g[m, s, c] → [M, B, C] (see :func:`_weighted_sum`)."""
+    if lane_g.shape[-1] > SMALL_CHANNELS:
+        return jnp.einsum("mbs,msc->mbc", weight, lane_g)
+    return jnp.stack([jnp.sum(weight * lane_g[:, None, :, c], axis=-1) for c in range(lane_g.shape[-1])], axis=-1)
+
+
 def _records(means2d, conics, opacities):
     return jnp.concatenate([means2d, conics, opacities[:, None]], axis=-1)
 
@@ -236,7 +268,7 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         t_before, t_after = _running_product(1.0 - a, trans)
         keep = ch.valid & (t_after > TRANSMITTANCE_STOP) & ~done[:, None, :]
         weight = jnp.where(keep, a * t_before, 0.0)
-        color = color + jnp.einsum("mbs,mbc->msc", weight, features[ch.gid])
+        color = color + _weighted_sum(weight, features[ch.gid])
         trans = trans * jnp.prod(jnp.where(keep, 1.0 - a, 1.0), axis=1)
         done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
         n_contrib = n_contrib + jnp.sum(keep, axis=1, dtype=jnp.int32)
@@ -334,7 +366,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         weight = a * t_before  # zero where not kept
         feat = features[ch.gid]  # [M, B, C]
         lane_g = g_color[safe]  # [M, S, C]
-        g_dot_c = jnp.einsum("msc,mbc->mbs", lane_g, feat)
+        g_dot_c = _channel_dot(lane_g, feat)
         contrib = g_dot_c * weight
         suffix = (total[safe] - prefix + tail[safe])[:, None, :] - _running_sum(contrib)
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
@@ -357,7 +389,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
                     ],
                     axis=-1,
                 ),
-                jnp.einsum("mbs,msc->mbc", weight, lane_g),
+                _pixel_sum(weight, lane_g),
             ],
             axis=-1,
         )

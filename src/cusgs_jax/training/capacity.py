@@ -89,11 +89,6 @@ class Capacities:
         return cls(float(cfg.model.visible_fraction), float(cfg.splat.active_fraction),
                    float(cfg.splat.max_pairs_per_gaussian))
 
-    @classmethod
-    def every_slot(cls, cfg: Config) -> Capacities:
-        """First guesses for rendering a compacted model: every slot decoded (frustum-culled ones masked)."""
-        return dataclasses.replace(cls.from_config(cfg), visible_fraction=1.0)
-
     def visible_slots(self, anchor_capacity: int) -> int:
         """S for an anchor capacity A."""
         return num_visible_slots(anchor_capacity, self.visible_fraction)
@@ -189,17 +184,22 @@ class ExactRender:
     ``anchors`` with those capacities, where ``metrics`` holds the render's ``dropped_*`` counts
     and what was needed (the keys :meth:`Capacities.grown` reads). Calling this object returns
     ``outputs`` (a tuple); when work was dropped it grows its capacities, rebuilds and renders
-    again (``growths`` counts it). It starts from the capacities it is given (the shell's) and
+    again (``growths`` counts it). It starts from the capacities it is given, or, given none,
+    from the need of the first call's view measured by ``fit`` (:meth:`Capacities.fitted`), and
     keeps the grown ones for the next call.
     """
 
     build: Callable[[Capacities], Callable]
-    capacities: Capacities
+    capacities: Capacities | None
     n_offsets: int
     growths: int = 0
     fn: Callable | None = None
+    fit: Callable | None = None  # fit(anchors, *args) -> needs, for capacities=None: sized on the first call
 
     def __call__(self, anchors, *args):
+        if self.capacities is None:
+            needs = {k: int(v) for k, v in self.fit(anchors, *args).items()}
+            self.capacities = Capacities.fitted(needs, anchors.capacity, self.n_offsets)
         while True:
             if self.fn is None:
                 self.fn = self.build(self.capacities)

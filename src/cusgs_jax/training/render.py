@@ -5,8 +5,6 @@ Naming (:mod:`cusgs_jax.types`): G Gaussians, Q query channels, H×W image, D fe
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 
@@ -124,11 +122,10 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
 def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1],)``.
 
-    Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`): every
-    slot is decoded (frustum-culled ones masked), and a render that would drop
-    active Gaussians or tile pairs is redone with larger capacities
-    (:class:`~cusgs_jax.training.capacity.ExactRender`), so the image is always exact.
-    ``capacities``: the first ones (default :meth:`Capacities.every_slot`).
+    Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`). The capacities
+    (``capacities``, or, when None, sized by the first rendered view's need with headroom) grow
+    whenever a view would drop visible anchors, active Gaussians or tile pairs, and the render is
+    redone (:class:`~cusgs_jax.training.capacity.ExactRender`), so the image is always exact.
     """
     def build(capacities: Capacities):
         @jax.jit
@@ -138,13 +135,13 @@ def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRe
 
         return render
 
-    return ExactRender(build, _every_slot(cfg, capacities), cfg.model.n_offsets)
+    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
 
 
 def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``.
 
-    Like :func:`make_render_fn`: every slot decoded, never a truncated render.
+    Like :func:`make_render_fn`: capacities fitted and grown, never a truncated render.
     """
     def build(capacities: Capacities):
         @jax.jit
@@ -154,11 +151,10 @@ def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) ->
 
         return render
 
-    return ExactRender(build, _every_slot(cfg, capacities), cfg.model.n_offsets)
+    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
 
 
-def _every_slot(cfg: Config, capacities: Capacities | None) -> Capacities:
-    """Capacities for a compacted model: every slot decoded (the given active and pair capacities kept)."""
-    if capacities is None:
-        return Capacities.every_slot(cfg)
-    return dataclasses.replace(capacities, visible_fraction=1.0)
+def view_work_probe(cfg: Config):
+    """``fit(anchors, nets, camera, appearance_index, *rest) -> needs`` for :class:`ExactRender`."""
+    probe = jax.jit(lambda anchors, nets, camera, index: view_work(anchors, nets, camera, index, cfg))
+    return lambda anchors, nets, camera, index, *rest: jax.device_get(probe(anchors, nets, camera, index))

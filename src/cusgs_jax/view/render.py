@@ -119,10 +119,10 @@ class ViewRenderer:
     def __init__(self, cfg):
         from cusgs_jax.training.capacity import ExactRender
 
-        from cusgs_jax.training.capacity import Capacities
+        from cusgs_jax.training.render import view_work_probe
 
-        self._render = ExactRender(lambda capacities: _build(cfg, capacities), Capacities.every_slot(cfg),
-                                   cfg.model.n_offsets)
+        self._render = ExactRender(lambda capacities: _build(cfg, capacities), None, cfg.model.n_offsets,
+                                   fit=view_work_probe(cfg))
 
     def render(self, model: ViewModel, camera, *, features: bool = False):
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
