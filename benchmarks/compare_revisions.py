@@ -72,13 +72,10 @@ def child(args) -> dict:
     new_api = "capacities" in inspect.signature(make_train_step).parameters
     caps = cfg
     if new_api:  # the first capacities as the shell sizes them: probed views' need with headroom
-        from cusgs_jax.training.render import view_work
-        probe = jax.jit(lambda a, nets, camera, i: view_work(a, nets, camera, i, cfg))
-        needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
-        for position in np.unique(np.linspace(0, len(train_idx) - 1, min(8, len(train_idx))).round().astype(int)):
-            work = jax.device_get(probe(state.anchors, state.nets, Camera.of_scene(scene, int(train_idx[position])),
-                                        jnp.int32(position)))
-            needs = {k: max(v, int(work[k])) for k, v in needs.items()}
+        from cusgs_jax.training.render import most_work
+        positions = np.unique(np.linspace(0, len(train_idx) - 1, min(8, len(train_idx))).round().astype(int))
+        needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(train_idx[p])), jnp.int32(p))
+                                                      for p in positions], cfg)
         caps = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
     images = jnp.asarray(scene.images.astype(np.float32) / 255.0)
 

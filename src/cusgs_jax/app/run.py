@@ -48,7 +48,7 @@ from cusgs_jax.eval.views import count_parameters, evaluate_views
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training import capacity
-from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, view_work
+from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
@@ -149,15 +149,12 @@ def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities
     them) need of the initial model, with headroom (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`);
     the config's guesses are not used. They grow, and the step replays, when a later view needs more."""
     scene, state, cfg = session.scene, session.state, session.cfg
-    probe = jax.jit(lambda anchors, nets, camera, index: view_work(anchors, nets, camera, index, cfg))
-    needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
-    for position in _spread(np.arange(len(session.train_idx)), probes):
-        work = jax.device_get(probe(state.anchors, state.nets, Camera.of_scene(scene, int(session.train_idx[position])),
-                                    jnp.int32(position)))
-        needs = {k: max(v, int(work[k])) for k, v in needs.items()}
+    positions = _spread(np.arange(len(session.train_idx)), probes)
+    needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), jnp.int32(p))
+                                                  for p in positions], cfg)
     fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
     log.info("work capacities from %d probed views (at most %d visible anchors, %d active Gaussians, %d tile "
-             "pairs): %s", min(probes, len(session.train_idx)), needs["visible_anchors"], needs["active_gaussians"],
+             "pairs): %s", len(positions), needs["visible_anchors"], needs["active_gaussians"],
              needs["pairs"], fitted)
     return fitted
 

@@ -10,9 +10,9 @@ import dataclasses
 from typing import Any, Protocol
 
 import jax
-import jax.numpy as jnp
 
 from cusgs_jax.config import Config
+from cusgs_jax.model.decode import to_slots
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,9 +42,7 @@ class ViewRecord:
 
     def to_slots(self, x: jax.Array, fill=0) -> jax.Array:
         """Scatter per-visible-slot values [S, ...] back to anchor slots [A, ...] (others ``fill``)."""
-        full = jnp.full((self.capacity,) + x.shape[1:], fill, x.dtype)
-        index = jnp.where(self.slots.valid, self.slots.slots, self.capacity)
-        return full.at[index].set(x, mode="drop")
+        return to_slots(x, self.slots, self.capacity, fill)
 
 
 class Strategy(Protocol):

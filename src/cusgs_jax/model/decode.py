@@ -113,6 +113,12 @@ def visible_slots(anchors: AnchorState, camera: Camera, *, num_slots: int, margi
                         jnp.maximum(jnp.sum(visible) - num_slots, 0).astype(jnp.int32))
 
 
+def to_slots(x: jax.Array, view: VisibleSlots, capacity: int, fill=0) -> jax.Array:
+    """Scatter per-visible-slot values [S, ...] back to the A = ``capacity`` anchor slots (others ``fill``)."""
+    full = jnp.full((capacity,) + x.shape[1:], fill, x.dtype)
+    return full.at[jnp.where(view.valid, view.slots, capacity)].set(x, mode="drop")
+
+
 def view_directions(centers: jax.Array, camera_center: jax.Array) -> jax.Array:
     """[S, 3] unit directions from the camera to the anchor centres [S, 3] (the decoders' view input)."""
     direction = centers - camera_center

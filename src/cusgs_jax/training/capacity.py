@@ -198,8 +198,7 @@ class ExactRender:
 
     def __call__(self, anchors, *args):
         if self.capacities is None:
-            needs = {k: int(v) for k, v in self.fit(anchors, *args).items()}
-            self.capacities = Capacities.fitted(needs, anchors.capacity, self.n_offsets)
+            self.capacities = Capacities.fitted(self.fit(anchors, *args), anchors.capacity, self.n_offsets)
         while True:
             if self.fn is None:
                 self.fn = self.build(self.capacities)

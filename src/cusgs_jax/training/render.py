@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from cusgs_jax.config import Config, SplatConfig
 from cusgs_jax.model.anchors import AnchorState
 from cusgs_jax.model.active import ActiveSet, compact_gaussians, gather_active, select_active
-from cusgs_jax.model.decode import (Gaussians, VisibleSlots, decode_rows, gather_visible, view_directions,
-                                    visible_slots)
+from cusgs_jax.model.decode import (Gaussians, VisibleSlots, decode_rows, decode_view, gather_visible,
+                                    view_directions, visible_slots)
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import RenderOutput, rasterize
@@ -106,10 +106,8 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     from cusgs_jax.splat.project import project_gaussians
     from cusgs_jax.splat.tiles import TileGrid, tile_bounds
 
-    model, splat = cfg.model, cfg.splat
-    view = visible_slots(anchors, camera, num_slots=anchors.capacity, margin=model.frustum_margin)
-    rows, centers, decoded = gather_visible(anchors, view)
-    g = decode_rows(nets, rows, centers, decoded, camera, appearance_index, model)
+    splat = cfg.splat
+    g, view = decode_view(nets, anchors, camera, appearance_index, cfg.model, anchors.capacity)
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
                              camera.width, camera.height, antialiased=splat.antialiased)
     box = tile_bounds(proj.means2d, proj.radii, TileGrid(camera.width, camera.height, splat.tile_size))
@@ -155,6 +153,21 @@ def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) ->
 
 
 def view_work_probe(cfg: Config):
-    """``fit(anchors, nets, camera, appearance_index, *rest) -> needs`` for :class:`ExactRender`."""
+    """``fit(anchors, nets, camera, appearance_index, *rest) -> needs`` (host ints; :func:`view_work`
+    jitted), the ``fit`` of :class:`ExactRender`."""
     probe = jax.jit(lambda anchors, nets, camera, index: view_work(anchors, nets, camera, index, cfg))
-    return lambda anchors, nets, camera, index, *rest: jax.device_get(probe(anchors, nets, camera, index))
+
+    def fit(anchors, nets, camera, index, *rest):
+        return {k: int(v) for k, v in jax.device_get(probe(anchors, nets, camera, index)).items()}
+
+    return fit
+
+
+def most_work(anchors: AnchorState, nets: dict, views, cfg: Config) -> dict:
+    """The most any of ``views`` (pairs ``(camera, appearance_index)``) needs of each capacity
+    (:func:`view_work`): ``{"visible_anchors", "active_gaussians", "pairs"}`` as host ints."""
+    fit = view_work_probe(cfg)
+    needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
+    for camera, index in views:
+        needs = {k: max(v, fit(anchors, nets, camera, index)[k]) for k, v in needs.items()}
+    return needs

@@ -27,8 +27,8 @@ from cusgs_jax import losses
 from cusgs_jax.config import Config
 from cusgs_jax.densify.base import Strategy, ViewRecord
 from cusgs_jax.model.active import expand_render, scatter_back
-from cusgs_jax.model.anchors import is_per_anchor
-from cusgs_jax.model.decode import decode_rows, visible_slots
+from cusgs_jax.model.anchors import is_per_anchor, map_rows
+from cusgs_jax.model.decode import decode_rows, gather_visible, to_slots, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import render_gaussians, view_queries, work_metrics
@@ -69,8 +69,8 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
     def one(trainable, anchors, batch, key):
         camera = batch["camera"]
         view = visible_slots(anchors, camera, num_slots=num_slots, margin=model.frustum_margin)
-        local = dict(trainable, anchor=jax.tree_util.tree_map(lambda x: x[view.slots], trainable["anchor"]))
-        centers, decoded = anchors.centers[view.slots], anchors.alive[view.slots] & view.valid
+        rows, centers, decoded = gather_visible(anchors.replace(params=trainable["anchor"]), view)
+        local = dict(trainable, anchor=rows)
         delta = jnp.zeros((active_capacity, 2), jnp.float32)
         (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key)
@@ -145,7 +145,7 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
         if cfg.optim.sparse:
             state = _apply_rows(state, tx, grads, view.slots, view.valid, finite & complete)
         else:
-            state = _apply(state, tx, _dense(grads, view.slots, view.valid, capacity), finite & complete)
+            state = _apply(state, tx, _dense(grads, view, capacity), finite & complete)
         return _finish(state, finite, complete, densify), metrics
 
     return jax.jit(step, donate_argnums=0)
@@ -155,17 +155,9 @@ def _all_finite(loss, grads) -> jax.Array:
     return jnp.isfinite(loss) & jnp.all(jnp.array([jnp.all(jnp.isfinite(g)) for g in jax.tree_util.tree_leaves(grads)]))
 
 
-def _scatter_index(slots, valid, capacity: int):
-    """[S] row of each visible slot, ``capacity`` (dropped by ``mode="drop"``) for padding entries."""
-    return jnp.where(valid, slots, capacity)
-
-
-def _dense(grads, slots, valid, capacity: int):
+def _dense(grads, view, capacity: int):
     """The gradient with the anchor rows [S] scattered into the anchor capacity [A] (zero elsewhere)."""
-    index = _scatter_index(slots, valid, capacity)
-    anchor = jax.tree_util.tree_map(
-        lambda g: jnp.zeros((capacity,) + g.shape[1:], g.dtype).at[index].set(g, mode="drop"), grads["anchor"])
-    return dict(grads, anchor=anchor)
+    return dict(grads, anchor=jax.tree_util.tree_map(lambda g: to_slots(g, view, capacity), grads["anchor"]))
 
 
 def _select(apply, new, old):
@@ -200,14 +192,11 @@ def _apply_rows(state: TrainState, tx, grads, slots, valid, apply) -> TrainState
       grads: {"anchor": AnchorParams [S, …], networks}; slots: [S] int32; valid: [S] bool.
     """
     capacity = state.anchors.capacity
-    take = lambda tree: jax.tree_util.tree_map(  # noqa: E731
-        lambda node: jax.tree_util.tree_map(lambda x: x[slots], node) if is_per_anchor(node) else node,
-        tree, is_leaf=is_per_anchor)
     trainable = state.trainable
-    rows, opt_rows = take(trainable), take(state.opt_state)
+    rows, opt_rows = map_rows(lambda x: x[slots], trainable), map_rows(lambda x: x[slots], state.opt_state)
     updates, new_opt_rows = tx.update(grads, opt_rows, rows)
     new_rows = jax.tree_util.tree_map(lambda p, u: p + u, rows, updates)
-    index = jnp.where(apply, _scatter_index(slots, valid, capacity), capacity)
+    index = jnp.where(apply & valid, slots, capacity)  # out of range: dropped
 
     def put(full, new):
         def visit(full_node, new_node):
@@ -265,8 +254,7 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
                 view, key = args
                 loss, grads, parts = one(trainable, anchors, dict(view, banks=banks) if banks is not None else view,
                                          key)
-                slots = parts["view"]
-                return loss, grads, parts, _dense(grads, slots.slots, slots.valid, capacity)
+                return loss, grads, parts, _dense(grads, parts["view"], capacity)
 
             loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
             total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), dense)
