@@ -189,3 +189,31 @@ def test_capacity_grows_when_full(always_keep):
 def test_schedule():
     strategy = ScaffoldStrategy(GrowConfig(start=400, stop=1500, interval=100), 1.0, 2, 0)
     assert [s for s in range(0, 2001, 50) if strategy.due(s)] == list(range(400, 1501, 100))
+
+
+def test_accumulate_rows_equals_the_dense_statistics_and_ignores_nan_of_skipped_steps():
+    """The O(S) hook adds what scattering to [A] and the dense formula add; a disabled call with
+    non-finite inputs adds exactly 0 (random inputs, padding entries repeating a slot)."""
+    from cusgs_jax.densify.scaffold import accumulate_rows
+
+    rng = np.random.default_rng(0)
+    capacity, n, s = 9, 3, 5
+    slots = np.array([7, 2, 5, 2, 2], np.int32)
+    valid = np.array([True, True, True, False, False])
+    opacities = rng.normal(size=(s, n)).astype(np.float32)
+    visible = rng.random((s, n)) > 0.3
+    grad2d = rng.normal(size=(s, n, 2)).astype(np.float32)
+    start = GrowStats(*(jnp.asarray(rng.random(x.shape), jnp.float32) for x in
+                        jax.tree_util.tree_leaves(GrowStats.zeros(capacity, n))))
+    got = accumulate_rows(start, jnp.asarray(slots), jnp.asarray(valid), jnp.asarray(opacities), jnp.asarray(visible),
+                          jnp.asarray(grad2d), 16, 12, jnp.array(True))
+    dense = [np.zeros((capacity,) + x.shape[1:], x.dtype) for x in (valid, opacities, visible, grad2d)]
+    for x, d in zip((valid, opacities, visible, grad2d), dense):
+        d[slots[valid]] = x[valid]
+    want = accumulate_stats(start, *(jnp.asarray(d) for d in dense), 16, 12, jnp.array(True))
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_allclose(a, b, rtol=1e-6)
+    bad = accumulate_rows(start, jnp.asarray(slots), jnp.asarray(valid), jnp.full((s, n), np.nan), jnp.asarray(visible),
+                          jnp.full((s, n, 2), np.inf), 16, 12, jnp.array(False))
+    for a, b in zip(jax.tree_util.tree_leaves(bad), jax.tree_util.tree_leaves(start)):
+        np.testing.assert_array_equal(a, b)
