@@ -213,3 +213,10 @@ def test_batch_size_and_devices_validation():
                        (["train.batch_size=3", "train.devices=2"], "must divide train.batch_size=3")):
         with pytest.raises(ConfigError, match=match):
             compose_config(bad)
+
+
+def test_data_align_validation():
+    assert compose_config([]).data.align == "none"
+    assert compose_config(["data.align=principal"]).data.align == "principal"
+    with pytest.raises(ConfigError, match="data.align='pca': must be none .* or principal"):
+        compose_config(["data.align=pca"])

@@ -75,11 +75,17 @@ class DataConfig:
     path: Optional[str] = None
     downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
     holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
+    # Rotation of the normalised frame (data/normalize.py): "none" keeps the model's axes, "principal"
+    # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
+    align: str = "none"
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
     def __post_init__(self):
         _at_least(self, "data", 1, "downscale")
         _at_least(self, "data", 0, "holdout_every")
+        require(self.align in ("none", "principal"), "data.align", self.align,
+                "must be none (keep the model's axes) or principal (rotate onto the points' principal axes)",
+                "e.g. data.align=principal")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.normalize import WorldTransform, camera_extent, normalize_scene
+from cusgs_jax.data.normalize import WorldTransform, camera_extent, normalize_scene, principal_axes
 from cusgs_jax.testing.scenes import transformed_scene
 
 
@@ -65,4 +65,63 @@ def test_world_transform_round_trip_and_viewmats():
     moved = world.viewmats(viewmat[None])[0]
     cam_n = world.to_normalized(points) @ moved[:3, :3].T + moved[:3, 3]
     np.testing.assert_allclose(cam_n, world.scale * cam, atol=1e-12)  # camera space scales by s
-    assert dataclasses.asdict(world) == {"scale": 0.25, "center": (1.0, -2.0, 3.0)}
+    assert dataclasses.asdict(world)["center"] == (1.0, -2.0, 3.0) and np.array_equal(world.matrix, np.eye(3))
+    # records written before the rotation existed read back as the identity
+    assert WorldTransform.from_dict({"scale": 0.25, "center": [1.0, -2.0, 3.0]}) == world
+    assert WorldTransform.from_dict(world.as_dict()) == world
+
+
+def _rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
+def test_rotated_world_transform_round_trip_keeps_camera_space():
+    """p' = s·Q(p − c): points round-trip and camera-space coordinates only scale by s."""
+    world = WorldTransform(scale=0.25, center=(1.0, -2.0, 3.0), rotation=tuple(map(tuple, _rotation(4))))
+    points = np.random.default_rng(1).normal(size=(10, 3))
+    np.testing.assert_allclose(world.to_colmap(world.to_normalized(points)), points, atol=1e-12)
+    viewmat = np.eye(4)
+    viewmat[:3, :3] = _rotation(5)
+    viewmat[:3, 3] = [0.5, 0.1, 4.0]
+    cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
+    moved = world.viewmats(viewmat[None])[0]
+    cam_n = world.to_normalized(points) @ moved[:3, :3].T + moved[:3, 3]
+    np.testing.assert_allclose(cam_n, world.scale * cam, atol=1e-12)
+    np.testing.assert_allclose(moved[:3, :3] @ moved[:3, :3].T, np.eye(3), atol=1e-12)
+    assert WorldTransform.from_dict(world.as_dict()) == world
+
+
+def test_principal_axes_are_a_right_handed_equivariant_frame():
+    points = np.random.default_rng(2).normal(size=(500, 3)) * [5.0, 2.0, 0.5] + [0.3, 0.0, 0.1]
+    axes = principal_axes(points)
+    np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(axes) == pytest.approx(1.0)
+    spread = np.var(points @ axes.T, axis=0)
+    assert spread[0] > spread[1] > spread[2]
+    m = _rotation(7)
+    np.testing.assert_allclose(principal_axes(points @ m.T), axes @ m.T, atol=1e-9)
+
+
+@pytest.mark.parametrize("rotation_xyzw", [(0.3, -0.5, 0.2, 0.8), (0.0, 0.0, 1.0, 0.0)])
+def test_principal_alignment_makes_a_rotated_model_normalise_to_the_same_frame(demo, tmp_path, rotation_xyzw):
+    """data.align=principal: a rotated, scaled and moved copy of a model gives the same normalised points and
+    poses as the original (so the voxel grid no longer depends on the SfM run's axes); with
+    data.align=none the points differ by the rotation."""
+    base, base_world = normalize_scene(load_scene(demo, holdout_every=0), align="principal")
+    moved_path = transformed_scene(demo, tmp_path / "rotated", scale=3.0, translation=(1.0, 2.0, -4.0),
+                                   rotation_xyzw=rotation_xyzw)
+    moved_scene = load_scene(moved_path, holdout_every=0)
+    moved, world = normalize_scene(moved_scene, align="principal")
+    np.testing.assert_allclose(moved.points, base.points, atol=1e-5)
+    np.testing.assert_allclose(moved.viewmats, base.viewmats, atol=1e-5)
+    np.testing.assert_allclose(world.to_colmap(moved.points), moved_scene.points, atol=1e-4 * moved_scene.extent)
+    for view in (0, 3):  # every pixel unchanged by the frame
+        uv, depth = _project(moved_scene, view)
+        uv_n, depth_n = _project(moved, view)
+        np.testing.assert_allclose(uv_n, uv, rtol=1e-4, atol=2e-3)
+        np.testing.assert_allclose(depth_n, depth * world.scale, rtol=1e-4)
+    unaligned, _ = normalize_scene(moved_scene, align="none")
+    assert np.max(np.abs(unaligned.points - base.points)) > 0.1
+    with pytest.raises(ValueError, match="align"):
+        normalize_scene(moved_scene, align="pca")

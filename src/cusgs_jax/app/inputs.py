@@ -31,7 +31,7 @@ def load_data(cfg: Config):
         log.info("using the built-in demo scene at %s", path)
     scene = load_scene(path, downscale=data.downscale, holdout_every=data.holdout_every,
                        background=cfg.splat.background)
-    return normalize_scene(scene)
+    return normalize_scene(scene, align=data.align)
 
 
 def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):

@@ -10,7 +10,7 @@ A run folder (``cusgs-train`` or :func:`cusgs_jax.app.run.run`) holds:
   (``config``) instead; without either the defaults are used. Either way the
   decoder's shape (N offsets, latent size, hidden width, appearance size) is
   read off the stored arrays, so it always matches the weights;
-* ``eval.json`` — ``world_transform`` ({scale, center}: ``p_normalised =
+* ``eval.json`` — ``world_transform`` ({scale, center, rotation}: ``p_normalised =
   scale·(p_colmap − center)``) and the resolved ``voxel_size``; checkpoints
   written since the exporter exists record both in their metadata as well, so an
   unfinished run loads too.
@@ -159,7 +159,7 @@ def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
     if cfg.model.voxel_size == "auto" and voxel is not None:
         cfg = cfg.replace(model=dict(voxel_size=float(voxel)))
     world = (evaluation or {}).get("world_transform") or meta.get("world_transform")
-    world = None if world is None else WorldTransform(float(world["scale"]), tuple(float(c) for c in world["center"]))
+    world = None if world is None else WorldTransform.from_dict(world)
     folder = ckpt_dir / str(step)
     size = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file())
     cameras, cameras_from = _train_cameras(meta, cfg, world)

@@ -15,11 +15,21 @@ every run works in the frame
 where ``extent = 1.1 · max_i ‖C_i − c‖`` is the 3DGS/Scaffold-GS camera
 extent. In this frame the cameras' extent is exactly 1, so every absolute
 setting above is read in **units of the scene extent** (``model.voxel_size=0.01``
-means 1 % of it). Camera poses keep their rotation; a world→camera matrix
-``[R | t]`` becomes ``[R | s·(R c + t)]``, so camera-space depths scale by
-``s`` and every projected pixel is unchanged. Rotations of the model are not
-undone: the voxel grid stays aligned with the COLMAP axes (a rotated model
-voxelises into a slightly different, equally fine scaffold).
+means 1 % of it). A world→camera matrix ``[R | t]`` becomes ``[R | s·(R c + t)]``,
+so camera-space depths scale by ``s`` and every projected pixel is unchanged.
+
+**Rotation** (``data.align``). With ``none`` (the default) the frame keeps the
+model's axes: the voxel grid is aligned with whatever axes the SfM run chose,
+and a rotated model voxelises into a slightly different, equally fine scaffold.
+With ``principal`` the frame is also rotated, ``p' = s · Q (p − c)``, onto the
+principal axes of the SfM points about ``c`` (gsplat's ``align_principal_axes``;
+the camera centres when there are fewer than 3 points): x along the largest
+spread, z along the smallest — the vertical of a capture over a ground plane.
+Each axis's sign makes the points' third moment along it non-negative and z is
+flipped if needed to keep the frame right-handed, so the rule is equivariant: a
+rotated copy of a model normalises to the same frame (tested). Poses become
+``[R Qᵀ | s·(R c + t)]``. Exports undo ``Q`` with the rest (positions, Gaussian
+rotations and SH colours: :func:`cusgs_jax.model.bake.to_colmap_frame`).
 
 When all cameras sit at one point (a single image, a tripod pan) the camera
 extent is 0; the extent is then taken from the SfM points instead: 1.1 × the
@@ -35,38 +45,75 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["WorldTransform", "normalize_scene", "camera_extent"]
+__all__ = ["WorldTransform", "normalize_scene", "camera_extent", "principal_axes", "ALIGNMENTS"]
+
+ALIGNMENTS = ("none", "principal")
+_IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
 
 
 @dataclasses.dataclass(frozen=True)
 class WorldTransform:
-    """``p_normalised = scale · (p_colmap − center)``.
+    """``p_normalised = scale · rotation · (p_colmap − center)``.
 
     Attributes:
       scale: s > 0 (1 / the COLMAP-frame extent).
       center: [3] c, the mean camera centre in the COLMAP frame.
+      rotation: [3, 3] Q (rows: the normalised axes in COLMAP coordinates); the identity
+        unless ``data.align=principal``.
     """
 
     scale: float
     center: tuple[float, float, float]
+    rotation: tuple[tuple[float, float, float], ...] = _IDENTITY
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """[3, 3] float64 Q."""
+        return np.asarray(self.rotation, np.float64)
 
     def to_normalized(self, points: np.ndarray) -> np.ndarray:
         """[..., 3] COLMAP-frame points → normalised frame (float64)."""
-        return self.scale * (np.asarray(points, np.float64) - np.asarray(self.center))
+        return self.scale * (np.asarray(points, np.float64) - np.asarray(self.center)) @ self.matrix.T
 
     def to_colmap(self, points: np.ndarray) -> np.ndarray:
         """[..., 3] normalised-frame points → COLMAP frame (float64); lengths scale by ``1 / scale``."""
-        return np.asarray(points, np.float64) / self.scale + np.asarray(self.center)
+        return (np.asarray(points, np.float64) @ self.matrix) / self.scale + np.asarray(self.center)
 
     def viewmats(self, viewmats: np.ndarray) -> np.ndarray:
-        """[V, 4, 4] COLMAP world→camera → normalised world→camera: ``t' = s·(R c + t)``."""
+        """[V, 4, 4] COLMAP world→camera → normalised world→camera: ``[R Qᵀ | s·(R c + t)]``."""
         out = np.array(viewmats, np.float64)
         rot, trans = out[:, :3, :3], out[:, :3, 3]
         out[:, :3, 3] = self.scale * (rot @ np.asarray(self.center) + trans)
+        out[:, :3, :3] = rot @ self.matrix.T
         return out
 
     def as_dict(self) -> dict:
-        return {"scale": float(self.scale), "center": [float(x) for x in self.center]}
+        return {"scale": float(self.scale), "center": [float(x) for x in self.center],
+                "rotation": [[float(x) for x in row] for row in self.rotation]}
+
+    @staticmethod
+    def from_dict(record: dict) -> WorldTransform:
+        """The inverse of :meth:`as_dict` (records written before ``rotation`` existed: identity)."""
+        rotation = record.get("rotation") or _IDENTITY
+        return WorldTransform(float(record["scale"]), tuple(float(c) for c in record["center"]),
+                              tuple(tuple(float(x) for x in row) for row in rotation))
+
+
+def principal_axes(points: np.ndarray) -> np.ndarray:
+    """[3, 3] float64 rotation Q whose rows are the principal axes of ``points`` [P, 3] about the origin.
+
+    Rows by decreasing second moment; each row's sign makes ``Σ (p·q)³ ≥ 0``; the last row is
+    flipped if needed so that ``det Q = +1``. Equivariant: ``principal_axes(p Mᵀ) = principal_axes(p) Mᵀ``
+    for a rotation M (barring ties of moments, where the axes are not defined).
+    """
+    pts = np.asarray(points, np.float64)
+    _, vectors = np.linalg.eigh(pts.T @ pts)
+    axes = vectors[:, ::-1].T  # rows, largest second moment first
+    skew = np.sum((pts @ axes.T) ** 3, axis=0)
+    axes = axes * np.where(skew < 0, -1.0, 1.0)[:, None]
+    if np.linalg.det(axes) < 0:
+        axes[2] = -axes[2]
+    return axes
 
 
 def camera_extent(camera_centers: np.ndarray, points: np.ndarray) -> tuple[float, np.ndarray]:
@@ -90,14 +137,25 @@ def camera_extent(camera_centers: np.ndarray, points: np.ndarray) -> tuple[float
     return extent, center
 
 
-def normalize_scene(scene):
+def normalize_scene(scene, align: str = "none"):
     """(scene in the normalised frame, :class:`WorldTransform`) of a :class:`~cusgs_jax.data.colmap.SceneData`.
 
     Images, intrinsics and the view split are untouched; ``points`` and
     ``viewmats`` move to the normalised frame and ``extent`` becomes 1.
+
+    Args:
+      align: ``"none"`` keeps the model's axes; ``"principal"`` rotates onto the principal
+        axes of the points (:func:`principal_axes`; of the camera centres with fewer than 3
+        points) — ``data.align``.
     """
+    if align not in ALIGNMENTS:
+        raise ValueError(f"align must be one of {ALIGNMENTS}, got {align!r}")
     extent, center = camera_extent(scene.camera_centers, scene.points)
-    transform = WorldTransform(scale=1.0 / extent, center=tuple(float(x) for x in center))
+    rotation = _IDENTITY
+    if align == "principal":
+        around = np.asarray(scene.points if len(scene.points) >= 3 else scene.camera_centers, np.float64) - center
+        rotation = tuple(tuple(float(x) for x in row) for row in principal_axes(around))
+    transform = WorldTransform(scale=1.0 / extent, center=tuple(float(x) for x in center), rotation=rotation)
     normalized = dataclasses.replace(
         scene,
         points=transform.to_normalized(scene.points).astype(np.float32),

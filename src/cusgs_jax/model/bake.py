@@ -71,10 +71,10 @@ from cusgs_jax.config import DecoderConfig
 from cusgs_jax.model.anchors import AnchorParams
 from cusgs_jax.model.decode import decode_gaussians, frustum_mask
 from cusgs_jax.splat.project import normalize_quats
-from cusgs_jax.splat.sh import sh_basis
+from cusgs_jax.splat.sh import sh_basis, sh_degree
 
 __all__ = ["BakeSummary", "BakedGaussians", "bake_anchors", "bake_splats", "fibonacci_sphere", "fit_sh", "mean_shape",
-           "sh_fit_matrix", "to_colmap_frame"]
+           "sh_fit_matrix", "to_colmap_frame", "rotate_sh"]
 
 OPACITY_EPS = 1e-6  # stored opacities are clipped to (eps, 1 − eps) before the logit
 MAX_CAMERAS = 256  # training cameras that opacity and shape are averaged over (evenly spread subset)
@@ -217,19 +217,74 @@ def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array,
                           max_opacity=jnp.max(opacity * seen, axis=0), alive=jnp.repeat(alive, n))
 
 
-def to_colmap_frame(means: np.ndarray, log_scales: np.ndarray, world) -> tuple[np.ndarray, np.ndarray]:
-    """Positions and log scales from the normalised training frame to the COLMAP frame.
+def to_colmap_frame(means: np.ndarray, log_scales: np.ndarray, world, quats: np.ndarray | None = None,
+                    sh: np.ndarray | None = None):
+    """Gaussians from the normalised training frame ``p' = s·Q(p − c)`` back to the COLMAP frame.
 
-    ``p_colmap = p / s + c`` (:meth:`cusgs_jax.data.normalize.WorldTransform.to_colmap`,
-    float64) and ``log σ_colmap = log σ − log s``; rotations and SH colours do not
-    change (the transform is a translation and a uniform scale).
+    ``p = Qᵀ p' / s + c`` (:meth:`cusgs_jax.data.normalize.WorldTransform.to_colmap`, float64),
+    ``log σ = log σ' − log s``; with a rotation Q (``data.align=principal``) the Gaussians'
+    rotations become ``Qᵀ R'`` and their SH colours are rotated with them: the colour seen
+    along a COLMAP-frame direction d is the trained one along ``Q d``. The SH rotation is the
+    exact linear map ``M = B(D)⁺ B(D Qᵀ)`` over well-spread directions D (SH of each degree
+    are closed under rotation, so the least-squares fit reproduces them exactly).
 
     Args:
-      means: [G, 3]; log_scales: [G, 3]; world: :class:`~cusgs_jax.data.normalize.WorldTransform`.
+      means: [G, 3]; log_scales: [G, 3]; world: :class:`~cusgs_jax.data.normalize.WorldTransform`;
+      quats: [G, 4] wxyz or None; sh: [G, K, 3] or None (needed only when the frame is rotated).
     Returns:
-      (means [G, 3] float64, log_scales [G, 3] float64).
+      (means [G, 3] float64, log_scales [G, 3] float64) without ``quats``/``sh``; with them
+      (means, log_scales, quats [G, 4], sh [G, K, 3]).
     """
-    return world.to_colmap(means), np.asarray(log_scales, np.float64) - np.log(world.scale)
+    out_means, out_scales = world.to_colmap(means), np.asarray(log_scales, np.float64) - np.log(world.scale)
+    if quats is None and sh is None:
+        return out_means, out_scales
+    rotation = world.matrix
+    quats = np.asarray(quats, np.float64)
+    sh = np.asarray(sh, np.float64)
+    if np.allclose(rotation, np.eye(3)):
+        return out_means, out_scales, quats, sh
+    return out_means, out_scales, _rotate_quats(rotation.T, quats), rotate_sh(sh, rotation)
+
+
+def _matrix_to_quat(m: np.ndarray) -> np.ndarray:
+    """[4] wxyz unit quaternion of a rotation matrix [3, 3] (Shepperd's method)."""
+    trace = np.trace(m)
+    if trace > 0:
+        w = np.sqrt(1.0 + trace) / 2
+        return np.array([w, (m[2, 1] - m[1, 2]) / (4 * w), (m[0, 2] - m[2, 0]) / (4 * w), (m[1, 0] - m[0, 1]) / (4 * w)])
+    i = int(np.argmax(np.diag(m)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    r = np.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k])
+    q = np.zeros(4)
+    q[1 + i] = r / 2
+    q[1 + j] = (m[j, i] + m[i, j]) / (2 * r)
+    q[1 + k] = (m[k, i] + m[i, k]) / (2 * r)
+    q[0] = (m[k, j] - m[j, k]) / (2 * r)
+    return q
+
+
+def _rotate_quats(m: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    """[G, 4] wxyz quaternions of ``m · R(q)`` (Hamilton product q_m ⊗ q)."""
+    a = _matrix_to_quat(m)
+    w, x, y, z = np.moveaxis(quats, -1, 0)
+    return np.stack([a[0] * w - a[1] * x - a[2] * y - a[3] * z,
+                     a[0] * x + a[1] * w + a[2] * z - a[3] * y,
+                     a[0] * y - a[1] * z + a[2] * w + a[3] * x,
+                     a[0] * z + a[1] * y - a[2] * x + a[3] * w], axis=-1)
+
+
+def rotate_sh(sh: np.ndarray, rotation: np.ndarray) -> np.ndarray:
+    """[G, K, 3] SH coefficients c' with ``Σ c'_k Y_k(d) = Σ c_k Y_k(Q d)`` for every unit d (float64).
+
+    Args:
+      sh: [G, K, 3]; rotation: [3, 3] Q.
+    """
+    degree = sh_degree(sh.shape[1])
+    dirs = fibonacci_sphere(256).astype(np.float64)
+    basis = np.asarray(sh_basis(jnp.asarray(dirs), degree), np.float64)
+    turned = np.asarray(sh_basis(jnp.asarray(dirs @ np.asarray(rotation, np.float64).T), degree), np.float64)
+    mix = np.linalg.lstsq(basis, turned, rcond=None)[0]  # [K, K]
+    return np.einsum("kj,gjc->gkc", mix, sh)
 
 
 @dataclasses.dataclass(frozen=True)
