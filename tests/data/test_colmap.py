@@ -185,11 +185,11 @@ def test_load_cameras_matches_load_scene_without_reading_images(tmp_path):
         load_cameras(tmp_path, holdout_every=1)
 
 
-@pytest.mark.parametrize("model,params", [
-    ("OPENCV", (30.0, 31.0, 16.0, 12.0, 0.01, 0.0, 0.0, 0.0)),
-    ("RADIAL", (30.0, 16.0, 12.0, 0.01, 0.0)),
+@pytest.mark.parametrize("model,params", [  # distorted models that are not undistorted for the user
+    ("FULL_OPENCV", (30.0, 31.0, 16.0, 12.0, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
+    ("FOV", (30.0, 31.0, 16.0, 12.0, 0.1)),
 ])
-def test_distorted_camera_rejected(tmp_path, model, params):
+def test_unsupported_camera_rejected(tmp_path, model, params):
     make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), (model, params, W, H)])
     with pytest.raises(SceneError, match=rf"camera 2 .*cameras\.bin.*{model}.*undistort") as e:
         load_scene(tmp_path)

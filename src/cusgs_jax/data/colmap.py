@@ -11,8 +11,15 @@ A scene folder (``data.path``) looks like the Mip-NeRF 360 / 3DGS layout::
 
 Conventions: ``viewmats`` are world→camera 4×4 matrices with OpenCV axes (x right, y down, z
 forward), i.e. COLMAP's ``cam_from_world``; ``Ks`` are pinhole intrinsics in pixels for the
-loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in COLMAP. Only
-undistorted cameras (PINHOLE, SIMPLE_PINHOLE) are supported.
+loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in COLMAP.
+
+Camera models (:data:`SUPPORTED_CAMERA_MODELS`, those gsplat accepts): PINHOLE and SIMPLE_PINHOLE
+are loaded as they are; SIMPLE_RADIAL, RADIAL, OPENCV and OPENCV_FISHEYE are undistorted to
+PINHOLE once per scene with COLMAP's own undistorter into the project's cache, never into the
+scene folder (:mod:`.undistort`: crop, not mask; one common size; ``images_d/`` folders are
+not used, the undistorted images are downscaled on load). A perspective model whose distortion
+parameters are all zero is loaded as the pinhole it is. Any other model (FULL_OPENCV, FOV,
+THIN_PRISM_FISHEYE, ...) is refused with a SceneError saying to run ``colmap image_undistorter``.
 
 Every problem with the user's data raises :class:`SceneError`, whose message names the
 offending file and what to do about it. The image files are read by :mod:`.images`.
@@ -31,10 +38,18 @@ from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
+from cusgs_jax.data.undistort import (
+    DISTORTED_MODELS,
+    PINHOLE_MODELS,
+    camera_model_name,
+    needs_undistortion,
+    undistorted_cameras,
+    undistorted_images,
+)
 
 __all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
 
-SUPPORTED_CAMERA_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
+SUPPORTED_CAMERA_MODELS = PINHOLE_MODELS + DISTORTED_MODELS  # the distorted ones are undistorted
 _MODEL_PARTS = ("cameras", "images", "points3D")
 _UNDISTORT_HINT = (
     "undistort the images first, e.g. `colmap image_undistorter --image_path <scene>/images "
@@ -63,6 +78,11 @@ class SceneData:
         ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
       extent: 1.1 × the largest distance of a camera centre from the mean camera centre
         (:func:`cusgs_jax.data.normalize.camera_extent`; from the points when the cameras coincide).
+      dataset_format: the layout it was read from: "colmap", "blender" or "nerfstudio"
+        (:mod:`cusgs_jax.data.layouts`).
+      split: how the held-out views were chosen, e.g. "every_8th", "none" or
+        "transforms_test" (Blender's test frames).
+      background: RGB in [0, 1] that images with alpha were composited onto.
     """
 
     path: pathlib.Path
@@ -77,6 +97,9 @@ class SceneData:
     train_indices: np.ndarray
     test_indices: np.ndarray
     extent: float
+    dataset_format: str = "colmap"
+    split: str = "every_8th"
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     @property
     def camera_centers(self) -> np.ndarray:
@@ -115,12 +138,14 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
     background = check_background(background)
-    scene, files, rec, entries, cameras = _read_model(path, downscale)
+    scene, files, rec, entries, cameras, undistort = _read_model(path, downscale)
     names, viewmats = _poses(entries, files)
     points, point_colors = _points(rec, files["points3D"])
 
-    # The image folder and the expected loaded size of every image.
-    folder, from_prescaled = image_dir(scene, downscale)
+    # The image folder (the scene's, or its undistorted copy in the cache) and the expected
+    # loaded size of every image.
+    image_root = scene if undistort is None else undistort()
+    folder, from_prescaled = image_dir(image_root, downscale)
     images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
                          cameras, downscale, from_prescaled, scene, background=background)
     height, width = images.shape[1:3]
@@ -152,7 +177,8 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
 
     For tools that have a trained model and need its views (an exporter, a viewer):
     the same registered images in the same order, intrinsics scaled by
-    ``downscale``, the same held-out split.
+    ``downscale``, the same held-out split. Distorted cameras come as the same undistorted
+    PINHOLE cameras (computed, no image is undistorted).
 
     Returns:
       (viewmats [V, 4, 4] float64 world→camera in the COLMAP frame, Ks [V, 3, 3] float32,
@@ -161,7 +187,7 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
       SceneError: as :func:`load_scene` for the model and these settings.
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
-    scene, files, _, entries, cameras = _read_model(path, downscale)
+    scene, files, _, entries, cameras, _ = _read_model(path, downscale)
     _, viewmats = _poses(entries, files)
     first = cameras[entries[0][2].camera_id]
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
@@ -177,24 +203,40 @@ class _Model(NamedTuple):
     files: dict  # {part: model file}
     rec: Any  # pycolmap.Reconstruction
     entries: list  # [(name, image id, pycolmap Image)] of the registered images, by name
-    cameras: dict  # {camera id: intrinsics dict}
+    cameras: dict  # {camera id: intrinsics dict} (undistorted PINHOLE for distorted cameras)
+    undistort: Any  # None, or (for distorted cameras) a function () -> folder whose images/ hold
+    #                 the undistorted images (undistorting and caching them on first use)
 
 
 def _read_model(path, downscale: int) -> _Model:
     """Read and check the COLMAP model of ``path``: registered images with unique names, supported
-    cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise."""
+    cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise.
+    Distorted cameras are replaced by their undistorted PINHOLE cameras (:mod:`.undistort`)."""
     scene = _scene_folder(path)
     model_dir = _find_model_dir(scene)
     files = _model_files(model_dir)
     rec = _read_reconstruction(model_dir, files)
     entries = _registered_images(rec, files)
-    cameras = {}
+    used = {}  # {camera id: pycolmap Camera} of the registered images
     for _, _, image in entries:
-        if image.camera_id not in cameras:
-            cameras[image.camera_id] = _camera_intrinsics(rec.cameras[image.camera_id], image.camera_id,
-                                                          files["cameras"])
+        if image.camera_id not in used:
+            used[image.camera_id] = _check_camera_model(rec.cameras[image.camera_id],
+                                                        image.camera_id, files["cameras"])
+    undistort = None
+    if any(needs_undistortion(cam) for cam in used.values()):
+        sizes = {cid: dict(width=int(cam.width), height=int(cam.height))
+                 for cid, cam in used.items()}
+        _check_common_size(entries, sizes, downscale, files)  # of the source images
+        views = [(name, image.camera_id) for name, _, image in entries]
+        source = used
+
+        def undistort() -> pathlib.Path:
+            return undistorted_images(scene, model_dir, views, source)
+
+        used = undistorted_cameras(source)
+    cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"]) for cid, cam in used.items()}
     _check_common_size(entries, cameras, downscale, files)
-    return _Model(scene, files, rec, entries, cameras)
+    return _Model(scene, files, rec, entries, cameras, undistort)
 
 
 def _check_settings(downscale, holdout_every) -> tuple[int, int]:
@@ -408,19 +450,46 @@ def _cam_from_world(image) -> np.ndarray:
     return np.asarray(cfw.matrix(), dtype=np.float64)
 
 
+def _check_camera_model(camera, camera_id: int, cameras_file: pathlib.Path):
+    """``camera`` (a pycolmap Camera) when its model is one of SUPPORTED_CAMERA_MODELS;
+    SceneError naming the model, the camera and the file otherwise."""
+    model = camera_model_name(camera)
+    if model not in SUPPORTED_CAMERA_MODELS:
+        raise SceneError(
+            f"camera {camera_id} in {cameras_file} uses the {model} camera model, which is not "
+            f"supported: the supported models are {', '.join(PINHOLE_MODELS)} and (undistorted "
+            f"automatically) {', '.join(DISTORTED_MODELS)}. For any other model, "
+            + _UNDISTORT_HINT)
+    if model in DISTORTED_MODELS:  # checked before COLMAP undistorts with them
+        params = np.asarray(camera.params, dtype=np.float64)
+        focal = min(camera.focal_length_x, camera.focal_length_y)
+        if (not np.all(np.isfinite(params)) or focal <= 0 or int(camera.width) <= 0
+                or int(camera.height) <= 0):
+            raise SceneError(
+                f"camera {camera_id} in {cameras_file} has invalid parameters ({model} "
+                f"{params.tolist()}, {int(camera.width)}x{int(camera.height)}); the file may be "
+                "corrupt — re-export it or rerun SfM")
+    return camera
+
+
 def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path) -> dict:
-    model = getattr(camera, "model_name", None) or getattr(camera.model, "name", str(camera.model))
+    """The pinhole intrinsics dict (fx, fy, cx, cy, width, height, model) of a PINHOLE or
+    SIMPLE_PINHOLE camera, or of a perspective model without distortion (all its distortion
+    parameters zero); SceneError for invalid values."""
+    model = camera_model_name(camera)
     params = np.asarray(camera.params, dtype=np.float64)
     if model == "PINHOLE":
         fx, fy, cx, cy = params[:4]
     elif model == "SIMPLE_PINHOLE":
         f, cx, cy = params[:3]
         fx = fy = f
-    else:
+    elif model in DISTORTED_MODELS and not needs_undistortion(camera):  # zero distortion
+        fx, fy = camera.focal_length_x, camera.focal_length_y
+        cx, cy = camera.principal_point_x, camera.principal_point_y
+    else:  # pragma: no cover - _read_model undistorts or refuses every other camera
         raise SceneError(
-            f"camera {camera_id} in {cameras_file} uses the {model} camera model, but only "
-            f"{' and '.join(SUPPORTED_CAMERA_MODELS)} (undistorted) cameras are supported: "
-            + _UNDISTORT_HINT)
+            f"camera {camera_id} in {cameras_file} uses the {model} camera model, which cannot "
+            "be loaded as a pinhole camera: " + _UNDISTORT_HINT)
     if not np.all(np.isfinite([fx, fy, cx, cy])) or fx <= 0 or fy <= 0:
         raise SceneError(
             f"camera {camera_id} in {cameras_file} has invalid intrinsics "

@@ -1,0 +1,377 @@
+"""Undistorting COLMAP scenes whose cameras have lens distortion, once per scene, into the cache.
+
+:func:`cusgs_jax.data.colmap.load_scene` trains on pinhole cameras only. A scene whose registered
+images use a distorted camera model (:data:`DISTORTED_MODELS`: SIMPLE_RADIAL, RADIAL, OPENCV,
+OPENCV_FISHEYE — the models gsplat's COLMAP parser accepts besides the two pinholes) is turned
+into a PINHOLE scene here:
+
+* :func:`undistorted_cameras` — the PINHOLE cameras the images are undistorted to (no I/O; what
+  :func:`~cusgs_jax.data.colmap.load_cameras` uses, so it still reads no image);
+* :func:`undistorted_images` — the folder holding ``images/`` undistorted to exactly those
+  cameras, made once and cached (what :func:`~cusgs_jax.data.colmap.load_scene` reads).
+
+**Why pycolmap** (``pycolmap.undistort_images``, COLMAP's own ``image_undistorter``) rather than
+OpenCV's ``getOptimalNewCameraMatrix`` + ``remap`` as gsplat and nerfstudio do: it implements
+exactly the camera models COLMAP wrote (same parameter order and conventions, including the
+0.5-pixel centre and the fisheye models, where OpenCV needs a separate ``cv2.fisheye`` path and
+gsplat its own equidistant remap), it is what the 3DGS / Scaffold-GS instructions tell users to
+run (so a scene undistorted here equals one undistorted by hand), and pycolmap is already a
+dependency — no OpenCV.
+
+**Crop, not mask.** COLMAP's default ``blank_pixels=0`` keeps the focal length and shrinks or
+grows the image to the largest centred rectangle in which every pixel comes from inside the
+distorted image, so no black (blank) border is left to be fitted as if it were scene content
+and no mask is needed. The undistorted image size therefore differs from the source size (larger
+for barrel, smaller for pincushion distortion).
+
+**One common size.** The project trains on images of one size, but COLMAP gives each camera its
+own undistorted size (per-image cameras, COLMAP's default, come out a few pixels apart). Every
+undistorted camera is therefore centre-cropped to the smallest undistorted width and height
+(principal point shifted by the crop offset; the cropped pixels are valid ones, so still no
+border). Source cameras of different sizes are refused by the caller, as for pinhole scenes.
+
+**data.downscale.** Pre-downscaled ``images_2/``, ``images_4/`` ... of a distorted scene hold
+distorted pixels and are not used: the full-resolution ``images/`` are undistorted (once) and
+:func:`~cusgs_jax.data.colmap.load_scene` downscales the undistorted images on load with the
+anti-aliased resize of :mod:`.images`, intrinsics divided by ``d`` as usual. Nothing is refused.
+
+**Cache.** ``$CUSGS_CACHE_DIR/undistorted/<scene name>-<key>/`` (``~/.cache/cusgs_jax`` when the
+variable is unset, as for the demo scene), holding ``images/`` and ``undistort.json`` (the cameras,
+written last: a folder without it is never used). Nothing is ever written into the user's scene
+folder, which may be read-only. ``<key>`` hashes everything the pixels depend on: each used
+camera's model, size and exact parameters (what ``cameras.bin/.txt`` says about it), the
+registered images' names and camera ids (what ``images.bin/.txt`` says about them), each image
+file's size and modification time, the undistortion options, pycolmap's version and
+:data:`CACHE_VERSION`; a changed image or re-calibrated camera gets a new folder (poses and points
+are not part of it: they are read from the user's model every time). A folder is built in a
+temporary sibling and renamed into place, so an interrupted run leaves nothing half-written and
+two jobs racing on one scene both end up using one complete copy. Old folders are not removed
+automatically; the ``undistorted/`` folder can be deleted at any time.
+
+Limitations: COLMAP reads images as 8-bit RGB, so an alpha channel is dropped (a warning says so;
+pinhole scenes composite it onto the background instead); JPEG images are re-encoded by COLMAP
+and, when cropped to the common size, once more at quality 100.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import pathlib
+import re
+import shutil
+import tempfile
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+from cusgs_jax.data.demo import _default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
+from cusgs_jax.data.errors import SceneError
+
+__all__ = ["CACHE_VERSION", "DISTORTED_MODELS", "PINHOLE_MODELS", "camera_model_name",
+           "needs_undistortion", "undistorted_cameras", "undistorted_images"]
+
+log = logging.getLogger("cusgs_jax")
+
+PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
+DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+CACHE_VERSION = 1
+_MARKER = "undistort.json"
+_STALE_TMP_SECONDS = 3600
+
+
+def camera_model_name(camera) -> str:
+    """The COLMAP model name of a pycolmap Camera (e.g. ``"OPENCV"``)."""
+    return getattr(camera, "model_name", None) or getattr(camera.model, "name", str(camera.model))
+
+
+def needs_undistortion(camera) -> bool:
+    """True for a camera of :data:`DISTORTED_MODELS` with real distortion: a fisheye, or a
+    perspective model with a non-zero distortion parameter (a SIMPLE_RADIAL with k = 0 is a
+    pinhole and is loaded as one)."""
+    model = camera_model_name(camera)
+    if model not in DISTORTED_MODELS:
+        return False
+    if model == "OPENCV_FISHEYE":
+        return True
+    params = np.asarray(camera.params, np.float64)
+    return bool(np.any(params[list(camera.extra_params_idxs())] != 0.0))
+
+
+def _options(options):
+    import pycolmap
+
+    return options if options is not None else pycolmap.UndistortCameraOptions()
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """How one source camera is undistorted: COLMAP's undistorted camera (``full``, its own
+    size) and the centre crop ``(x0, y0)`` to the common size that gives ``camera``."""
+
+    source_model: str  # the source camera's COLMAP model, e.g. "OPENCV"
+    full: Any  # pycolmap.Camera, PINHOLE
+    x0: int
+    y0: int
+    camera: Any  # pycolmap.Camera, PINHOLE at the common size
+
+
+def _plan(cameras: dict[int, Any], options) -> dict[int, _Plan]:
+    """{camera id: _Plan} for the source ``cameras`` {id: pycolmap.Camera} (all of one size)."""
+    import pycolmap
+
+    options = _options(options)
+    full = {cid: pycolmap.undistort_camera(options, cam) for cid, cam in cameras.items()}
+    width = min(int(c.width) for c in full.values())
+    height = min(int(c.height) for c in full.values())
+    plans = {}
+    for cid, cam in full.items():
+        x0, y0 = (int(cam.width) - width) // 2, (int(cam.height) - height) // 2
+        fx, fy = cam.focal_length_x, cam.focal_length_y
+        cx, cy = cam.principal_point_x - x0, cam.principal_point_y - y0
+        out = pycolmap.Camera(camera_id=cid, model="PINHOLE", width=width, height=height,
+                              params=[fx, fy, cx, cy])
+        plans[cid] = _Plan(source_model=camera_model_name(cameras[cid]), full=cam, x0=x0, y0=y0,
+                           camera=out)
+    return plans
+
+
+def undistorted_cameras(cameras: dict[int, Any], options=None) -> dict[int, Any]:
+    """The PINHOLE cameras that :func:`undistorted_images` undistorts to, without any I/O.
+
+    Args:
+      cameras: {camera id: pycolmap.Camera} of the registered images, all of one size; any of
+        :data:`PINHOLE_MODELS` + :data:`DISTORTED_MODELS`.
+      options: ``pycolmap.UndistortCameraOptions`` (default: COLMAP's, blank_pixels=0).
+    Returns:
+      {camera id: pycolmap.Camera} PINHOLE, all of one common size (COLMAP's undistorted cameras,
+      centre-cropped to the smallest undistorted width and height).
+    """
+    return {cid: p.camera for cid, p in _plan(cameras, options).items()}
+
+
+# --------------------------------------------------------------------------------------------
+# The cached undistorted images
+# --------------------------------------------------------------------------------------------
+
+
+def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list[tuple[str, int]],
+                       cameras: dict[int, Any], *, cache_dir=None, options=None) -> pathlib.Path:
+    """The cached folder whose ``images/`` hold the images of ``views`` undistorted to
+    :func:`undistorted_cameras` ``(cameras)``, undistorting them first when not cached yet.
+
+    Args:
+      scene: the scene folder (``data.path``); its ``images/`` hold the full-resolution images.
+        Only read.
+      model_dir: the COLMAP model folder of the scene (``sparse/0``), given to COLMAP.
+      views: [(image name, camera id), ...] of the registered images to undistort.
+      cameras: {camera id: pycolmap.Camera} source cameras of ``views``, all of one size.
+      cache_dir: root of the cache (default ``$CUSGS_CACHE_DIR`` or ``~/.cache/cusgs_jax``); the
+        folder is ``<cache_dir>/undistorted/<scene name>-<key>`` (see the module docstring).
+      options: ``pycolmap.UndistortCameraOptions`` (default: COLMAP's, blank_pixels=0).
+    Returns:
+      The folder; ``<folder>/images/<name>`` is [H, W, 3] uint8 RGB at the common size (W, H)
+      of the undistorted cameras.
+    Raises:
+      SceneError: ``images/`` or an image is missing or unreadable, or the cache cannot be
+        written.
+    """
+    import pycolmap
+
+    options = _options(options)
+    sources = _source_files(scene, views)
+    key = _cache_key(views, sources, cameras, options, pycolmap.__version__)
+    root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
+    final = root / "undistorted" / f"{_safe_name(scene)}-{key}"
+    if (final / _MARKER).is_file():
+        info = json.loads((final / _MARKER).read_text())
+        log.info("using cached undistorted images of %s (%d images %s → PINHOLE %d×%d) in %s",
+                 scene, len(views), info["source_models"], info["width"], info["height"], final)
+        _warn_alpha(scene, info.get("alpha_images", []))
+        return final
+    plans = _plan(cameras, options)
+    _build(final, model_dir, scene, views, sources, plans, options)
+    info = json.loads((final / _MARKER).read_text())
+    crop = max((max(p.full.width - p.camera.width, p.full.height - p.camera.height)
+                for p in plans.values()), default=0)
+    log.info("undistorted %d images %s → PINHOLE %d×%d%s, cached in %s", len(views),
+             info["source_models"], info["width"], info["height"],
+             f" (cropped by up to {crop} px to one common size)" if crop else "", final)
+    _warn_alpha(scene, info.get("alpha_images", []))
+    return final
+
+
+def _source_files(scene: pathlib.Path, views: list[tuple[str, int]]) -> list[pathlib.Path]:
+    """The image file of every view in ``scene/images``; SceneError when one is missing."""
+    folder = scene / "images"
+    if not folder.is_dir():
+        raise SceneError(
+            f"no images folder: {folder} does not exist. The COLMAP cameras of {scene} are "
+            "distorted, and undistorting them needs the full-resolution images the model was "
+            "made from in images/ (pre-downscaled images_2/, images_4/ ... are distorted too and "
+            "cannot be used as they are); put them there or set data.path to the right folder")
+    paths = []
+    for name, _ in views:
+        path = folder / name
+        if not path.is_file():
+            raise SceneError(
+                f"image {name!r} from the COLMAP model is missing: {path} does not exist; copy "
+                f"it into {folder} or remove the image from the reconstruction (data.path={scene})")
+        paths.append(path)
+    return paths
+
+
+def _cache_key(views, sources, cameras, options, colmap_version: str) -> str:
+    """20 hex digits of sha256 over everything the undistorted pixels depend on (module docstring)."""
+    cams = {str(cid): [camera_model_name(cam), int(cam.width), int(cam.height),
+                       [float(p).hex() for p in np.asarray(cam.params, np.float64)]]
+            for cid, cam in sorted(cameras.items())}
+    images = []
+    for (name, cid), path in zip(views, sources):
+        st = path.stat()
+        images.append([name, int(cid), st.st_size, st.st_mtime_ns])
+    data = dict(version=CACHE_VERSION, pycolmap=colmap_version, options=options.todict(),
+                cameras=cams, images=images)
+    text = json.dumps(data, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:20]
+
+
+def _safe_name(scene: pathlib.Path) -> str:
+    """The scene folder's name reduced to [A-Za-z0-9._-] (at most 40 characters; "scene" if empty)."""
+    name = scene.resolve().name
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")[:40] or "scene"
+
+
+def _build(final: pathlib.Path, model_dir, scene, views, sources, plans, options) -> None:
+    """Undistort into a temporary sibling of ``final`` and rename it into place (module docstring)."""
+    root = final.parent
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        _clear_stale(root, f".{final.name}.tmp-")
+        if final.exists() and not (final / _MARKER).is_file():
+            shutil.rmtree(final, ignore_errors=True)  # incomplete, not ours (e.g. a partial copy)
+        tmp = pathlib.Path(tempfile.mkdtemp(prefix=f".{final.name}.tmp-", dir=root))
+    except OSError as e:
+        raise SceneError(
+            f"cannot write the undistorted images of {scene} to the cache folder {root}: "
+            f"{type(e).__name__}: {e}; set CUSGS_CACHE_DIR to a writable folder with room for a "
+            "copy of the images") from e
+    try:
+        _undistort_into(tmp, model_dir, scene, views, sources, plans, options)
+        try:
+            os.replace(tmp, final)
+        except OSError:
+            if not (final / _MARKER).is_file():  # lost a race only if the winner finished
+                raise
+    except OSError as e:
+        raise SceneError(
+            f"cannot write the undistorted images of {scene} to the cache folder {root}: "
+            f"{type(e).__name__}: {e}; set CUSGS_CACHE_DIR to a writable folder with room for a "
+            "copy of the images") from e
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _clear_stale(root: pathlib.Path, prefix: str) -> None:
+    """Remove temporary folders of interrupted runs (older than an hour, so not in progress)."""
+    for stale in root.glob(prefix + "*"):
+        try:
+            if time.time() - stale.stat().st_mtime > _STALE_TMP_SECONDS:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:
+            pass
+
+
+def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, options) -> None:
+    """Run COLMAP's undistorter into ``tmp``, check its output, crop to the common size and
+    write the marker; only ``tmp/images`` and ``tmp/undistort.json`` are kept."""
+    import pycolmap
+
+    names = [name for name, _ in views]
+    level = getattr(pycolmap.logging, "minloglevel", None)
+    try:
+        if level is not None:
+            pycolmap.logging.minloglevel = max(int(level), 1)  # COLMAP's progress lines off
+        pycolmap.undistort_images(str(tmp), str(model_dir), str(scene / "images"), names,
+                                  undistort_options=options)
+    except Exception as e:  # pycolmap raises RuntimeError, ValueError, ...
+        raise SceneError(
+            f"COLMAP's undistorter failed on {scene}: {type(e).__name__}: {e}. Undistort the "
+            "scene yourself (`colmap image_undistorter --image_path <scene>/images --input_path "
+            f"{model_dir} --output_path <undistorted scene> --output_type COLMAP`) and point "
+            "data.path at the undistorted scene") from e
+    finally:
+        if level is not None:
+            pycolmap.logging.minloglevel = level
+    for entry in tmp.iterdir():  # sparse/ (stale poses/points if kept), stereo/, scripts
+        if entry.name != "images":
+            shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+    for (name, cid), source in zip(views, sources):
+        _check_and_crop(tmp / "images" / name, source, plans[cid])
+    first = next(iter(plans.values())).camera
+    info = dict(
+        version=CACHE_VERSION, scene=str(scene.resolve()), num_images=len(views),
+        source_models="+".join(sorted({p.source_model for p in plans.values()})),
+        width=int(first.width), height=int(first.height),
+        cameras={str(cid): dict(model="PINHOLE", width=int(p.camera.width),
+                                height=int(p.camera.height),
+                                params=[float(v) for v in p.camera.params], crop=[p.x0, p.y0])
+                 for cid, p in plans.items()},
+        alpha_images=[name for (name, _), src in zip(views, sources) if _has_alpha(src)],
+    )
+    (tmp / _MARKER).write_text(json.dumps(info, indent=1) + "\n")
+
+
+def _check_and_crop(path: pathlib.Path, source: pathlib.Path, plan: _Plan) -> None:
+    """Check the undistorted image at ``path`` has COLMAP's undistorted size and centre-crop it
+    in place to the common size; SceneError when COLMAP could not read ``source``."""
+    from PIL import Image
+
+    if not path.is_file():
+        raise SceneError(
+            f"COLMAP's undistorter could not read image {source} (corrupt, or a format COLMAP "
+            "cannot read): replace it with a valid PNG or JPEG, or remove it from the "
+            "reconstruction")
+    with Image.open(path) as im:
+        size = im.size
+    expected = (int(plan.full.width), int(plan.full.height))
+    if size != expected:  # the undistorter and undistort_camera disagree: a bug, not the user's
+        raise RuntimeError(f"COLMAP undistorted {source} to {size[0]}x{size[1]}, expected "
+                           f"{expected[0]}x{expected[1]}")
+    if (plan.full.width, plan.full.height) == (plan.camera.width, plan.camera.height):
+        return
+    import imageio.v3 as iio
+
+    img = iio.imread(path)
+    img = img[plan.y0:plan.y0 + int(plan.camera.height), plan.x0:plan.x0 + int(plan.camera.width)]
+    kwargs = dict(quality=100, subsampling=0) if path.suffix.lower() in (".jpg", ".jpeg") else {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        iio.imwrite(path, np.ascontiguousarray(img), **kwargs)
+
+
+def _has_alpha(path: pathlib.Path) -> bool:
+    """Whether the image file has an alpha channel (from its header)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.mode in ("RGBA", "LA", "PA", "RGBa", "La") or "transparency" in im.info
+    except Exception:  # unreadable files are reported by the size check
+        return False
+
+
+def _warn_alpha(scene: pathlib.Path, names: list[str]) -> None:
+    if names:
+        example = ", ".join(repr(n) for n in names[:3]) + (", ..." if len(names) > 3 else "")
+        log.warning(
+            "%d images of %s have an alpha channel (%s): COLMAP's undistorter drops it, so their "
+            "transparent pixels are trained on as they are stored instead of being composited onto "
+            "splat.background; undistort them yourself keeping the alpha, or remove it",
+            len(names), scene, example)

@@ -1,0 +1,344 @@
+"""Distorted COLMAP cameras: undistorted to PINHOLE with COLMAP's undistorter into the cache.
+
+Tiny synthetic scenes (8 images of 64×48) are built with pycolmap. Each image is rendered through
+its distorted camera as a function of the viewing ray: a bright background with a Gaussian
+marker (σ = 1.2 undistorted pixels, one colour channel per marker) around the ray of every 3D
+point, so in a correctly undistorted image each marker is centred on the pinhole projection
+``K · viewmat · X`` of its point.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+import stat
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+pycolmap = pytest.importorskip("pycolmap")
+
+from cusgs_jax.data import undistort  # noqa: E402
+from cusgs_jax.data.colmap import SceneError, load_cameras, load_scene  # noqa: E402
+from cusgs_jax.data.images import _downscale, scaled_size  # noqa: E402
+
+W, H, N_VIEWS = 64, 48, 8
+BACKGROUND, MARKER, SIGMA = 200.0, -180.0, 1.2  # markers are dark dips in one channel
+CAMERAS = {  # model: params for a 64×48 image
+    "SIMPLE_RADIAL": (50.0, 32.0, 24.0, 0.08),  # pincushion: the undistorted image shrinks
+    "RADIAL": (50.0, 31.6, 24.3, -0.1, 0.02),  # barrel: it grows
+    "OPENCV": (50.0, 52.0, 32.3, 23.8, -0.12, 0.02, 0.001, -0.002),
+    "OPENCV_FISHEYE": (40.0, 41.0, 32.0, 24.0, 0.05, -0.01, 0.0, 0.0),
+}
+# 3×2 grid of points at z = 5 in front of the cameras (about ±16 px, ±10 px from the centre).
+POINTS = np.array([[x, y, 5.0] for y in (-1.0, 1.0) for x in (-1.6, 0.0, 1.6)])
+
+
+@pytest.fixture(autouse=True)
+def cache_dir(tmp_path, monkeypatch):
+    """Every test caches into its own folder, never ~/.cache."""
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(cache))
+    return cache
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    """Counts the calls of pycolmap.undistort_images (the list of their output folders)."""
+    seen = []
+    real = pycolmap.undistort_images
+
+    def counting(*args, **kwargs):
+        seen.append(args[0])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pycolmap, "undistort_images", counting)
+    return seen
+
+
+def _rotation(axis_angle):
+    v = np.asarray(axis_angle, np.float64)
+    theta = np.linalg.norm(v)
+    if theta == 0:
+        return np.eye(3)
+    k = v / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+
+
+def _render(cam, rot, t, uniform=False) -> np.ndarray:
+    """[H, W, 3] uint8 image through the distorted ``cam`` (markers around the points' rays)."""
+    img = np.full((cam.height, cam.width, 3), BACKGROUND)
+    if not uniform:
+        jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
+        rays = cam.cam_from_img(np.stack([jj.ravel(), ii.ravel()], -1)).reshape(cam.height, cam.width, 2)
+        pc = POINTS @ rot.T + t
+        fx, fy = cam.focal_length_x, cam.focal_length_y  # what COLMAP's undistorted camera keeps
+        for p, (x, y, z) in enumerate(pc):
+            d2 = ((rays[..., 0] - x / z) * fx) ** 2 + ((rays[..., 1] - y / z) * fy) ** 2
+            img[..., p % 3] += MARKER * np.exp(-0.5 * d2 / SIGMA**2)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def make_scene(root, cameras, *, uniform=False, seed=0, subfolder=False, ext=".png"):
+    """Write a distorted scene under ``root``: image i uses camera i % len(cameras), where
+    ``cameras`` = [(model, params), ...] (all W×H); ``ext``: the image files' extension
+    (JPEGs at quality 100 without chroma subsampling). Returns {name: (R, t)}."""
+    rng = np.random.default_rng(seed)
+    rec = pycolmap.Reconstruction()
+    cams = []
+    for cid, (model, params) in enumerate(cameras, start=1):
+        cam = pycolmap.Camera(camera_id=cid, model=model, width=W, height=H, params=list(params))
+        rec.add_camera_with_trivial_rig(cam)
+        cams.append(cam)
+    poses = {}
+    for i in range(N_VIEWS):
+        name = (f"cam{i % 2}/" if subfolder else "") + f"v{i:02d}{ext}"
+        rot = _rotation(rng.uniform(-0.05, 0.05, 3))
+        t = rng.uniform(-0.2, 0.2, 3)
+        cam = cams[i % len(cams)]
+        keypoints = cam.img_from_cam(POINTS @ rot.T + t)
+        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=cam.camera_id, image_id=i + 1)
+        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t))
+        (root / "images" / name).parent.mkdir(parents=True, exist_ok=True)
+        kwargs = dict(quality=100, subsampling=0) if ext == ".jpg" else {}
+        iio.imwrite(root / "images" / name, _render(cam, rot, t, uniform), **kwargs)
+        poses[name] = (rot, t)
+    for p, xyz in enumerate(POINTS):
+        track = pycolmap.Track()
+        for i in range(N_VIEWS):
+            track.add_element(i + 1, p)
+        rec.add_point3D(xyz, track, np.array([255, 0, 0], np.uint8))
+    (root / "sparse" / "0").mkdir(parents=True)
+    rec.write(str(root / "sparse" / "0"))
+    return poses
+
+
+def _marker_errors(scene) -> list[float]:
+    """Distance (px) between each marker's intensity centroid in the loaded images and the
+    pinhole projection of its point with the loaded K and viewmat (markers ≥ 5 px inside)."""
+    errors = []
+    for img, K, view in zip(scene.images, scene.Ks.astype(np.float64), scene.viewmats):
+        pc = POINTS @ view[:3, :3].T + view[:3, 3]
+        uv = (pc @ K.T)[:, :2] / pc[:, 2:]
+        for p, (u, v) in enumerate(uv):
+            if not (5 <= u <= scene.width - 5 and 5 <= v <= scene.height - 5):
+                continue
+            j0, i0 = int(u), int(v)
+            ii, jj = np.mgrid[i0 - 4:i0 + 5, j0 - 4:j0 + 5]
+            w = np.clip(BACKGROUND - img[ii, jj, p % 3].astype(np.float64), 0, None)
+            cu, cv = (w * (jj + 0.5)).sum() / w.sum(), (w * (ii + 0.5)).sum() / w.sum()
+            errors.append(float(np.hypot(cu - u, cv - v)))
+    return errors
+
+
+MIXED = [("OPENCV", CAMERAS["OPENCV"]), ("OPENCV", (50.0, 51.0, 31.8, 24.2, -0.2, 0.05, 0.0, 0.0)),
+         ("PINHOLE", (50.0, 50.0, 32.0, 24.0))]
+
+
+@pytest.mark.parametrize("cameras,ext", [([(m, p)], ".png") for m, p in CAMERAS.items()]
+                         + [(MIXED, ".png"), (MIXED, ".jpg")],
+                         ids=list(CAMERAS) + ["mixed_sizes", "mixed_sizes_jpeg"])
+def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
+    make_scene(tmp_path / "s", cameras, subfolder=len(cameras) > 1, ext=ext)
+    scene = load_scene(tmp_path / "s", holdout_every=0)
+    assert len(calls) == 1 and scene.images.shape == (N_VIEWS, scene.height, scene.width, 3)
+    # Pinhole K of COLMAP's undistorted camera (centre-cropped to the common size when mixed).
+    full = {cid: pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(),
+                                           pycolmap.Camera(camera_id=cid, model=m, width=W, height=H,
+                                                           params=list(p)))
+            for cid, (m, p) in enumerate(cameras, start=1)}
+    assert scene.width == min(c.width for c in full.values())
+    assert scene.height == min(c.height for c in full.values())
+    for name, K in zip(scene.names, scene.Ks):
+        c = full[int(name[-6:-4]) % len(cameras) + 1]  # image i (v{i:02d}.png) has camera i % n
+        x0, y0 = (c.width - scene.width) // 2, (c.height - scene.height) // 2
+        np.testing.assert_allclose(K, [[c.focal_length_x, 0, c.principal_point_x - x0],
+                                       [0, c.focal_length_y, c.principal_point_y - y0], [0, 0, 1]],
+                                   rtol=1e-6)
+    if len(cameras) > 1:  # a real crop happened
+        assert len({(c.width, c.height) for c in full.values()}) > 1
+    errors = _marker_errors(scene)
+    assert len(errors) >= 4 * N_VIEWS, "too few markers inside the undistorted images"
+    assert max(errors) < 0.25, f"marker off its pinhole projection by {max(errors):.2f} px"
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_no_black_border(tmp_path, model):
+    """Crop, not mask: a uniformly bright source gives uniformly bright undistorted images."""
+    make_scene(tmp_path / "s", [(model, CAMERAS[model])], uniform=True)
+    images = load_scene(tmp_path / "s", holdout_every=0).images.astype(int)
+    borders = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
+    assert borders.min() >= BACKGROUND - 1, f"dark border pixel {borders.min()}"
+    assert np.abs(images - BACKGROUND).max() <= 1
+
+
+def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    with caplog.at_level(logging.INFO, logger="cusgs_jax"):
+        first = load_scene(tmp_path / "s")
+        assert len(calls) == 1
+        line = f"undistorted {N_VIEWS} images OPENCV → PINHOLE {first.width}×{first.height}, cached in"
+        assert line in caplog.text
+        folders = list((cache_dir / "undistorted").iterdir())
+        assert len(folders) == 1 and folders[0].name.startswith("s-")
+        assert sorted(p.name for p in folders[0].iterdir()) == ["images", "undistort.json"]
+        caplog.clear()
+        second = load_scene(tmp_path / "s")
+        assert len(calls) == 1 and "using cached undistorted images" in caplog.text
+    np.testing.assert_array_equal(first.images, second.images)
+    np.testing.assert_array_equal(first.Ks, second.Ks)
+    # A changed image (new content, new mtime) makes a new cache entry.
+    path = tmp_path / "s" / "images" / "v03.png"
+    iio.imwrite(path, np.full((H, W, 3), 7, np.uint8))
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
+    third = load_scene(tmp_path / "s")
+    assert len(calls) == 2 and len(list((cache_dir / "undistorted").iterdir())) == 2
+    assert third.images[3].max() <= 8 and np.array_equal(third.images[2], first.images[2])
+    assert not list((cache_dir / "undistorted").glob(".*tmp-*"))  # temporary folders renamed
+
+
+def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
+    """Another job renames its complete copy into place first: ours is dropped, theirs used."""
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    real = undistort._undistort_into
+
+    def racing(tmp, *args):
+        real(tmp, *args)
+        final = tmp.parent / tmp.name[1:].split(".tmp-")[0]  # tmp is .<final name>.tmp-XXXX
+        shutil.copytree(tmp, final)  # the other job got there first
+
+    monkeypatch.setattr(undistort, "_undistort_into", racing)
+    scene = load_scene(tmp_path / "s", holdout_every=0)
+    assert [p.name.startswith("s-") for p in (cache_dir / "undistorted").iterdir()] == [True]
+    assert max(_marker_errors(scene)) < 0.25
+
+
+def _snapshot(folder):
+    return sorted((str(p.relative_to(folder)), p.stat().st_size, p.stat().st_mtime_ns)
+                  for p in folder.rglob("*"))
+
+
+def test_read_only_scene(tmp_path, cache_dir):
+    scene_dir = tmp_path / "s"
+    make_scene(scene_dir, [("RADIAL", CAMERAS["RADIAL"])])
+    before = _snapshot(scene_dir)
+    modes = {p: p.stat().st_mode for p in [scene_dir, *scene_dir.rglob("*")]}
+    for p in modes:
+        p.chmod(stat.S_IMODE(modes[p]) & ~0o222)
+    try:
+        scene = load_scene(scene_dir)
+    finally:
+        for p, mode in modes.items():
+            p.chmod(stat.S_IMODE(mode))
+    assert scene.path == scene_dir and scene.num_images == N_VIEWS
+    assert _snapshot(scene_dir) == before  # nothing written into the scene folder
+    assert len(list((cache_dir / "undistorted").iterdir())) == 1
+
+
+@pytest.mark.parametrize("model,params", [
+    ("FULL_OPENCV", (50, 50, 32, 24, 0.01, 0, 0, 0, 0, 0, 0, 0)),
+    ("FOV", (50, 50, 32, 24, 0.1)),
+    ("THIN_PRISM_FISHEYE", (50, 50, 32, 24, 0, 0, 0, 0, 0, 0, 0, 0)),
+    ("SIMPLE_RADIAL_FISHEYE", (50, 32, 24, 0.01)),
+])
+def test_unsupported_model(tmp_path, model, params, calls):
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"]), (model, params)], uniform=True)
+    with pytest.raises(SceneError, match=rf"camera 2 in .*cameras\.bin uses the {model} camera "
+                                         r"model.*colmap image_undistorter"):
+        load_scene(tmp_path / "s")
+    with pytest.raises(SceneError, match=model):
+        load_cameras(tmp_path / "s")
+    assert not calls
+
+
+@pytest.mark.parametrize("downscale", [1, 2])
+def test_load_cameras_agrees_with_load_scene(tmp_path, calls, downscale):
+    make_scene(tmp_path / "s", MIXED)
+    viewmats, Ks, width, height, train = load_cameras(tmp_path / "s", downscale=downscale)
+    assert not calls  # no image is undistorted (or read) for the cameras
+    scene = load_scene(tmp_path / "s", downscale=downscale)
+    assert (width, height) == (scene.width, scene.height)
+    np.testing.assert_array_equal(Ks, scene.Ks)
+    np.testing.assert_array_equal(viewmats, scene.viewmats)
+    np.testing.assert_array_equal(train, scene.train_indices)
+
+
+def test_downscale_uses_undistorted_full_resolution(tmp_path):
+    """images_2/ of a distorted scene holds distorted pixels: ignored; the undistorted images/
+    are downscaled with the loader's anti-aliased resize and K is halved."""
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    shutil.copytree(tmp_path / "s" / "images", tmp_path / "s" / "images_2")
+    for p in (tmp_path / "s" / "images_2").iterdir():
+        iio.imwrite(p, np.zeros((H // 2, W // 2, 3), np.uint8))  # would be black if used
+    full = load_scene(tmp_path / "s", holdout_every=0)
+    half = load_scene(tmp_path / "s", downscale=2, holdout_every=0)
+    out_hw = (scaled_size(full.height, 2), scaled_size(full.width, 2))
+    assert (half.height, half.width) == out_hw
+    for a, b in zip(full.images, half.images):
+        np.testing.assert_array_equal(_downscale(a, 2, out_hw), b)
+    np.testing.assert_allclose(half.Ks[:, :2], full.Ks[:, :2] / 2, rtol=1e-6)
+
+
+def test_zero_distortion_is_a_pinhole(tmp_path, calls):
+    make_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, 0.0))])
+    scene = load_scene(tmp_path / "s", holdout_every=0)
+    assert not calls and (scene.width, scene.height) == (W, H)
+    np.testing.assert_allclose(scene.Ks[0], [[50, 0, 32], [0, 50, 24], [0, 0, 1]])
+    assert max(_marker_errors(scene)) < 0.25
+
+
+def test_invalid_distorted_camera(tmp_path, calls):
+    make_scene(tmp_path / "s", [("OPENCV", (50.0, 52.0, 32.0, 24.0, np.nan, 0.0, 0.0, 0.0))],
+               uniform=True)
+    with pytest.raises(SceneError, match=r"camera 1 in .*cameras\.bin has invalid parameters \(OPENCV"):
+        load_scene(tmp_path / "s")
+    assert not calls
+
+
+def test_missing_and_corrupt_images(tmp_path):
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    (tmp_path / "s" / "images" / "v02.png").unlink()
+    with pytest.raises(SceneError, match=r"'v02\.png' .*missing"):
+        load_scene(tmp_path / "s")
+    (tmp_path / "s" / "images" / "v02.png").write_bytes(b"not an image")
+    with pytest.raises(SceneError, match=r"undistorter could not read image .*v02\.png"):
+        load_scene(tmp_path / "s")
+    shutil.rmtree(tmp_path / "s" / "images")
+    with pytest.raises(SceneError, match=r"images does not exist.*distorted"):
+        load_scene(tmp_path / "s")
+
+
+def test_unwritable_cache(tmp_path, monkeypatch):
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "file"))  # a file, not a folder
+    with pytest.raises(SceneError, match=r"cannot write the undistorted images.*CUSGS_CACHE_DIR"):
+        load_scene(tmp_path / "s")
+
+
+def test_alpha_images_warned(tmp_path, caplog):
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    iio.imwrite(tmp_path / "s" / "images" / "v01.png", np.full((H, W, 4), 200, np.uint8))
+    with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
+        load_scene(tmp_path / "s")
+    assert "1 images of" in caplog.text and "'v01.png'" in caplog.text and "drops it" in caplog.text
+
+
+def test_cache_key_changes_with_camera(tmp_path):
+    """The key covers the camera parameters and the options, not only the image files."""
+    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    views = [(f"v{i:02d}.png", 1) for i in range(N_VIEWS)]
+    sources = [tmp_path / "s" / "images" / n for n, _ in views]
+    cam = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H, params=list(CAMERAS["OPENCV"]))
+    other = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H,
+                            params=list(CAMERAS["OPENCV"][:4]) + [-0.12000001, 0.02, 0.001, -0.002])
+    opts = pycolmap.UndistortCameraOptions()
+    key = undistort._cache_key(views, sources, {1: cam}, opts, "v")
+    assert key == undistort._cache_key(views, sources, {1: cam}, opts, "v")
+    assert key != undistort._cache_key(views, sources, {1: other}, opts, "v")
+    opts2 = pycolmap.UndistortCameraOptions()
+    opts2.blank_pixels = 1.0
+    assert key != undistort._cache_key(views, sources, {1: cam}, opts2, "v")
