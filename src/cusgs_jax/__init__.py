@@ -6,7 +6,7 @@ JAX do not load it). The naming table of array shapes is in :mod:`cusgs_jax.type
 
 Data flow of one training step, with the module of each stage::
 
-    scene (data.colmap / data.demo) → anchors (model.anchors) → decode (model.decode)
+    scene (data.layouts: colmap, blender, nerfstudio; data.demo) → anchors (model.anchors) → decode (model.decode)
       → splat (splat.render) → loss (losses, model.field) → update (training.step, training.optim)
       → densify (densify.scaffold, densify.feature_prune) → evaluate (eval.views, eval.features)
 """
@@ -24,6 +24,8 @@ _EXPORTS = {
     "Camera": "types",
     # data
     "SceneData": "data.colmap", "SceneError": "data.colmap", "load_scene": "data.colmap",
+    "load_any_scene": "data.layouts", "detect_format": "data.layouts",
+    "load_blender_scene": "data.blender", "load_nerfstudio_scene": "data.nerfstudio",
     "normalize_scene": "data.normalize", "WorldTransform": "data.normalize",
     "UserError": "errors", "ConfigError": "errors", "CheckpointError": "errors",
     "demo_scene_path": "data.demo", "generate_demo_scene": "data.demo",

@@ -28,6 +28,7 @@ from cusgs_jax.errors import ConfigError
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 
 
 def require(ok: bool, option: str, value, requirement: str, fix: str = "") -> None:
@@ -70,14 +71,20 @@ class DemoConfig:
 
 @dataclasses.dataclass(frozen=True)
 class DataConfig:
-    """``path``: a folder with ``images/`` and ``sparse/0/`` (COLMAP); None = the demo scene."""
+    """``path``: a scene folder — COLMAP (``images/`` and ``sparse/0/``), Blender / NeRF-synthetic
+    (``transforms_train.json``) or nerfstudio (``transforms.json``); None = the demo scene.
+    ``format``: its layout, ``auto`` = detected by the files present (:mod:`cusgs_jax.data.layouts`).
+    ``random_points``: uniform initial points for layouts without SfM points
+    (:mod:`cusgs_jax.data.random_points`)."""
 
     path: Optional[str] = None
+    format: str = "auto"  # auto | colmap | blender | nerfstudio
     downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
     holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
     # Rotation of the normalised frame (data/normalize.py): "none" keeps the model's axes, "principal"
     # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
     align: str = "none"
+    random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
     def __post_init__(self):
@@ -86,6 +93,10 @@ class DataConfig:
         require(self.align in ("none", "principal"), "data.align", self.align,
                 "must be none (keep the model's axes) or principal (rotate onto the points' principal axes)",
                 "e.g. data.align=principal")
+        require(self.format in ("auto",) + DATASET_FORMATS, "data.format", self.format,
+                f"must be auto or one of {', '.join(DATASET_FORMATS)} (the layout of data.path)",
+                "e.g. data.format=auto to detect it from the files present")
+        _at_least(self, "data", 2, "random_points")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -205,7 +216,10 @@ class SplatConfig:
     active_fraction: float = 0.375
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
+    # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the
+    # colour it used (app/inputs.py::resolve_background). Renderers read ``background_color``.
+    background: Optional[tuple[float, float, float]] = None
 
     def __post_init__(self):
         _tuples(self)
@@ -215,9 +229,15 @@ class SplatConfig:
         require(_number(self.active_fraction) and 0 < self.active_fraction <= 1, "splat.active_fraction",
                 self.active_fraction, "must lie in (0, 1] (it only sets the first active-Gaussian capacity, "
                 "which grows when a view has more)")
-        require(len(self.background) == 3 and all(_number(c) and 0 <= c <= 1 for c in self.background),
-                "splat.background", self.background, "must be three numbers in [0, 1]",
-                "e.g. splat.background=[1,1,1]")
+        require(self.background is None
+                or (len(self.background) == 3 and all(_number(c) and 0 <= c <= 1 for c in self.background)),
+                "splat.background", self.background, "must be three numbers in [0, 1] (or null: the dataset's "
+                "default, white for Blender scenes and black otherwise)", "e.g. splat.background=[1,1,1]")
+
+    @property
+    def background_color(self) -> tuple[float, float, float]:
+        """``background``, or black when it is not set (None) and no scene has resolved it."""
+        return (0.0, 0.0, 0.0) if self.background is None else tuple(float(c) for c in self.background)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -114,7 +114,7 @@ def test_report_end_to_end(sweep, capsys):
 
     md = (out / "report.md").read_text()
     assert md in capsys.readouterr().out
-    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | ★ | 200,000 | 900 | 0.8123 | 25.12 |" in md
+    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | ★ |  | 200,000 | 900 | 0.8123 | 25.12 |" in md
     assert "| 2 | prune.ratio=0.2 | failed: FloatingPointError: NaN loss at step 7 |  |" in md
     assert ("Pareto front (2 of 5 runs, smallest first): job `0` 25.12 dB / 200,000 params; "
             "job `1` 26.50 dB / 3,000,000 params.") in md
@@ -206,3 +206,19 @@ def test_mark_pareto_matches_brute_force():
             assert r["pareto"] == (None if r["status"] != "ok" else not dominated)
         assert [r["params"] for r in front] == sorted(r["params"] for r in front)
         assert {id(r) for r in front} == {id(r) for r in records if r["pareto"]}
+
+
+def test_the_format_column_shows_each_runs_scene_layout(tmp_path):
+    """eval.json's dataset_format reaches the Markdown table and the CSV; runs from before it existed show nothing."""
+    root = tmp_path / "sweep"
+    for name, layout in (("0", "blender"), ("1", "colmap"), ("2", None)):
+        job = _job(root, name, 0.01 * (int(name) + 1))
+        _eval(job, 24.0, 0.8, 1000, 10, 5.0, 1.0)
+        if layout is not None:
+            result = json.loads((job / "eval.json").read_text())
+            (job / "eval.json").write_text(json.dumps(dict(result, dataset_format=layout, split="transforms_test")))
+    main([str(root)])
+    md = (root / "report" / "report.md").read_text()
+    assert "| job | run | status | Pareto | format | params |" in md
+    assert "| 0 | prune.ratio=0.01 | ok | ★ | blender | 1,000 |" in md
+    assert [r["dataset_format"] for r in _csv_rows(root / "report" / "report.csv")] == ["blender", "colmap", ""]

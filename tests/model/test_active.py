@@ -105,7 +105,7 @@ def test_the_compacted_step_has_the_loss_and_gradients_of_rasterising_every_deco
         g = decode_rows(local, local["anchor"], centers, decoded, camera, batch["index"], cfg.model)
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.world_to_camera, camera.K, W, H,
                         tile_size=cfg.splat.tile_size, max_pairs=64 * decoded_count, means2d_delta=delta,
-                        background=jnp.asarray(cfg.splat.background, jnp.float32))
+                        background=jnp.asarray(cfg.splat.background_color, jnp.float32))
         return losses.image_loss(out.image, batch["image"], g.scales, g.active, l1_weight=cfg.loss.l1_weight,
                                  ssim_weight=cfg.loss.ssim_weight, volume_weight=cfg.loss.volume_weight)[0]
 

@@ -128,7 +128,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
         cameras_from=model.cameras_from if cameras is not None else None,
         appearance="mean" if "appearance" in model.nets else "none",
         # how the run rendered (cusgs-render-ply --background R G B [--antialiased] to score it the same way)
-        background=[float(c) for c in model.cfg.splat.background], antialiased=bool(model.cfg.splat.antialiased),
+        background=list(model.cfg.splat.background_color), antialiased=bool(model.cfg.splat.antialiased),
         file_mb=round(pathlib.Path(path).stat().st_size / 2**20, 3),
         checkpoint_mb=round(model.checkpoint_bytes / 2**20, 3), seconds=round(time.perf_counter() - start, 3))
 

@@ -20,7 +20,8 @@ def _parser() -> argparse.ArgumentParser:
         prog="cusgs-extract",
         description="Extract dense per-view feature maps into SCENE/features/MODEL/ "
                     "(one .npy per image + meta.json).")
-    ap.add_argument("scene", help="scene folder with images/ and sparse/0/")
+    ap.add_argument("scene", help="scene folder: COLMAP (images/, sparse/0/), Blender (transforms_train.json) "
+                                  "or nerfstudio (transforms.json)")
     ap.add_argument("--model", required=True, choices=MODELS)
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), default=None,
                     help="feature map size (default: the image size; vgg16: 1/4 of it; "

@@ -14,11 +14,16 @@ log = logging.getLogger("cusgs_jax")
 def load_data(cfg: Config):
     """The scene of ``data.path`` (or the built-in demo scene when it is None) in the normalised frame.
 
+    ``data.path`` is read in its layout (``data.format``: COLMAP, Blender or nerfstudio, ``auto`` =
+    detected; :func:`cusgs_jax.data.layouts.load_any_scene`).
+
     Returns:
       (:class:`cusgs_jax.data.colmap.SceneData` with extent 1, :class:`cusgs_jax.data.normalize.WorldTransform`
-      from the COLMAP frame to it). Images with an alpha channel are composited on ``splat.background``.
+      from the scene's frame to it). Images with an alpha channel are composited on ``splat.background``, or
+      when it is not set (None) on the layout's default (white for Blender, black otherwise), which
+      ``scene.background`` records (:func:`resolve_background`).
     """
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.data.normalize import normalize_scene
 
     data = cfg.data
@@ -29,9 +34,22 @@ def load_data(cfg: Config):
         demo = data.demo
         path = demo_scene_path(seed=demo.seed, num_views=demo.views, width=demo.width, height=demo.height)
         log.info("using the built-in demo scene at %s", path)
-    scene = load_scene(path, downscale=data.downscale, holdout_every=data.holdout_every,
-                       background=cfg.splat.background)
+    scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
+                           background=cfg.splat.background, num_random_points=data.random_points,
+                           seed=cfg.train.seed)
     return normalize_scene(scene, align=data.align)
+
+
+def resolve_background(cfg: Config, scene) -> Config:
+    """``cfg`` with ``splat.background`` = the colour ``scene``'s images were composited on when it was
+    not set (None): the layout's default (white for Blender, black otherwise). A set colour is kept."""
+    if cfg.splat.background is not None:
+        return cfg
+    color = tuple(float(c) for c in scene.background)
+    if color != (0.0, 0.0, 0.0):
+        log.info("splat.background not set: rendering on %s, the default of %s scenes", color,
+                 scene.dataset_format)
+    return cfg.replace(splat=dict(background=color))
 
 
 def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):

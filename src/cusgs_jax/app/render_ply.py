@@ -1,9 +1,11 @@
-"""``cusgs-render-ply``: render a standard 3DGS PLY at a COLMAP scene's cameras and score it.
+"""``cusgs-render-ply``: render a standard 3DGS PLY at a scene's cameras and score it.
 
-The PLY may come from any tool (graphdeco, gsplat, our exporter); it is taken to
-be in the COLMAP frame of the scene, which is therefore NOT normalised
-(DESIGN.md §7, §10). Held-out views are every ``--holdout-every``-th image, as
-``cusgs-train`` holds them out; ``--all`` scores every image. PSNR/SSIM per view
+The scene may be in any layout ``cusgs-train`` reads (COLMAP, Blender, nerfstudio;
+``--format``, detected by default: :mod:`cusgs_jax.data.layouts`). The PLY may come
+from any tool (graphdeco, gsplat, our exporter); it is taken to be in the frame of
+the scene's poses, which is therefore NOT normalised (DESIGN.md §7, §10). Held-out
+views are every ``--holdout-every``-th image, as ``cusgs-train`` holds them out
+(a Blender scene's test frames); ``--all`` scores every image. PSNR/SSIM per view
 and their means go to stdout as JSON; ``--out-dir`` also writes ``<image>.png``
 (render | ground truth). Only argparse is imported before the arguments are
 parsed, so ``--help`` does not load JAX.
@@ -27,18 +29,23 @@ PROG = "cusgs-render-ply"
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog=PROG,
-        description="Render a standard 3DGS PLY at the held-out cameras of a COLMAP scene (in the COLMAP "
-                    "frame, not normalised) and print per-view and mean PSNR/SSIM as JSON.")
+        description="Render a standard 3DGS PLY at the held-out cameras of a scene (COLMAP, Blender or nerfstudio; "
+                    "in the frame of its poses, not normalised) and print per-view and mean PSNR/SSIM as JSON.")
     ap.add_argument("ply", help="standard 3DGS PLY (x y z f_dc_* f_rest_* opacity scale_* rot_*)")
-    ap.add_argument("--colmap", required=True, metavar="SCENE", help="scene folder with images/ and sparse/0/")
+    ap.add_argument("--colmap", required=True, metavar="SCENE",
+                    help="scene folder: COLMAP (images/, sparse/0/), Blender (transforms_train.json) or nerfstudio "
+                         "(transforms.json)")
+    ap.add_argument("--format", default="auto", choices=("auto", "colmap", "blender", "nerfstudio"),
+                    help="the scene's layout (default: detected from the files present)")
     ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D",
                     help="load images at 1/D resolution (images_D/ if present), intrinsics scaled (default 1)")
     ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
     ap.add_argument("--out-dir", default=None, metavar="DIR", help="write <image>.png: render | ground truth")
-    ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=(0.0, 0.0, 0.0), metavar=("R", "G", "B"),
-                    help="background colour in [0, 1] (also under images with alpha; default black)")
+    ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=None, metavar=("R", "G", "B"),
+                    help="background colour in [0, 1] (also under images with alpha; default: the layout's, "
+                         "white for Blender scenes and black otherwise)")
     ap.add_argument("--sh-degree", type=int_at_least(0), default=None, metavar="D",
                     help="evaluate SH up to degree D (default: the PLY's)")
     ap.add_argument("--antialiased", action="store_true", help="gsplat's antialiased mode (default: classic)")
@@ -47,13 +54,15 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8, all_views: bool = False,
-                 out_dir=None, background=(0.0, 0.0, 0.0), sh_degree: int | None = None,
-                 antialiased: bool = False, progress: bool = True) -> dict:
+                 out_dir=None, background=None, sh_degree: int | None = None,
+                 antialiased: bool = False, progress: bool = True, format: str = "auto") -> dict:
     """Render ``ply`` at the scene's held-out (or every) camera; PSNR/SSIM per view and mean.
 
+    ``background`` None: the layout's default (white for Blender scenes, black otherwise).
+
     Returns:
-      {"ply", "scene", "num_gaussians", "sh_degree", "evaluated_on": "holdout"|"all",
-       "holdout_every", "num_views", "width", "height", "psnr", "ssim",
+      {"ply", "scene", "dataset_format", "split", "num_gaussians", "sh_degree", "evaluated_on":
+       "holdout"|"all", "holdout_every", "num_views", "width", "height", "background", "psnr", "ssim",
        "per_view": [{"name", "psnr", "ssim"}], "seconds"}.
     Raises:
       UserError: a bad PLY (:class:`cusgs_jax.io.PlyError`), scene (SceneError) or setting.
@@ -64,14 +73,16 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     import numpy as np
     from tqdm import tqdm
 
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact
 
     start = time.perf_counter()
     model = read_ply(ply)  # before the scene: a bad PLY fails fast
     every = 0 if all_views or holdout_every <= 1 else holdout_every
-    scene = load_scene(scene_path, downscale=downscale, holdout_every=every, background=tuple(background))
+    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=every,
+                           background=None if background is None else tuple(background))
+    background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
     degree = model.sh_degree if sh_degree is None else sh_degree
     model, shift = _recentred(model, scene)
@@ -92,11 +103,14 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
                              ssim=float(metrics.ssim(image, target))))
         if out_dir is not None:
             pair = (np.concatenate([image, target], axis=1) * 255).round().astype(np.uint8)
-            iio.imwrite(out_dir / (pathlib.Path(scene.names[view]).stem + ".png"), pair)
+            # train/r_0.png → train_r_0.png: a Blender scene's train and test frames share file names
+            iio.imwrite(out_dir / ("_".join(pathlib.PurePosixPath(scene.names[view]).with_suffix("").parts) + ".png"),
+                        pair)
     return dict(
-        ply=str(ply), scene=str(scene.path), num_gaussians=model.num_gaussians, sh_degree=degree,
+        ply=str(ply), scene=str(scene.path), dataset_format=scene.dataset_format,
+        split=scene.split if every else "none", num_gaussians=model.num_gaussians, sh_degree=degree,
         evaluated_on="holdout" if every else "all", holdout_every=every, num_views=len(per_view),
-        width=scene.width, height=scene.height,
+        width=scene.width, height=scene.height, background=list(background),
         psnr=float(np.mean([r["psnr"] for r in per_view])), ssim=float(np.mean([r["ssim"] for r in per_view])),
         per_view=per_view, seconds=round(time.perf_counter() - start, 3))
 
@@ -130,14 +144,16 @@ def _camera(scene, view: int, shift):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-render-ply PLY --colmap SCENE [--downscale D] [--holdout-every 8 | --all]
+    """CLI: ``cusgs-render-ply PLY --colmap SCENE [--format auto] [--downscale D] [--holdout-every 8 | --all]
     [--out-dir DIR] [--background R G B] [--sh-degree D] [--antialiased] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
     try:
         result = evaluate_ply(args.ply, args.colmap, downscale=args.downscale, holdout_every=args.holdout_every,
-                              all_views=args.all, out_dir=args.out_dir, background=tuple(args.background),
-                              sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet)
+                              all_views=args.all, out_dir=args.out_dir,
+                              background=None if args.background is None else tuple(args.background),
+                              sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet,
+                              format=args.format)
     except UserError as e:  # a bad PLY, scene or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")
     print(json.dumps(result, indent=2))

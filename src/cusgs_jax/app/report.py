@@ -56,6 +56,8 @@ from cusgs_jax.eval.sweep_plots import finite_or_none, pareto_front, write_plots
 
 #: Metric columns: (record / CSV key, Markdown header, Markdown format, meaning).
 METRICS = [
+    ("dataset_format", "format", "{}", "the scene's layout: colmap, blender or nerfstudio (eval.json dataset_format; "
+     "Blender scenes are evaluated on their test split, the others on every 8th image)"),
     ("params", "params", "{:,.0f}", "total trained parameters (eval.json params.total)"),
     ("anchors", "anchors", "{:,.0f}", "alive anchors at the end of training"),
     ("ssim", "SSIM", "{:.4f}", "held-out SSIM"),
@@ -147,7 +149,9 @@ def _eval_metrics(result: dict) -> dict:
     features = result.get("features")
     models = features.get("models") if isinstance(features, dict) else None
     models = [m for m in models.values() if isinstance(m, dict)] if isinstance(models, dict) else []
+    layout = result.get("dataset_format")
     return {
+        "dataset_format": layout if isinstance(layout, str) else None,
         "params": finite_or_none(params.get("total")) if isinstance(params, dict) else finite_or_none(params),
         "anchors": finite_or_none(result.get("alive_anchors")),
         "ssim": finite_or_none(result.get("ssim")),
@@ -255,7 +259,8 @@ def render_markdown(records, keys, fixed) -> str:
     lines += ["", "## Table 4 style: every job", "",
               "Pareto: ★ marks the runs on the front of held-out PSNR (higher) against parameters (lower): "
               "no other run has both at least as many dB and at most as many parameters, one of them strictly.",
-              "", "| " + " | ".join(header) + " |", "|" + "|".join(["---"] * 4 + ["---:"] * len(METRICS)) + "|"]
+              "", "| " + " | ".join(header) + " |",
+              "|" + "|".join(["---"] * 4 + [":---" if fmt == "{}" else "---:" for _, _, fmt, _ in METRICS]) + "|"]
     for r in records:
         status = r["status"] if len(r["status"]) <= 120 else r["status"][:117] + "..."
         cells = [r["job"], run_label(r, keys), status, "★" if r.get("pareto") else ""] + \

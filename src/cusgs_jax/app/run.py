@@ -8,7 +8,9 @@
   restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
 * ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
-  ``lpips`` extra), model size, times, pruning summary
+  ``lpips`` extra), model size, times, pruning summary, the scene's layout (``dataset_format``: colmap,
+  blender, nerfstudio), its held-out ``split`` (``every_8th``, ``transforms_test``, ``none``) and the
+  ``background`` rendered on
 * ``renders/`` — held-out renders beside ground truth (PNG)
 * ``error_vs_time.png`` — held-out PSNR against training wall-clock time
 * ``checkpoints/`` — orbax checkpoints (periodic and final); their metadata records the training and
@@ -39,7 +41,7 @@ from tqdm import tqdm
 
 from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.load_run import BANKS_FILE
-from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, view_order
+from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.config import Config, require
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
@@ -112,6 +114,7 @@ def setup(cfg: Config, output_dir) -> Session:
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)
+    cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
     cfg = resolve_voxel_size(cfg, scene.points)
     train_idx = scene.train_indices
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
@@ -412,7 +415,8 @@ def finalise(session: Session) -> dict:
         world_transform=session.world.as_dict(), iterations=cfg.train.iterations,
         batch_size=cfg.train.batch_size, devices=_devices(session), width=session.scene.width,
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
-        evaluated_on=session.evaluated_on, curve=session.curve,
+        evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
+        background=list(cfg.splat.background_color), curve=session.curve,
     )
     if session.banks is not None:
         result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)

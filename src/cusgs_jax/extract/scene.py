@@ -50,7 +50,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.data.features import (
     META_FILE,
     FeatureError,
@@ -211,15 +211,16 @@ def extract(scene_path: str | os.PathLike, model: str, *,
             resolution: tuple[int, int] | None = None, downscale: int = 1,
             dtype: str = "float16", overwrite: bool = False, progress: bool = True,
             **options) -> ExtractSummary:
-    """Extract dense features of ``model`` for every image of a COLMAP scene and write them to
+    """Extract dense features of ``model`` for every image of a scene and write them to
     ``<scene>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
 
     Args:
-      scene_path: scene folder (images/ + sparse/0/), loaded with ``load_scene``.
+      scene_path: scene folder (COLMAP, Blender or nerfstudio), loaded with ``load_any_scene``
+        (its layout detected; images with alpha on the layout's default background).
       model: one of :data:`MODELS`.
       resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
         (vgg16) or the patch grid (clip, dinov2).
-      downscale: ``load_scene`` downscale factor of the images described.
+      downscale: ``load_any_scene`` downscale factor of the images described.
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
@@ -238,7 +239,7 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     t_start = time.perf_counter()
     resolution = _check_request(scene_path, model, resolution, overwrite)
     extractor = _EXTRACTORS[model](model, dict(options))
-    scene = load_scene(scene_path, downscale=downscale, holdout_every=0)
+    scene = load_any_scene(scene_path, downscale=downscale, holdout_every=0, num_random_points=2)
 
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()

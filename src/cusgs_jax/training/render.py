@@ -47,7 +47,7 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
         pair_capacity = max_pairs(cfg.max_pairs_per_gaussian, active_capacity)
     chosen = select_active(gaussians.active, active_capacity)
     compact = compact_gaussians(gaussians, chosen)
-    colors, background = compact.colors, jnp.asarray(cfg.background, jnp.float32)
+    colors, background = compact.colors, jnp.asarray(cfg.background_color, jnp.float32)
     if extra_channels is not None:
         colors = jnp.concatenate([colors, gather_active(extra_channels, chosen)], axis=-1)
         background = jnp.concatenate([background, jnp.zeros(extra_channels.shape[-1], jnp.float32)])

@@ -1,0 +1,268 @@
+"""Load a nerfstudio scene (``transforms.json``) into a :class:`~cusgs_jax.data.colmap.SceneData`.
+
+Layout (``data.path``), as ``ns-process-data`` writes it::
+
+    scene/
+      transforms.json   {"camera_model": "OPENCV", "fl_x", "fl_y", "cx", "cy", "w", "h",
+                         "k1", "k2", "p1", "p2", ..., "frames": [{"file_path": "images/frame_00001.png",
+                         "transform_matrix": [[...] x4]}, ...], "applied_transform": [[...] x3],
+                         "ply_file_path": "sparse_pc.ply"}
+      images/ images_2/ ...
+      sparse_pc.ply     (optional) points with colours
+
+* Intrinsics ``fl_x fl_y cx cy w h`` (pixels, full size; the centre of the top-left pixel is
+  (0.5, 0.5) as in COLMAP) and the distortion ``k1 k2 k3 k4 p1 p2`` are read from the frame when
+  it has them, else from the top level. ``data.downscale`` d divides them by d; the images come
+  from ``images_{d}/<file name>`` when that file exists (nerfstudio's convention), else from
+  ``file_path`` reduced with the anti-aliased filter. All frames must load at one size.
+* ``camera_model`` (top level or per frame, default ``OPENCV``): perspective cameras
+  (``OPENCV``, ``PINHOLE``, ``SIMPLE_PINHOLE``) with every distortion coefficient zero or absent
+  load directly. A frame with non-zero distortion, or ``OPENCV_FISHEYE`` / ``EQUIRECTANGULAR`` (and
+  nerfstudio's other non-pinhole models), raises :class:`SceneError` saying how to undistort:
+  undistortion of these scenes is not implemented yet — :func:`_pinhole` is where it would plug in.
+* ``transform_matrix``: camera-to-world with OpenGL camera axes (as Blender), converted by
+  :func:`cusgs_jax.data.frames.opengl_c2w_to_viewmat`.
+* ``applied_transform`` (3×4) is informational: it records the transform ``ns-process-data``
+  already applied to the COLMAP poses (and to the PLY), so the poses and points are used as they
+  are and it is **not** applied again.
+* ``ply_file_path`` (relative to the scene folder): initial points and colours (read with
+  ``plyfile``: vertex ``x y z`` and, when present, ``red green blue``). Without it the scene gets
+  :func:`cusgs_jax.data.random_points.random_points`.
+
+Views are sorted by ``file_path``; the held-out views are every ``holdout_every``-th of them
+(``i % holdout_every == 0``, the COLMAP loader's rule; 0: none), ``split = "every_8th"`` etc.
+nerfstudio's own ``train_filenames`` / ``test_filenames`` lists, if present, are not used.
+Images with alpha are composited onto ``background`` (black by default).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import pathlib
+from typing import NamedTuple
+
+import numpy as np
+
+from cusgs_jax.data.colmap import SceneData, _check_int_setting, _holdout_split
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
+                                   load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
+from cusgs_jax.data.images import check_background, scaled_size
+from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
+
+__all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "UNSUPPORTED_MODELS"]
+
+log = logging.getLogger("cusgs_jax")
+
+TRANSFORMS_FILE = "transforms.json"
+PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")  # perspective: pinhole once the distortion is zero
+UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "EQUIRECTANGULAR", "FISHEYE624", "OMNIDIRECTIONALSTEREO_L",
+                      "OMNIDIRECTIONALSTEREO_R", "VR180_L", "VR180_R")
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+_FIX = (f"{TRANSFORMS_FILE} must hold fl_x, fl_y, cx, cy, w, h (top level or per frame) and \"frames\": "
+        "[{\"file_path\": ..., \"transform_matrix\": <4x4>}, ...] (nerfstudio layout) — re-export it, e.g. with "
+        "`ns-process-data`")
+_UNDISTORT_HINT = (
+    "undistorting nerfstudio frames is not supported yet, but the COLMAP loader undistorts OPENCV and "
+    "OPENCV_FISHEYE cameras itself: when ns-process-data left its COLMAP model in <scene>/colmap/sparse/0, link "
+    "it as <scene>/sparse (`ln -s colmap/sparse <scene>/sparse`) and set data.format=colmap; otherwise undistort "
+    "the images first (e.g. `colmap image_undistorter --output_type COLMAP`) and point data.path at the result")
+_PANORAMA_HINT = (
+    "panoramas cannot be undistorted into one pinhole image: cut them into perspective views first, e.g. "
+    "`ns-process-data images --camera-type equirectangular --images-per-equirect 8 --data <panoramas> "
+    "--output-dir <scene>`, and point data.path at that scene")
+
+
+class FrameCamera(NamedTuple):
+    """A frame's camera at full size: model, pinhole part (pixels), size and distortion coefficients."""
+
+    model: str
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: dict  # {k1, k2, k3, k4, p1, p2: value} of the keys present
+
+
+def split_name(holdout_every: int) -> str:
+    """The ``split`` of an every-n-th hold-out: ``"every_8th"``, ``"every_2nd"``, ...; ``"none"`` for 0."""
+    n = int(holdout_every)
+    if n <= 0:
+        return "none"
+    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"every_{n}{suffix}"
+
+
+def _number(value, key: str, where: str, json_path: pathlib.Path) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SceneError(f"{key}={value!r} ({where}) in {json_path} must be a finite number; {_FIX}")
+    return float(value)
+
+
+def _frame_camera(meta: dict, frame: dict, index: int, json_path: pathlib.Path) -> FrameCamera:
+    """The camera of ``frames[index]`` (frame keys override the top level); SceneError on missing or
+    invalid intrinsics and an unknown ``camera_model``."""
+    def get(key):
+        return frame[key] if key in frame else meta.get(key)
+
+    missing = [k for k in _INTRINSIC_KEYS if get(k) is None]
+    if missing:
+        raise SceneError(f"frames[{index}] of {json_path} has no {', '.join(missing)} (neither in the frame nor at "
+                         f"the top level); {_FIX}")
+    where = f"frames[{index}]"
+    fx, fy, cx, cy, w, h = (_number(get(k), k, where, json_path) for k in _INTRINSIC_KEYS)
+    if fx <= 0 or fy <= 0 or w < 1 or h < 1 or w != int(w) or h != int(h):
+        raise SceneError(f"{where} of {json_path} has invalid intrinsics (fl_x={fx}, fl_y={fy}, w={w}, h={h}): "
+                         f"focal lengths must be > 0 and w, h whole numbers of pixels; {_FIX}")
+    model = get("camera_model") or "OPENCV"
+    if not isinstance(model, str) or model not in PINHOLE_MODELS + UNSUPPORTED_MODELS:
+        raise SceneError(f"unknown camera_model {model!r} in {json_path} ({where}): nerfstudio's models are "
+                         f"{', '.join(PINHOLE_MODELS + UNSUPPORTED_MODELS)}; perspective scenes use OPENCV — "
+                         "correct camera_model")
+    distortion = {k: _number(get(k), k, where, json_path) for k in DISTORTION_KEYS if get(k) is not None}
+    return FrameCamera(model, fx, fy, cx, cy, int(w), int(h), distortion)
+
+
+def _pinhole(camera: FrameCamera, name: str, json_path: pathlib.Path) -> FrameCamera:
+    """``camera`` as an undistorted pinhole camera, or SceneError.
+
+    This is the boundary where undistortion would plug in (remap the image, return the new pinhole
+    intrinsics, as data/undistort.py will do for COLMAP); today only cameras that need none pass.
+    """
+    if camera.model in UNSUPPORTED_MODELS:
+        hint = _PANORAMA_HINT if camera.model not in ("OPENCV_FISHEYE", "FISHEYE624") else _UNDISTORT_HINT
+        raise SceneError(f"frame {name!r} of {json_path} uses camera_model {camera.model}, but only pinhole "
+                         f"(perspective, undistorted) cameras are supported; {hint}")
+    nonzero = {k: v for k, v in camera.distortion.items() if v != 0.0}
+    if nonzero:
+        coeffs = ", ".join(f"{k}={v:g}" for k, v in nonzero.items())
+        raise SceneError(f"frame {name!r} of {json_path} (camera_model {camera.model}) has non-zero lens "
+                         f"distortion ({coeffs}); {_UNDISTORT_HINT}")
+    return camera
+
+
+def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(points [P, 3] float64, colours [P, 3] uint8) of ``ply_file_path``, or None when there is none.
+
+    Colours default to mid-grey when the PLY has no ``red green blue``; non-finite points are dropped.
+    """
+    rel = meta.get("ply_file_path")
+    if rel is None:
+        return None
+    fix = f"correct or remove \"ply_file_path\" in {json_path} (without it training starts from random points)"
+    if not isinstance(rel, str) or not rel:
+        raise SceneError(f"ply_file_path={rel!r} in {json_path} must be a file name; {fix}")
+    path = scene / rel
+    if not path.is_file():
+        raise SceneError(f"{json_path} names the point cloud {rel!r}, but {path} does not exist; {fix}")
+    try:
+        from plyfile import PlyData
+
+        vertex = PlyData.read(str(path))["vertex"].data
+        xyz = np.stack([np.asarray(vertex[c], np.float64) for c in "xyz"], axis=-1).reshape(-1, 3)
+        names = vertex.dtype.names or ()
+        if all(c in names for c in ("red", "green", "blue")):
+            rgb = np.stack([np.asarray(vertex[c], np.float64) for c in ("red", "green", "blue")], axis=-1)
+        else:
+            rgb = np.full(xyz.shape, 128.0)
+    except Exception as e:  # plyfile raises PlyParseError, KeyError, ValueError, ...
+        raise SceneError(f"cannot read the points of {path} ({type(e).__name__}: {e}): it must be a PLY with a "
+                         f"vertex element holding x, y, z; {fix}") from e
+    keep = np.all(np.isfinite(xyz), axis=-1)
+    if not np.any(keep):
+        raise SceneError(f"{path} has no finite points; {fix}")
+    rgb = np.clip(np.nan_to_num(rgb[keep]), 0, 255).round().astype(np.uint8)
+    return xyz[keep], rgb.reshape(-1, 3)
+
+
+def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
+                          background: tuple[float, float, float] | None = None,
+                          num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0) -> SceneData:
+    """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
+
+    Args:
+      path: the folder holding ``transforms.json`` (``data.path``).
+      downscale: integer factor d (``data.downscale``).
+      holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
+      background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
+      num_random_points, seed: the initial points when the scene has no ``ply_file_path``.
+
+    Returns:
+      SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
+    Raises:
+      SceneError: malformed JSON, missing keys, a missing image, a bad matrix, an unsupported or
+        unknown camera model, differing image sizes — naming the file and the fix.
+    """
+    downscale = _check_int_setting("data.downscale", downscale, minimum=1)
+    holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
+    num_random_points = _check_int_setting("data.random_points", num_random_points, minimum=2)
+    background = (0.0, 0.0, 0.0) if background is None else check_background(background)
+    scene = pathlib.Path(path).expanduser()
+    json_path = scene / TRANSFORMS_FILE
+    if not json_path.is_file():
+        raise SceneError(f"{json_path} does not exist: a nerfstudio scene needs it; set data.path to such a "
+                         "folder, or data.format to the layout of this one")
+    meta = read_json(json_path, _FIX)
+    frames = frame_list(meta, json_path, _FIX)
+    for i, frame in enumerate(frames):
+        require_key(frame, "file_path", f"frames[{i}]", json_path, _FIX)
+        require_key(frame, "transform_matrix", f"frames[{i}]", json_path, _FIX)
+    order = sorted(range(len(frames)), key=lambda i: str(frames[i]["file_path"]))
+
+    names, images_in, viewmats, cameras = [], [], [], []
+    for i in order:
+        frame = frames[i]
+        image = frame_path(scene, frame, i, json_path, _FIX)
+        name = frame_name(scene, image)
+        camera = _pinhole(_frame_camera(meta, frame, i, json_path), name, json_path)
+        viewmats.append(opengl_c2w_to_viewmat(frame["transform_matrix"], f"frames[{i}]", json_path))
+        prescaled = scene / f"images_{downscale}" / image.name
+        use_prescaled = downscale > 1 and prescaled.is_file()
+        images_in.append(FrameImage(name, prescaled if use_prescaled else image, (camera.width, camera.height),
+                                    use_prescaled))
+        names.append(name)
+        cameras.append(camera)
+    check_unique_names(names, json_path)
+    _check_common_size(names, cameras, downscale, json_path)
+    images, _ = load_frame_images(images_in, downscale=downscale, background=background, json_path=json_path)
+    height, width = images.shape[1:3]
+    d = float(downscale)
+    Ks = np.array([[[c.fx / d, 0.0, c.cx / d], [0.0, c.fy / d, c.cy / d], [0.0, 0.0, 1.0]] for c in cameras])
+    viewmats = np.stack(viewmats)
+    train_indices, test_indices = _holdout_split(len(names), holdout_every, scene)
+
+    loaded = _points(scene, meta, json_path)
+    if loaded is None:
+        points, colors = random_points(viewmats, Ks, width, height, num=num_random_points, seed=seed)
+        source = f"{len(points)} random initial points (no ply_file_path)"
+    else:
+        points, colors = loaded
+        source = f"{len(points)} points from {meta['ply_file_path']}"
+    log.info("nerfstudio scene %s: %d train / %d held-out views at %dx%d; %s", scene, len(train_indices),
+             len(test_indices), width, height, source)
+    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
+    extent, _ = camera_extent(centers, points)
+    return SceneData(
+        path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
+        Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
+        train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
+        split=split_name(holdout_every), background=tuple(background))
+
+
+def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,
+                       json_path: pathlib.Path) -> None:
+    """SceneError unless every frame's w × h loads at one size at ``downscale`` (as COLMAP scenes)."""
+    sizes = [(scaled_size(c.width, downscale), scaled_size(c.height, downscale)) for c in cameras]
+    for name, size in zip(names, sizes):
+        if size != sizes[0]:
+            raise SceneError(
+                f"the frames of {json_path} do not share one size with data.downscale={downscale}: {names[0]!r} "
+                f"loads at {sizes[0][0]}x{sizes[0][1]} but {name!r} at {size[0]}x{size[1]}; all training images "
+                "must have one resolution — resize/crop them to a common size (and w, h, fl_x, fl_y, cx, cy with "
+                "them)")

@@ -1,0 +1,93 @@
+"""Initial points for scene layouts that come without any (Blender / NeRF-synthetic, nerfstudio without a PLY).
+
+3DGS and Scaffold-GS start NeRF-synthetic scenes from 100 000 points drawn uniformly in the cube
+±1.3 around the origin, where the cameras sit on a sphere of radius ~4 looking at it. We need a rule
+that gives that for those scenes and something sensible for any other capture, with no scale or
+origin assumed:
+
+1. **Centre** ``x``: the point nearest to every camera's optical axis in the least-squares sense,
+   ``x = argmin Σ_i ‖(I − d_i d_iᵀ)(x − C_i)‖²`` (``C_i`` the camera centres, ``d_i`` their unit
+   viewing directions) — the spot the cameras look at. It is used when the axes are not close to
+   parallel (smallest eigenvalue of ``Σ (I − d dᵀ)`` ≥ 0.02·V, about 8° of spread) and ``x`` lies in
+   front of the cameras (median depth > 0). Otherwise (a forward-facing capture, a pan) ``x`` is the
+   mean camera centre moved along the mean viewing direction by the camera extent (1.1 × the largest
+   distance of a camera from the mean centre, 1 when all coincide).
+2. **Half-side** ``h``: what the cameras see at their distance, ``h = median_i ‖x − C_i‖ ×
+   median_i tan(½ FoV_i)`` with ``tan(½ FoV) = max(W / 2f_x, H / 2f_y)`` (the wider half-angle). For
+   NeRF-synthetic (radius 4.03, FoV 0.69 rad) this is ±1.45, close to the ±1.3 of 3DGS. When it is 0
+   (the cameras sit at ``x``) the camera extent is used.
+3. **Points**: ``num`` (default 100 000) uniform in the cube ``x ± h``, from
+   ``numpy.random.default_rng(seed)`` (deterministic); colours mid-grey (128, 128, 128) uint8.
+
+**Voxel size.** ``model.voxel_size=auto`` (the median nearest-neighbour distance of the points,
+:func:`cusgs_jax.model.anchors.auto_voxel_size`) stays sensible on these points with no change: for
+N uniform points in a cube of side 2h the median nearest-neighbour distance is
+``2h·(3 ln 2 / 4πN)^{1/3}`` (0.0237·h for N = 100 000), so a voxel holds 0.165 points on average and
+about 92 % of the points become anchors — about 92 000 anchors, independent of the scene's scale, as
+Scaffold-GS's 100 000 anchors on NeRF-synthetic (voxel_size 0.001 on the ±1.3 cube). Fewer
+``data.random_points`` give proportionally fewer, larger voxels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cusgs_jax.data.normalize import camera_extent
+
+__all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points"]
+
+DEFAULT_NUM_POINTS = 100_000
+GREY = 128
+_MIN_SPREAD = 0.02  # smallest eigenvalue of Σ(I − d dᵀ) / V for the axes' nearest point to be trusted
+
+
+def _axes(viewmats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(camera centres [V, 3], unit viewing directions [V, 3]) of world→camera ``viewmats`` [V, 4, 4] (OpenCV)."""
+    rot = np.asarray(viewmats, np.float64)[:, :3, :3]
+    trans = np.asarray(viewmats, np.float64)[:, :3, 3]
+    centers = -np.einsum("nji,nj->ni", rot, trans)
+    dirs = rot[:, 2, :]  # the camera's +z axis in world coordinates
+    return centers, dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+
+
+def random_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, float]:
+    """(centre [3] float64, half-side h > 0) of the cube the cameras look at (the module's rule).
+
+    Args:
+      viewmats: [V, 4, 4] world→camera (OpenCV axes); Ks: [V, 3, 3] intrinsics at ``width`` × ``height``.
+    """
+    centers, dirs = _axes(viewmats)
+    Ks = np.asarray(Ks, np.float64)
+    views = len(centers)
+    extent, mean = camera_extent(centers, np.zeros((0, 3)))
+    proj = np.eye(3)[None] - dirs[:, :, None] * dirs[:, None, :]  # [V, 3, 3] I − d dᵀ
+    a = proj.sum(axis=0)
+    b = np.einsum("nij,nj->i", proj, centers)
+    center = None
+    if np.linalg.eigvalsh(a)[0] >= _MIN_SPREAD * views:
+        candidate = np.linalg.solve(a, b)
+        if np.median(np.einsum("ni,ni->n", candidate - centers, dirs)) > 0:
+            center = candidate
+    if center is None:
+        forward = dirs.mean(axis=0)
+        norm = np.linalg.norm(forward)
+        center = mean + (forward / norm * extent if norm > 1e-6 else 0.0)
+    tan_half = np.maximum(0.5 * width / Ks[:, 0, 0], 0.5 * height / Ks[:, 1, 1])
+    half = float(np.median(np.linalg.norm(center - centers, axis=-1)) * np.median(tan_half))
+    if not (np.isfinite(half) and half > 0):
+        half = float(extent)
+    return np.asarray(center, np.float64), half
+
+
+def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, *,
+                  num: int = DEFAULT_NUM_POINTS, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``num`` uniform random points in :func:`random_box` of the cameras.
+
+    Returns:
+      (points [num, 3] float64, colours [num, 3] uint8, all mid-grey); the same for the same
+      cameras, ``num`` and ``seed``.
+    """
+    center, half = random_box(viewmats, Ks, width, height)
+    rng = np.random.default_rng(seed)
+    points = center + rng.uniform(-half, half, size=(int(num), 3))
+    return points, np.full((int(num), 3), GREY, np.uint8)

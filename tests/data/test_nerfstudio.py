@@ -1,0 +1,210 @@
+"""nerfstudio scenes (data/nerfstudio.py): intrinsics, poses, split, points, camera models, errors."""
+
+from __future__ import annotations
+
+import json
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.nerfstudio import load_nerfstudio_scene, split_name
+from cusgs_jax.testing.transforms_scenes import opencv_look_at, write_nerfstudio_scene, write_ply_points
+
+W, H = 16, 12
+
+
+@pytest.fixture
+def ns(tmp_path):
+    return write_nerfstudio_scene(tmp_path / "scene", width=W, height=H)
+
+
+def _edit(root, change):
+    path = root / "transforms.json"
+    meta = json.loads(path.read_text())
+    change(meta)
+    path.write_text(json.dumps(meta))
+
+
+def test_loads_sorted_frames_with_intrinsics_and_poses(ns):
+    scene = load_nerfstudio_scene(ns["root"], holdout_every=0)
+    assert scene.names == tuple(ns["names"])  # sorted by file_path, whatever the JSON order
+    assert scene.dataset_format == "nerfstudio" and scene.split == "none"
+    np.testing.assert_array_equal(scene.images, ns["images"])
+    K = np.array([[14.0, 0, 8.0], [0, 15.0, 6.5], [0, 0, 1]])
+    np.testing.assert_allclose(scene.Ks, np.repeat(K[None], len(ns["names"]), 0))
+    for view, c2w in zip(scene.viewmats, ns["c2w"]):
+        np.testing.assert_allclose(view, opencv_look_at(c2w[:3, 3]), atol=1e-9)  # applied_transform ignored
+    assert scene.background == (0.0, 0.0, 0.0)
+
+
+def test_holdout_every_nth_sorted_by_file_path(ns):
+    scene = load_nerfstudio_scene(ns["root"], holdout_every=2)
+    np.testing.assert_array_equal(scene.test_indices, [0, 2, 4])
+    np.testing.assert_array_equal(scene.train_indices, [1, 3, 5])
+    assert scene.split == "every_2nd"
+    assert load_nerfstudio_scene(ns["root"]).split == "every_8th"
+    with pytest.raises(SceneError, match="holds out all"):
+        load_nerfstudio_scene(ns["root"], holdout_every=1)
+
+
+def test_split_names():
+    assert [split_name(n) for n in (0, 2, 3, 8, 11, 12, 21)] == [
+        "none", "every_2nd", "every_3rd", "every_8th", "every_11th", "every_12th", "every_21st"]
+
+
+def test_per_frame_intrinsics(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", per_frame_intrinsics=True, camera_model=None)
+    _edit(truth["root"], lambda m: [f.update(fl_x=20.0) for f in m["frames"] if f["file_path"].endswith("3.png")])
+    scene = load_nerfstudio_scene(truth["root"])
+    fx = scene.Ks[:, 0, 0]
+    assert fx[2] == 20.0 and np.all(np.delete(fx, 2) == 14.0)
+
+
+def test_ply_points_and_colours(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", ply=True)
+    scene = load_nerfstudio_scene(truth["root"])
+    np.testing.assert_allclose(scene.points, truth["points"], atol=1e-6)
+    np.testing.assert_array_equal(scene.point_colors, truth["colors"])
+
+
+def test_ply_without_colours_is_grey(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", ply=True)
+    write_ply_points(truth["root"] / "sparse_pc.ply", truth["points"])
+    scene = load_nerfstudio_scene(truth["root"])
+    assert np.all(scene.point_colors == 128) and len(scene.points) == 50
+
+
+def test_without_ply_random_points(ns):
+    scene = load_nerfstudio_scene(ns["root"], num_random_points=300)
+    assert scene.points.shape == (300, 3) and np.all(scene.point_colors == 128)
+
+
+def test_downscale_prefers_images_d(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", prescaled=2)
+    (truth["root"] / "images_2" / "frame_00001.png").unlink()  # this one is reduced on the fly
+    scene = load_nerfstudio_scene(truth["root"], downscale=2, holdout_every=0)
+    assert scene.images.shape == (6, H // 2, W // 2, 3)
+    np.testing.assert_allclose(scene.Ks[0], [[7.0, 0, 4.0], [0, 7.5, 3.25], [0, 0, 1]])
+    expected = truth["images"].reshape(6, H // 2, 2, W // 2, 2, 3).mean(axis=(2, 4))
+    assert np.max(np.abs(scene.images - expected)) <= 1.0
+    iio.imwrite(truth["root"] / "images_2" / "frame_00002.png", np.zeros((H, W, 3), np.uint8))  # not 2x smaller
+    with pytest.raises(SceneError, match=r"frame_00002.png .* is 16x12 but .*transforms.json says it should be 8x6"):
+        load_nerfstudio_scene(truth["root"], downscale=2)
+
+
+def test_zero_distortion_opencv_loads(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=0.0, k2=0.0, k3=0.0, k4=0.0, p1=0.0, p2=0.0))
+    assert load_nerfstudio_scene(truth["root"]).num_images == 6
+
+
+# --- errors: each a SceneError naming the file and the fix ----------------------------------
+
+
+def test_error_malformed_json(ns):
+    (ns["root"] / "transforms.json").write_text("{'frames': []}")
+    with pytest.raises(SceneError, match=r"transforms.json is not valid JSON.*ns-process-data"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_missing_intrinsics(ns):
+    _edit(ns["root"], lambda m: (m.pop("fl_x"), m.pop("h")))
+    with pytest.raises(SceneError, match=r"frames\[0\] of .*transforms.json has no fl_x, h \(neither in the frame "
+                                         r"nor at the top level\)"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_missing_frames(ns):
+    _edit(ns["root"], lambda m: m.pop("frames"))
+    with pytest.raises(SceneError, match=r"transforms.json has no \"frames\" key"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_missing_transform_matrix(ns):
+    _edit(ns["root"], lambda m: m["frames"][4].pop("transform_matrix"))
+    with pytest.raises(SceneError, match=r"frames\[4\] in .*transforms.json has no \"transform_matrix\""):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_missing_image(ns):
+    (ns["root"] / "images" / "frame_00004.png").unlink()
+    with pytest.raises(SceneError, match=r"names the image 'images/frame_00004.png', but .* does not exist"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_nan_matrix(ns):
+    _edit(ns["root"], lambda m: m["frames"][0]["transform_matrix"][1].__setitem__(1, float("inf")))
+    with pytest.raises(SceneError, match=r"frames\[0\].transform_matrix in .*transforms.json contains NaN or Inf"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_wrong_matrix_shape(ns):
+    _edit(ns["root"], lambda m: m["frames"][0].update(transform_matrix=[[1.0, 0.0, 0.0, 0.0]] * 2))
+    with pytest.raises(SceneError, match=r"shape \(2, 4\); expected a 4x4"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_three_by_four_matrix_accepted(ns):
+    _edit(ns["root"], lambda m: [f.update(transform_matrix=f["transform_matrix"][:3]) for f in m["frames"]])
+    scene = load_nerfstudio_scene(ns["root"])
+    np.testing.assert_allclose(scene.viewmats[0], opencv_look_at(ns["c2w"][0][:3, 3]), atol=1e-9)
+
+
+def test_error_unknown_camera_model(ns):
+    _edit(ns["root"], lambda m: m.update(camera_model="KANNALA"))
+    with pytest.raises(SceneError, match=r"unknown camera_model 'KANNALA' in .*transforms.json.*OPENCV_FISHEYE"):
+        load_nerfstudio_scene(ns["root"])
+
+
+@pytest.mark.parametrize("model, fix", [("OPENCV_FISHEYE", "ln -s colmap/sparse .*data.format=colmap"),
+                                        ("EQUIRECTANGULAR", "--camera-type equirectangular")])
+def test_error_unsupported_camera_model(ns, model, fix):
+    _edit(ns["root"], lambda m: m.update(camera_model=model))
+    with pytest.raises(SceneError, match=rf"uses camera_model {model}, but only pinhole .*{fix}"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_nonzero_distortion(tmp_path):
+    truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=-0.05, k2=0.0, p1=0.001, p2=0.0))
+    with pytest.raises(SceneError, match=r"frame 'images/frame_00001.png' of .*transforms.json \(camera_model "
+                                         r"OPENCV\) has non-zero lens distortion \(k1=-0.05, p1=0.001\).*"
+                                         r"data.format=colmap"):
+        load_nerfstudio_scene(truth["root"])
+
+
+def test_error_frames_of_different_sizes(ns):
+    _edit(ns["root"], lambda m: [f.update(w=20) for f in m["frames"] if f["file_path"].endswith("2.png")])
+    with pytest.raises(SceneError, match=r"do not share one size .* 'images/frame_00002.png' at 20x12"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_image_not_matching_w_h(ns):
+    iio.imwrite(ns["root"] / "images" / "frame_00003.png", np.zeros((H, W + 3, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"frame_00003.png .* is 19x12 but .*transforms.json says it should be 16x12"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_missing_ply(ns):
+    _edit(ns["root"], lambda m: m.update(ply_file_path="points.ply"))
+    with pytest.raises(SceneError, match=r"names the point cloud 'points.ply', but .* does not exist; correct or "
+                                         r"remove \"ply_file_path\""):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_corrupt_ply(ns):
+    (ns["root"] / "points.ply").write_text("ply\nformat nonsense\n")
+    _edit(ns["root"], lambda m: m.update(ply_file_path="points.ply"))
+    with pytest.raises(SceneError, match=r"cannot read the points of .*points.ply"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_invalid_focal(ns):
+    _edit(ns["root"], lambda m: m.update(fl_y=-3))
+    with pytest.raises(SceneError, match=r"invalid intrinsics"):
+        load_nerfstudio_scene(ns["root"])
+
+
+def test_error_no_transforms_json(tmp_path):
+    with pytest.raises(SceneError, match=r"transforms.json does not exist: a nerfstudio scene needs it"):
+        load_nerfstudio_scene(tmp_path)

@@ -1,0 +1,86 @@
+"""Random initial points for layouts without points (data/random_points.py) and the auto voxel size on them."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cusgs_jax.data.random_points import GREY, random_box, random_points
+from cusgs_jax.model.anchors import auto_voxel_size
+from cusgs_jax.testing.transforms_scenes import opencv_look_at, orbit_eyes
+
+W = H = 80
+ANGLE = 0.6911  # NeRF-synthetic's camera_angle_x
+
+
+def _K(views, angle=ANGLE, width=W):
+    f = 0.5 * width / math.tan(0.5 * angle)
+    return np.repeat(np.array([[[f, 0, width / 2], [0, f, H / 2], [0, 0, 1]]]), views, 0)
+
+
+def _ring(n=20, radius=4.0311, target=(0.0, 0.0, 0.0), seed=0):
+    return np.stack([opencv_look_at(eye + np.asarray(target), target)
+                     for eye in orbit_eyes(n, radius, seed)])
+
+
+def test_nerf_synthetic_like_cameras_give_the_3dgs_cube():
+    """Cameras on a sphere of radius 4.03 with FoV 0.69 look at the origin: the cube is centred there with
+    half-side r·tan(FoV/2) ≈ 1.45 (3DGS uses ±1.3)."""
+    center, half = random_box(_ring(), _K(20), W, H)
+    np.testing.assert_allclose(center, 0.0, atol=1e-9)
+    assert half == pytest.approx(4.0311 * math.tan(0.5 * ANGLE), rel=1e-6)
+    assert 1.3 < half < 1.6
+
+
+def test_box_follows_the_cameras_target_and_scale():
+    center, half = random_box(_ring(target=(5.0, -2.0, 1.0)), _K(20), W, H)
+    np.testing.assert_allclose(center, [5.0, -2.0, 1.0], atol=1e-9)
+    scaled = _ring(target=(5.0, -2.0, 1.0))
+    scaled[:, :3, 3] *= 10.0  # the same capture 10x larger
+    center10, half10 = random_box(scaled, _K(20), W, H)
+    np.testing.assert_allclose(center10, [50.0, -20.0, 10.0], atol=1e-7)
+    assert half10 == pytest.approx(10 * half)
+
+
+def test_forward_facing_cameras_fall_back_in_front_of_them():
+    """Parallel optical axes (a forward-facing capture) have no nearest point: the cube sits one camera
+    extent ahead of the mean camera centre."""
+    eyes = np.array([(x, y, 0.0) for x in (-1.0, 0.0, 1.0) for y in (-0.5, 0.5)])
+    views = np.stack([opencv_look_at(eye, eye + (0.0, 0.0, 10.0), up=(0.0, -1.0, 0.0)) for eye in eyes])
+    center, half = random_box(views, _K(6), W, H)
+    extent = 1.1 * np.max(np.linalg.norm(eyes - eyes.mean(0), axis=-1))
+    np.testing.assert_allclose(center, [0.0, 0.0, extent], atol=1e-9)
+    assert half > 0
+
+
+def test_single_camera():
+    center, half = random_box(_ring(1), _K(1), W, H)
+    assert np.all(np.isfinite(center)) and half > 0
+
+
+def test_points_are_uniform_deterministic_grey():
+    views, Ks = _ring(), _K(20)
+    points, colors = random_points(views, Ks, W, H, num=5000, seed=3)
+    center, half = random_box(views, Ks, W, H)
+    assert points.shape == (5000, 3) and points.dtype == np.float64
+    assert colors.shape == (5000, 3) and colors.dtype == np.uint8 and np.all(colors == GREY)
+    assert np.all(np.abs(points - center) <= half)
+    assert np.all(np.abs(points.mean(0) - center) < 0.05 * half)
+    np.testing.assert_array_equal(points, random_points(views, Ks, W, H, num=5000, seed=3)[0])
+    assert not np.array_equal(points, random_points(views, Ks, W, H, num=5000, seed=4)[0])
+
+
+def test_auto_voxel_size_is_the_uniform_spacing():
+    """model.voxel_size=auto on N uniform points in a cube of side 2h is 2h·(3 ln2 / 4πN)^(1/3): a voxel
+    holds ~0.165 points, so ~92 % of the points become anchors (Scaffold-GS: one anchor per point)."""
+    views, Ks = _ring(), _K(20)
+    num = 20_000
+    points, _ = random_points(views, Ks, W, H, num=num)
+    _, half = random_box(views, Ks, W, H)
+    expected = 2 * half * (3 * math.log(2) / (4 * math.pi * num)) ** (1 / 3)
+    voxel = auto_voxel_size(points)
+    assert voxel == pytest.approx(expected, rel=0.1)
+    anchors = len(np.unique(np.floor(points / voxel), axis=0))
+    assert 0.8 * num < anchors < 0.97 * num
