@@ -13,7 +13,7 @@ ROTATED="$OUT/rotated_scene"
 [ -d "$ROTATED" ] || $PY -c "from cusgs_jax.testing.scenes import transformed_scene; transformed_scene('$DEMO', '$ROTATED', scale=3.0, translation=(1.0, 2.0, -4.0), rotation_xyzw=(0.3, -0.5, 0.2, 0.8))"
 run() {  # name, scene, align
   $PY -c "from cusgs_jax.app.train import main; main()" data.path="$2" data.align="$3" train.iterations=1500 \
-    features=none train.progress=false eval.save_renders=false hydra.run.dir="$OUT/$1" > "$OUT/$1.log" 2>&1
+    features=none train.progress=false eval.save_renders=false train.checkpoint_every=0 hydra.run.dir="$OUT/$1" > "$OUT/$1.log" 2>&1
   $PY -c "import json; d=json.load(open('$OUT/$1/eval.json')); print(json.dumps(dict(run='$1', psnr=d['psnr'], ssim=d['ssim'], alive_anchors=d['alive_anchors'])))"
 }
 for align in ${ALIGNS:-principal none}; do
