@@ -45,7 +45,7 @@ from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, fov_focal, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background
-from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
 
 __all__ = ["load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
@@ -139,8 +139,7 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
     points, colors = random_points(viewmats, Ks, out_w, out_h, num=num_random_points, seed=seed)
     log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points)",
              scene, num_train, len(test_indices), out_w, out_h, len(points))
-    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    extent, _ = camera_extent(centers, points)
+    extent, _ = camera_extent(camera_centers(viewmats), points)
     return SceneData(
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(out_w), height=int(out_h), points=points, point_colors=colors,

@@ -36,7 +36,7 @@ import numpy as np
 
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
@@ -104,9 +104,7 @@ class SceneData:
     @property
     def camera_centers(self) -> np.ndarray:
         """[V, 3] camera centres in world coordinates (float64): -Rᵀt."""
-        rot = self.viewmats[:, :3, :3].astype(np.float64)
-        trans = self.viewmats[:, :3, 3].astype(np.float64)
-        return -np.einsum("nji,nj->ni", rot, trans)
+        return camera_centers(self.viewmats)
 
     @property
     def num_images(self) -> int:
@@ -152,8 +150,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
     train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
 
-    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    extent, _ = camera_extent(centers, points)  # the one definition (points when the cameras coincide)
+    extent, _ = camera_extent(camera_centers(viewmats), points)  # points when the cameras coincide
 
     return SceneData(
         path=scene,

@@ -50,7 +50,7 @@ from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
-from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
 
 __all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "UNSUPPORTED_MODELS"]
@@ -246,8 +246,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         source = f"{len(points)} points from {meta['ply_file_path']}"
     log.info("nerfstudio scene %s: %d train / %d held-out views at %dx%d; %s", scene, len(train_indices),
              len(test_indices), width, height, source)
-    centers = -np.einsum("nji,nj->ni", viewmats[:, :3, :3], viewmats[:, :3, 3])
-    extent, _ = camera_extent(centers, points)
+    extent, _ = camera_extent(camera_centers(viewmats), points)
     return SceneData(
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,

@@ -45,7 +45,7 @@ import dataclasses
 
 import numpy as np
 
-__all__ = ["WorldTransform", "normalize_scene", "camera_extent", "principal_axes", "ALIGNMENTS"]
+__all__ = ["WorldTransform", "normalize_scene", "camera_centers", "camera_extent", "principal_axes", "ALIGNMENTS"]
 
 ALIGNMENTS = ("none", "principal")
 _IDENTITY = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
@@ -114,6 +114,12 @@ def principal_axes(points: np.ndarray) -> np.ndarray:
     if np.linalg.det(axes) < 0:
         axes[2] = -axes[2]
     return axes
+
+
+def camera_centers(viewmats: np.ndarray) -> np.ndarray:
+    """[V, 3] float64 camera centres ``−Rᵀt`` of world→camera matrices ``viewmats`` [V, 4, 4]."""
+    out = np.asarray(viewmats, np.float64)
+    return -np.einsum("nji,nj->ni", out[:, :3, :3], out[:, :3, 3])
 
 
 def camera_extent(camera_centers: np.ndarray, points: np.ndarray) -> tuple[float, np.ndarray]:

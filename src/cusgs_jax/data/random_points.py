@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cusgs_jax.data.normalize import camera_extent
+from cusgs_jax.data.normalize import camera_centers, camera_extent
 
 __all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points"]
 
@@ -43,11 +43,8 @@ _MIN_SPREAD = 0.02  # smallest eigenvalue of Σ(I − d dᵀ) / V for the axes' 
 
 def _axes(viewmats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(camera centres [V, 3], unit viewing directions [V, 3]) of world→camera ``viewmats`` [V, 4, 4] (OpenCV)."""
-    rot = np.asarray(viewmats, np.float64)[:, :3, :3]
-    trans = np.asarray(viewmats, np.float64)[:, :3, 3]
-    centers = -np.einsum("nji,nj->ni", rot, trans)
-    dirs = rot[:, 2, :]  # the camera's +z axis in world coordinates
-    return centers, dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+    dirs = np.asarray(viewmats, np.float64)[:, 2, :3]  # the camera's +z axis in world coordinates
+    return camera_centers(viewmats), dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
 
 
 def random_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, float]:
