@@ -12,20 +12,10 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from cusgs_jax.data.colmap import SceneData, SceneError, load_cameras, load_scene  # noqa: E402
+from cusgs_jax.testing.scenes import axis_angle_rotation  # noqa: E402
 
 W, H = 32, 24
 PINHOLE = (30.0, 31.0, 16.0, 12.0)
-
-
-def _rotation(axis_angle):
-    """Rodrigues: axis-angle → 3×3 rotation matrix (independent of pycolmap)."""
-    v = np.asarray(axis_angle, np.float64)
-    theta = np.linalg.norm(v)
-    if theta == 0:
-        return np.eye(3)
-    k = v / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
 
 
 def make_scene(root, *, n=3, width=W, height=H, cameras=None, text=False, model_dir="sparse/0",
@@ -47,7 +37,7 @@ def make_scene(root, *, n=3, width=W, height=H, cameras=None, text=False, model_
     keypoints = rng.uniform(0, min(width, height), (num_points, 2))
     for iid in range(1, n + 1):
         name = f"img_{n - iid:02d}.png"  # ids and names in opposite orders
-        rot = _rotation(rng.normal(scale=0.3, size=3))
+        rot = axis_angle_rotation(rng.normal(scale=0.3, size=3))
         t = rng.normal(size=3) + np.array([0.0, 0.0, 4.0])
         if nan_pose and iid == 2:
             t[0] = np.nan
@@ -399,10 +389,10 @@ def test_multi_camera_rig(tmp_path):
         rec.add_camera(cam)
     rig = pycolmap.Rig(rig_id=1)
     rig.add_ref_sensor(cams[0].sensor_id)
-    r_s, t_s = _rotation([0, 0.2, 0]), np.array([0.5, 0.0, 0.0])
+    r_s, t_s = axis_angle_rotation([0, 0.2, 0]), np.array([0.5, 0.0, 0.0])
     rig.add_sensor(cams[1].sensor_id, pycolmap.Rigid3d(pycolmap.Rotation3d(r_s), t_s))
     rec.add_rig(rig)
-    r_w, t_w = _rotation([0.1, 0, 0.3]), np.array([0.0, 1.0, 4.0])
+    r_w, t_w = axis_angle_rotation([0.1, 0, 0.3]), np.array([0.0, 1.0, 4.0])
     frame = pycolmap.Frame(frame_id=1, rig_id=1)
     frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(r_w), t_w)
     images = [pycolmap.Image(name=f"cam{c}.png", keypoints=np.array([[3.0, 4.0]]), camera_id=c,

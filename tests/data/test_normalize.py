@@ -9,7 +9,7 @@ import pytest
 
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.normalize import WorldTransform, camera_extent, normalize_scene, principal_axes
-from cusgs_jax.testing.scenes import transformed_scene
+from cusgs_jax.testing.scenes import random_rotation, transformed_scene
 
 
 def _project(scene, view):
@@ -71,18 +71,13 @@ def test_world_transform_round_trip_and_viewmats():
     assert WorldTransform.from_dict(world.as_dict()) == world
 
 
-def _rotation(seed):
-    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
-    return q * np.sign(np.linalg.det(q))
-
-
 def test_rotated_world_transform_round_trip_keeps_camera_space():
     """p' = s·Q(p − c): points round-trip and camera-space coordinates only scale by s."""
-    world = WorldTransform(scale=0.25, center=(1.0, -2.0, 3.0), rotation=tuple(map(tuple, _rotation(4))))
+    world = WorldTransform(scale=0.25, center=(1.0, -2.0, 3.0), rotation=tuple(map(tuple, random_rotation(4))))
     points = np.random.default_rng(1).normal(size=(10, 3))
     np.testing.assert_allclose(world.to_colmap(world.to_normalized(points)), points, atol=1e-12)
     viewmat = np.eye(4)
-    viewmat[:3, :3] = _rotation(5)
+    viewmat[:3, :3] = random_rotation(5)
     viewmat[:3, 3] = [0.5, 0.1, 4.0]
     cam = points @ viewmat[:3, :3].T + viewmat[:3, 3]
     moved = world.viewmats(viewmat[None])[0]
@@ -99,7 +94,7 @@ def test_principal_axes_are_a_right_handed_equivariant_frame():
     assert np.linalg.det(axes) == pytest.approx(1.0)
     spread = np.var(points @ axes.T, axis=0)
     assert spread[0] > spread[1] > spread[2]
-    m = _rotation(7)
+    m = random_rotation(7)
     np.testing.assert_allclose(principal_axes(points @ m.T), axes @ m.T, atol=1e-9)
 
 

@@ -23,6 +23,7 @@ pycolmap = pytest.importorskip("pycolmap")
 from cusgs_jax.data import undistort  # noqa: E402
 from cusgs_jax.data.colmap import SceneError, load_cameras, load_scene  # noqa: E402
 from cusgs_jax.data.images import _downscale, scaled_size  # noqa: E402
+from cusgs_jax.testing.scenes import axis_angle_rotation  # noqa: E402
 
 W, H, N_VIEWS = 64, 48, 8
 BACKGROUND, MARKER, SIGMA = 200.0, -180.0, 1.2  # markers are dark dips in one channel
@@ -58,16 +59,6 @@ def calls(monkeypatch):
     return seen
 
 
-def _rotation(axis_angle):
-    v = np.asarray(axis_angle, np.float64)
-    theta = np.linalg.norm(v)
-    if theta == 0:
-        return np.eye(3)
-    k = v / theta
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
-
-
 def _render(cam, rot, t, uniform=False) -> np.ndarray:
     """[H, W, 3] uint8 image through the distorted ``cam`` (markers around the points' rays)."""
     img = np.full((cam.height, cam.width, 3), BACKGROUND)
@@ -96,7 +87,7 @@ def make_scene(root, cameras, *, uniform=False, seed=0, subfolder=False, ext=".p
     poses = {}
     for i in range(N_VIEWS):
         name = (f"cam{i % 2}/" if subfolder else "") + f"v{i:02d}{ext}"
-        rot = _rotation(rng.uniform(-0.05, 0.05, 3))
+        rot = axis_angle_rotation(rng.uniform(-0.05, 0.05, 3))
         t = rng.uniform(-0.2, 0.2, 3)
         cam = cams[i % len(cams)]
         keypoints = cam.img_from_cam(POINTS @ rot.T + t)

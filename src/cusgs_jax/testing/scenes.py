@@ -12,6 +12,23 @@ KEYS = ("means", "quats", "scales", "opacities", "colors")
 """The Gaussian parameter keys of a scene, in rasteriser argument order."""
 
 
+def axis_angle_rotation(axis_angle) -> np.ndarray:
+    """[3, 3] float64 rotation of the axis-angle vector [3] (Rodrigues; independent of pycolmap)."""
+    v = np.asarray(axis_angle, np.float64)
+    theta = np.linalg.norm(v)
+    if theta == 0:
+        return np.eye(3)
+    k = v / theta
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * kx + (1 - np.cos(theta)) * kx @ kx
+
+
+def random_rotation(seed) -> np.ndarray:
+    """[3, 3] float64 proper rotation (det +1) from the QR decomposition of a seeded normal matrix."""
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q * np.sign(np.linalg.det(q))
+
+
 def make_scene(seed=0, num=120, width=40, height=28, channels=3, *, behind=0, offscreen=0,
                opaque=0, focal=None, depth_range=(1.0, 6.0)):
     """Random Gaussians in a camera frustum, as float64 NumPy arrays.
