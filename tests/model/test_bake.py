@@ -18,6 +18,7 @@ from cusgs_jax.model.bake import (bake_anchors, bake_splats, fibonacci_sphere, f
 from cusgs_jax.model.decode import init_decoder
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
 from cusgs_jax.splat.sh import sh_basis
+from cusgs_jax.testing.scenes import random_rotation
 from cusgs_jax.types import Camera
 
 N, F, E, HID = 4, 8, 8, 16
@@ -202,7 +203,9 @@ def test_colmap_frame_moves_positions_and_scales_only_and_renders_the_same():
                        log_scales=rng.uniform(-4, -3, (g, 3)).astype(np.float32),
                        opacity_logits=rng.normal(size=g).astype(np.float32),
                        sh=rng.normal(0, 0.3, (g, 16, 3)).astype(np.float32))
-    means, log_scales = to_colmap_frame(model.means, model.log_scales, world)
+    means, log_scales, quats, sh = to_colmap_frame(model.means, model.log_scales, model.quats, model.sh, world)
+    np.testing.assert_array_equal(quats, model.quats)  # no rotation: rotations and SH colours unchanged
+    np.testing.assert_array_equal(sh, model.sh)
     np.testing.assert_allclose(means, world.to_colmap(model.means))
     np.testing.assert_allclose(world.to_normalized(means), model.means, atol=1e-9)
     np.testing.assert_allclose(np.exp(log_scales), np.exp(model.log_scales.astype(np.float64)) / 0.02, rtol=1e-9)
@@ -229,15 +232,14 @@ def test_rotated_frame_exports_rotations_and_sh_colours_that_render_the_same():
 
     rng = np.random.default_rng(3)
     g = 40
-    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
-    q = q * np.sign(np.linalg.det(q))  # a proper rotation
+    q = random_rotation(3)
     world = WorldTransform(scale=0.5, center=(3.0, -1.0, 2.0), rotation=tuple(map(tuple, q)))
     model = SplatModel(means=rng.uniform(-0.3, 0.3, (g, 3)).astype(np.float32) + np.float32([0, 0, 1.5]),
                        quats=rng.normal(size=(g, 4)).astype(np.float32),
                        log_scales=np.log(rng.uniform(0.02, 0.12, (g, 3))).astype(np.float32),
                        opacity_logits=rng.normal(size=g).astype(np.float32),
                        sh=rng.normal(0, 0.3, (g, 16, 3)).astype(np.float32))
-    means, log_scales, quats, sh = to_colmap_frame(model.means, model.log_scales, world, model.quats, model.sh)
+    means, log_scales, quats, sh = to_colmap_frame(model.means, model.log_scales, model.quats, model.sh, world)
     # SH: the colour along a COLMAP direction d is the trained colour along Q d
     dirs = fibonacci_sphere(50).astype(np.float64)
     np.testing.assert_allclose(np.einsum("dk,gkc->gdc", np.asarray(sh_basis(jnp.asarray(dirs), 3)), sh),

@@ -115,7 +115,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                                       progress=bar.update)
     if colmap_frame:
         means, log_scales, quats, sh = to_colmap_frame(np.asarray(splats.means), np.asarray(splats.log_scales),
-                                                       model.world, np.asarray(splats.quats), np.asarray(splats.sh))
+                                                       np.asarray(splats.quats), np.asarray(splats.sh), model.world)
         splats = dataclasses.replace(splats, means=means.astype(np.float32), log_scales=log_scales.astype(np.float32),
                                      quats=quats.astype(np.float32), sh=sh.astype(np.float32))
     path = write_ply(out, splats)

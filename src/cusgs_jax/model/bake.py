@@ -217,8 +217,7 @@ def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array,
                           max_opacity=jnp.max(opacity * seen, axis=0), alive=jnp.repeat(alive, n))
 
 
-def to_colmap_frame(means: np.ndarray, log_scales: np.ndarray, world, quats: np.ndarray | None = None,
-                    sh: np.ndarray | None = None):
+def to_colmap_frame(means: np.ndarray, log_scales: np.ndarray, quats: np.ndarray, sh: np.ndarray, world):
     """Gaussians from the normalised training frame ``p' = s·Q(p − c)`` back to the COLMAP frame.
 
     ``p = Qᵀ p' / s + c`` (:meth:`cusgs_jax.data.normalize.WorldTransform.to_colmap`, float64),
@@ -229,15 +228,13 @@ def to_colmap_frame(means: np.ndarray, log_scales: np.ndarray, world, quats: np.
     are closed under rotation, so the least-squares fit reproduces them exactly).
 
     Args:
-      means: [G, 3]; log_scales: [G, 3]; world: :class:`~cusgs_jax.data.normalize.WorldTransform`;
-      quats: [G, 4] wxyz or None; sh: [G, K, 3] or None (needed only when the frame is rotated).
+      means: [G, 3]; log_scales: [G, 3]; quats: [G, 4] wxyz; sh: [G, K, 3];
+      world: :class:`~cusgs_jax.data.normalize.WorldTransform`.
     Returns:
-      (means [G, 3] float64, log_scales [G, 3] float64) without ``quats``/``sh``; with them
-      (means, log_scales, quats [G, 4], sh [G, K, 3]).
+      (means [G, 3], log_scales [G, 3], quats [G, 4], sh [G, K, 3]), float64; without a rotation
+      the quaternions and SH are returned unchanged.
     """
     out_means, out_scales = world.to_colmap(means), np.asarray(log_scales, np.float64) - np.log(world.scale)
-    if quats is None and sh is None:
-        return out_means, out_scales
     rotation = world.matrix
     quats = np.asarray(quats, np.float64)
     sh = np.asarray(sh, np.float64)
