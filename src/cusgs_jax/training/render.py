@@ -169,5 +169,6 @@ def most_work(anchors: AnchorState, nets: dict, views, cfg: Config) -> dict:
     fit = view_work_probe(cfg)
     needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
     for camera, index in views:
-        needs = {k: max(v, fit(anchors, nets, camera, index)[k]) for k, v in needs.items()}
+        work = fit(anchors, nets, camera, index)
+        needs = {k: max(v, work[k]) for k, v in needs.items()}
     return needs
