@@ -155,7 +155,7 @@ def _write_views(out: pathlib.Path, scene, poses, names, width, height, K):
     return depths, face_maps
 
 
-def _default_cache_dir() -> pathlib.Path:
+def default_cache_dir() -> pathlib.Path:
     """``$CUSGS_CACHE_DIR``, or ``~/.cache/cusgs_jax`` when unset."""
     env = os.environ.get("CUSGS_CACHE_DIR")
     return pathlib.Path(env) if env else pathlib.Path.home() / ".cache" / "cusgs_jax"
@@ -163,7 +163,7 @@ def _default_cache_dir() -> pathlib.Path:
 
 def demo_scene_folder(cache_dir=None, *, seed=0, num_views=30, width=160, height=120) -> pathlib.Path:
     """Where :func:`demo_scene_path` keeps the demo scene for these parameters (nothing is generated)."""
-    root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
+    root = pathlib.Path(cache_dir) if cache_dir is not None else default_cache_dir()
     return root / f"demo{FORMAT_VERSION}-s{seed}-v{num_views}-{width}x{height}"
 
 

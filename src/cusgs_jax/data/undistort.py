@@ -70,7 +70,7 @@ from typing import Any
 
 import numpy as np
 
-from cusgs_jax.data.demo import _default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
+from cusgs_jax.data.demo import default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
 from cusgs_jax.data.errors import SceneError
 
 __all__ = ["CACHE_VERSION", "DISTORTED_MODELS", "PINHOLE_MODELS", "camera_model_name",
@@ -186,7 +186,7 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
     options = _options(options)
     sources = _source_files(scene, views)
     key = _cache_key(views, sources, cameras, options, pycolmap.__version__)
-    root = pathlib.Path(cache_dir) if cache_dir is not None else _default_cache_dir()
+    root = pathlib.Path(cache_dir) if cache_dir is not None else default_cache_dir()
     final = root / "undistorted" / f"{_safe_name(scene)}-{key}"
     if (final / _MARKER).is_file():
         info = json.loads((final / _MARKER).read_text())
