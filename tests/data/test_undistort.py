@@ -1,10 +1,8 @@
 """Distorted COLMAP cameras: undistorted to PINHOLE with COLMAP's undistorter into the cache.
 
-Tiny synthetic scenes (8 images of 64×48) are built with pycolmap. Each image is rendered through
-its distorted camera as a function of the viewing ray: a bright background with a Gaussian
-marker (σ = 1.2 undistorted pixels, one colour channel per marker) around the ray of every 3D
-point, so in a correctly undistorted image each marker is centred on the pinhole projection
-``K · viewmat · X`` of its point.
+Tiny synthetic scenes (:mod:`cusgs_jax.testing.distorted_scenes`: 8 images of 64×48 rendered
+through their distorted cameras, one marker per 3D point) are loaded, and each marker must sit on
+the pinhole projection ``K · viewmat · X`` of its point.
 """
 
 from __future__ import annotations
@@ -23,19 +21,8 @@ pycolmap = pytest.importorskip("pycolmap")
 from cusgs_jax.data import undistort  # noqa: E402
 from cusgs_jax.data.colmap import SceneError, load_cameras, load_scene  # noqa: E402
 from cusgs_jax.data.images import _downscale, scaled_size  # noqa: E402
-from cusgs_jax.testing.scenes import axis_angle_rotation  # noqa: E402
-
-W, H, N_VIEWS = 64, 48, 8
-BACKGROUND, MARKER, SIGMA = 200.0, -180.0, 1.2  # markers are dark dips in one channel
-CAMERAS = {  # model: params for a 64×48 image
-    "SIMPLE_RADIAL": (50.0, 32.0, 24.0, 0.08),  # pincushion: the undistorted image shrinks
-    "RADIAL": (50.0, 31.6, 24.3, -0.1, 0.02),  # barrel: it grows
-    "OPENCV": (50.0, 52.0, 32.3, 23.8, -0.12, 0.02, 0.001, -0.002),
-    "OPENCV_FISHEYE": (40.0, 41.0, 32.0, 24.0, 0.05, -0.01, 0.0, 0.0),
-}
-# 3×2 grid of points at z = 5 in front of the cameras (about ±16 px, ±10 px from the centre).
-POINTS = np.array([[x, y, 5.0] for y in (-1.0, 1.0) for x in (-1.6, 0.0, 1.6)])
-
+from cusgs_jax.testing.distorted_scenes import (BACKGROUND, CAMERAS, H, N_VIEWS, W,  # noqa: E402
+                                                distorted_colmap_scene, marker_errors)
 
 @pytest.fixture(autouse=True)
 def cache_dir(tmp_path, monkeypatch):
@@ -59,72 +46,6 @@ def calls(monkeypatch):
     return seen
 
 
-def _render(cam, rot, t, uniform=False) -> np.ndarray:
-    """[H, W, 3] uint8 image through the distorted ``cam`` (markers around the points' rays)."""
-    img = np.full((cam.height, cam.width, 3), BACKGROUND)
-    if not uniform:
-        jj, ii = np.meshgrid(np.arange(cam.width) + 0.5, np.arange(cam.height) + 0.5)
-        rays = cam.cam_from_img(np.stack([jj.ravel(), ii.ravel()], -1)).reshape(cam.height, cam.width, 2)
-        pc = POINTS @ rot.T + t
-        fx, fy = cam.focal_length_x, cam.focal_length_y  # what COLMAP's undistorted camera keeps
-        for p, (x, y, z) in enumerate(pc):
-            d2 = ((rays[..., 0] - x / z) * fx) ** 2 + ((rays[..., 1] - y / z) * fy) ** 2
-            img[..., p % 3] += MARKER * np.exp(-0.5 * d2 / SIGMA**2)
-    return np.clip(np.round(img), 0, 255).astype(np.uint8)
-
-
-def make_scene(root, cameras, *, uniform=False, seed=0, subfolder=False, ext=".png"):
-    """Write a distorted scene under ``root``: image i uses camera i % len(cameras), where
-    ``cameras`` = [(model, params), ...] (all W×H); ``ext``: the image files' extension
-    (JPEGs at quality 100 without chroma subsampling). Returns {name: (R, t)}."""
-    rng = np.random.default_rng(seed)
-    rec = pycolmap.Reconstruction()
-    cams = []
-    for cid, (model, params) in enumerate(cameras, start=1):
-        cam = pycolmap.Camera(camera_id=cid, model=model, width=W, height=H, params=list(params))
-        rec.add_camera_with_trivial_rig(cam)
-        cams.append(cam)
-    poses = {}
-    for i in range(N_VIEWS):
-        name = (f"cam{i % 2}/" if subfolder else "") + f"v{i:02d}{ext}"
-        rot = axis_angle_rotation(rng.uniform(-0.05, 0.05, 3))
-        t = rng.uniform(-0.2, 0.2, 3)
-        cam = cams[i % len(cams)]
-        keypoints = cam.img_from_cam(POINTS @ rot.T + t)
-        image = pycolmap.Image(name=name, keypoints=keypoints, camera_id=cam.camera_id, image_id=i + 1)
-        rec.add_image_with_trivial_frame(image, pycolmap.Rigid3d(pycolmap.Rotation3d(rot), t))
-        (root / "images" / name).parent.mkdir(parents=True, exist_ok=True)
-        kwargs = dict(quality=100, subsampling=0) if ext == ".jpg" else {}
-        iio.imwrite(root / "images" / name, _render(cam, rot, t, uniform), **kwargs)
-        poses[name] = (rot, t)
-    for p, xyz in enumerate(POINTS):
-        track = pycolmap.Track()
-        for i in range(N_VIEWS):
-            track.add_element(i + 1, p)
-        rec.add_point3D(xyz, track, np.array([255, 0, 0], np.uint8))
-    (root / "sparse" / "0").mkdir(parents=True)
-    rec.write(str(root / "sparse" / "0"))
-    return poses
-
-
-def _marker_errors(scene) -> list[float]:
-    """Distance (px) between each marker's intensity centroid in the loaded images and the
-    pinhole projection of its point with the loaded K and viewmat (markers ≥ 5 px inside)."""
-    errors = []
-    for img, K, view in zip(scene.images, scene.Ks.astype(np.float64), scene.viewmats):
-        pc = POINTS @ view[:3, :3].T + view[:3, 3]
-        uv = (pc @ K.T)[:, :2] / pc[:, 2:]
-        for p, (u, v) in enumerate(uv):
-            if not (5 <= u <= scene.width - 5 and 5 <= v <= scene.height - 5):
-                continue
-            j0, i0 = int(u), int(v)
-            ii, jj = np.mgrid[i0 - 4:i0 + 5, j0 - 4:j0 + 5]
-            w = np.clip(BACKGROUND - img[ii, jj, p % 3].astype(np.float64), 0, None)
-            cu, cv = (w * (jj + 0.5)).sum() / w.sum(), (w * (ii + 0.5)).sum() / w.sum()
-            errors.append(float(np.hypot(cu - u, cv - v)))
-    return errors
-
-
 MIXED = [("OPENCV", CAMERAS["OPENCV"]), ("OPENCV", (50.0, 51.0, 31.8, 24.2, -0.2, 0.05, 0.0, 0.0)),
          ("PINHOLE", (50.0, 50.0, 32.0, 24.0))]
 
@@ -133,7 +54,7 @@ MIXED = [("OPENCV", CAMERAS["OPENCV"]), ("OPENCV", (50.0, 51.0, 31.8, 24.2, -0.2
                          + [(MIXED, ".png"), (MIXED, ".jpg")],
                          ids=list(CAMERAS) + ["mixed_sizes", "mixed_sizes_jpeg"])
 def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
-    make_scene(tmp_path / "s", cameras, subfolder=len(cameras) > 1, ext=ext)
+    distorted_colmap_scene(tmp_path / "s", cameras, subfolder=len(cameras) > 1, ext=ext)
     scene = load_scene(tmp_path / "s", holdout_every=0)
     assert len(calls) == 1 and scene.images.shape == (N_VIEWS, scene.height, scene.width, 3)
     # Pinhole K of COLMAP's undistorted camera (centre-cropped to the common size when mixed).
@@ -151,7 +72,7 @@ def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
                                    rtol=1e-6)
     if len(cameras) > 1:  # a real crop happened
         assert len({(c.width, c.height) for c in full.values()}) > 1
-    errors = _marker_errors(scene)
+    errors = marker_errors(scene)
     assert len(errors) >= 4 * N_VIEWS, "too few markers inside the undistorted images"
     assert max(errors) < 0.25, f"marker off its pinhole projection by {max(errors):.2f} px"
 
@@ -159,7 +80,7 @@ def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
 @pytest.mark.parametrize("model", list(CAMERAS))
 def test_no_black_border(tmp_path, model):
     """Crop, not mask: a uniformly bright source gives uniformly bright undistorted images."""
-    make_scene(tmp_path / "s", [(model, CAMERAS[model])], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [(model, CAMERAS[model])], uniform=True)
     images = load_scene(tmp_path / "s", holdout_every=0).images.astype(int)
     borders = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
     assert borders.min() >= BACKGROUND - 1, f"dark border pixel {borders.min()}"
@@ -167,7 +88,7 @@ def test_no_black_border(tmp_path, model):
 
 
 def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     with caplog.at_level(logging.INFO, logger="cusgs_jax"):
         first = load_scene(tmp_path / "s")
         assert len(calls) == 1
@@ -193,7 +114,7 @@ def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
 
 def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
     """Another job renames its complete copy into place first: ours is dropped, theirs used."""
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     real = undistort._undistort_into
 
     def racing(tmp, *args):
@@ -204,7 +125,7 @@ def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
     monkeypatch.setattr(undistort, "_undistort_into", racing)
     scene = load_scene(tmp_path / "s", holdout_every=0)
     assert [p.name.startswith("s-") for p in (cache_dir / "undistorted").iterdir()] == [True]
-    assert max(_marker_errors(scene)) < 0.25
+    assert max(marker_errors(scene)) < 0.25
 
 
 def _snapshot(folder):
@@ -214,7 +135,7 @@ def _snapshot(folder):
 
 def test_read_only_scene(tmp_path, cache_dir):
     scene_dir = tmp_path / "s"
-    make_scene(scene_dir, [("RADIAL", CAMERAS["RADIAL"])])
+    distorted_colmap_scene(scene_dir, [("RADIAL", CAMERAS["RADIAL"])])
     before = _snapshot(scene_dir)
     modes = {p: p.stat().st_mode for p in [scene_dir, *scene_dir.rglob("*")]}
     for p in modes:
@@ -236,7 +157,7 @@ def test_read_only_scene(tmp_path, cache_dir):
     ("SIMPLE_RADIAL_FISHEYE", (50, 32, 24, 0.01)),
 ])
 def test_unsupported_model(tmp_path, model, params, calls):
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"]), (model, params)], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"]), (model, params)], uniform=True)
     with pytest.raises(SceneError, match=rf"camera 2 in .*cameras\.bin uses the {model} camera "
                                          r"model.*colmap image_undistorter"):
         load_scene(tmp_path / "s")
@@ -247,7 +168,7 @@ def test_unsupported_model(tmp_path, model, params, calls):
 
 @pytest.mark.parametrize("downscale", [1, 2])
 def test_load_cameras_agrees_with_load_scene(tmp_path, calls, downscale):
-    make_scene(tmp_path / "s", MIXED)
+    distorted_colmap_scene(tmp_path / "s", MIXED)
     viewmats, Ks, width, height, train = load_cameras(tmp_path / "s", downscale=downscale)
     assert not calls  # no image is undistorted (or read) for the cameras
     scene = load_scene(tmp_path / "s", downscale=downscale)
@@ -260,7 +181,7 @@ def test_load_cameras_agrees_with_load_scene(tmp_path, calls, downscale):
 def test_downscale_uses_undistorted_full_resolution(tmp_path):
     """images_2/ of a distorted scene holds distorted pixels: ignored; the undistorted images/
     are downscaled with the loader's anti-aliased resize and K is halved."""
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     shutil.copytree(tmp_path / "s" / "images", tmp_path / "s" / "images_2")
     for p in (tmp_path / "s" / "images_2").iterdir():
         iio.imwrite(p, np.zeros((H // 2, W // 2, 3), np.uint8))  # would be black if used
@@ -274,15 +195,15 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
 
 
 def test_zero_distortion_is_a_pinhole(tmp_path, calls):
-    make_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, 0.0))])
+    distorted_colmap_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, 0.0))])
     scene = load_scene(tmp_path / "s", holdout_every=0)
     assert not calls and (scene.width, scene.height) == (W, H)
     np.testing.assert_allclose(scene.Ks[0], [[50, 0, 32], [0, 50, 24], [0, 0, 1]])
-    assert max(_marker_errors(scene)) < 0.25
+    assert max(marker_errors(scene)) < 0.25
 
 
 def test_invalid_distorted_camera(tmp_path, calls):
-    make_scene(tmp_path / "s", [("OPENCV", (50.0, 52.0, 32.0, 24.0, np.nan, 0.0, 0.0, 0.0))],
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", (50.0, 52.0, 32.0, 24.0, np.nan, 0.0, 0.0, 0.0))],
                uniform=True)
     with pytest.raises(SceneError, match=r"camera 1 in .*cameras\.bin has invalid parameters \(OPENCV"):
         load_scene(tmp_path / "s")
@@ -290,7 +211,7 @@ def test_invalid_distorted_camera(tmp_path, calls):
 
 
 def test_missing_and_corrupt_images(tmp_path):
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     (tmp_path / "s" / "images" / "v02.png").unlink()
     with pytest.raises(SceneError, match=r"'v02\.png' .*missing"):
         load_scene(tmp_path / "s")
@@ -303,7 +224,7 @@ def test_missing_and_corrupt_images(tmp_path):
 
 
 def test_unwritable_cache(tmp_path, monkeypatch):
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "file"))  # a file, not a folder
     with pytest.raises(SceneError, match=r"cannot write the undistorted images.*CUSGS_CACHE_DIR"):
@@ -311,7 +232,7 @@ def test_unwritable_cache(tmp_path, monkeypatch):
 
 
 def test_alpha_images_warned(tmp_path, caplog):
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     iio.imwrite(tmp_path / "s" / "images" / "v01.png", np.full((H, W, 4), 200, np.uint8))
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
         load_scene(tmp_path / "s")
@@ -320,7 +241,7 @@ def test_alpha_images_warned(tmp_path, caplog):
 
 def test_cache_key_changes_with_camera(tmp_path):
     """The key covers the camera parameters and the options, not only the image files."""
-    make_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     views = [(f"v{i:02d}.png", 1) for i in range(N_VIEWS)]
     sources = [tmp_path / "s" / "images" / n for n, _ in views]
     cam = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H, params=list(CAMERAS["OPENCV"]))
