@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import imageio.v3 as iio
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.nerfstudio import load_nerfstudio_scene, split_name
+from cusgs_jax.testing.distorted_scenes import CAMERAS, H, N_VIEWS, W, distorted_colmap_scene, marker_errors, nerfstudio_copy
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, write_nerfstudio_scene, write_ply_points
 
 W, H = 16, 12
@@ -157,20 +159,12 @@ def test_error_unknown_camera_model(ns):
         load_nerfstudio_scene(ns["root"])
 
 
-@pytest.mark.parametrize("model, fix", [("OPENCV_FISHEYE", "ln -s colmap/sparse .*data.format=colmap"),
+@pytest.mark.parametrize("model, fix", [("FISHEYE624", "ln -s colmap/sparse .*data.format=colmap"),
                                         ("EQUIRECTANGULAR", "--camera-type equirectangular")])
 def test_error_unsupported_camera_model(ns, model, fix):
     _edit(ns["root"], lambda m: m.update(camera_model=model))
-    with pytest.raises(SceneError, match=rf"uses camera_model {model}, but only pinhole .*{fix}"):
+    with pytest.raises(SceneError, match=rf"uses camera_model {model}, but only perspective .*{fix}"):
         load_nerfstudio_scene(ns["root"])
-
-
-def test_error_nonzero_distortion(tmp_path):
-    truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=-0.05, k2=0.0, p1=0.001, p2=0.0))
-    with pytest.raises(SceneError, match=r"frame 'images/frame_00001.png' of .*transforms.json \(camera_model "
-                                         r"OPENCV\) has non-zero lens distortion \(k1=-0.05, p1=0.001\).*"
-                                         r"data.format=colmap"):
-        load_nerfstudio_scene(truth["root"])
 
 
 def test_error_frames_of_different_sizes(ns):
@@ -208,3 +202,54 @@ def test_error_invalid_focal(ns):
 def test_error_no_transforms_json(tmp_path):
     with pytest.raises(SceneError, match=r"transforms.json does not exist: a nerfstudio scene needs it"):
         load_nerfstudio_scene(tmp_path)
+
+
+# --- lens distortion: undistorted as COLMAP scenes are --------------------------------------
+
+
+@pytest.mark.parametrize("cameras", [[("OPENCV", CAMERAS["OPENCV"])], [("OPENCV_FISHEYE", CAMERAS["OPENCV_FISHEYE"])],
+                                     [("OPENCV", CAMERAS["OPENCV"]), ("PINHOLE", (50.0, 50.0, 32.0, 24.0))]],
+                         ids=["opencv", "fisheye", "opencv_and_pinhole"])
+def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkeypatch, cameras):
+    """A distorted capture in nerfstudio's layout loads as the same capture in COLMAP's does: the same
+    pinhole intrinsics, the same undistorted pixels and poses, and every marker on its point's pinhole
+    projection; images_2/ (distorted pixels) is not used."""
+    from cusgs_jax.data.colmap import load_scene
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    colmap_root = tmp_path / "colmap"
+    distorted_colmap_scene(colmap_root, cameras)
+    root = nerfstudio_copy(colmap_root, tmp_path / "ns")
+    scene = load_nerfstudio_scene(root, holdout_every=0)
+    reference = load_scene(colmap_root, holdout_every=0)
+    assert scene.names == tuple(f"images/{n}" for n in reference.names)
+    np.testing.assert_allclose(scene.Ks, reference.Ks, rtol=1e-6)
+    np.testing.assert_array_equal(scene.images, reference.images)
+    np.testing.assert_allclose(scene.viewmats, reference.viewmats, atol=1e-9)
+    errors = marker_errors(scene)
+    assert len(errors) >= 4 * N_VIEWS and max(errors) < 0.25, max(errors)
+    for name in os.listdir(root / "images"):  # distorted pre-downscaled copies must be ignored
+        (root / "images_2").mkdir(exist_ok=True)
+        iio.imwrite(root / "images_2" / name, np.zeros((H // 2, W // 2, 3), np.uint8))
+    half = load_nerfstudio_scene(root, holdout_every=0, downscale=2)
+    np.testing.assert_array_equal(half.images, load_scene(colmap_root, holdout_every=0, downscale=2).images)
+
+
+@pytest.mark.parametrize("model, extra, stray", [("OPENCV", dict(k3=0.01), "k3=0.01"),
+                                                 ("OPENCV_FISHEYE", dict(p1=0.002), "p1=0.002")])
+def test_error_distortion_colmaps_model_does_not_have(tmp_path, model, extra, stray):
+    truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=-0.05, **extra))
+    _edit(truth["root"], lambda m: m.update(camera_model=model))
+    with pytest.raises(SceneError, match=rf"\(camera_model {model}\) has {stray}, which COLMAP's {model} model does "
+                                         r"not have.*data.format=colmap"):
+        load_nerfstudio_scene(truth["root"])
+
+
+def test_error_distorted_frames_outside_images(tmp_path, monkeypatch):
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=-0.05, p1=0.001))
+    (truth["root"] / "images").rename(truth["root"] / "frames")
+    _edit(truth["root"], lambda m: [f.update(file_path=f["file_path"].replace("images/", "frames/"))
+                                    for f in m["frames"]])
+    with pytest.raises(SceneError, match=r"is distorted and lies outside .*images: COLMAP's undistorter reads"):
+        load_nerfstudio_scene(truth["root"])

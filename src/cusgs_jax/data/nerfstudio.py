@@ -17,9 +17,13 @@ Layout (``data.path``), as ``ns-process-data`` writes it::
   ``file_path`` reduced with the anti-aliased filter. All frames must load at one size.
 * ``camera_model`` (top level or per frame, default ``OPENCV``): perspective cameras
   (``OPENCV``, ``PINHOLE``, ``SIMPLE_PINHOLE``) with every distortion coefficient zero or absent
-  load directly. A frame with non-zero distortion, or ``OPENCV_FISHEYE`` / ``EQUIRECTANGULAR`` (and
-  nerfstudio's other non-pinhole models), raises :class:`SceneError` saying how to undistort:
-  undistortion of these scenes is not implemented yet — :func:`_pinhole` is where it would plug in.
+  load directly. Frames with lens distortion — ``OPENCV`` with non-zero ``k1 k2 p1 p2`` (COLMAP's
+  OPENCV model) or ``OPENCV_FISHEYE`` with ``k1 k2 k3 k4`` — are undistorted to pinhole exactly as
+  distorted COLMAP scenes are (:mod:`cusgs_jax.data.undistort`: COLMAP's undistorter, cached outside
+  the scene, cropped to valid pixels, ``images_{d}/`` not used): the frames' cameras are written as a
+  temporary COLMAP model for it, so their images must lie under ``images/``. ``OPENCV`` with non-zero
+  ``k3``/``k4``, a fisheye with ``p1``/``p2``, ``EQUIRECTANGULAR`` and nerfstudio's other models raise
+  :class:`SceneError` saying what to do.
 * ``transform_matrix``: camera-to-world with OpenGL camera axes (as Blender), converted by
   :func:`cusgs_jax.data.frames.opengl_c2w_to_viewmat`.
 * ``applied_transform`` (3×4) is informational: it records the transform ``ns-process-data``
@@ -53,13 +57,15 @@ from cusgs_jax.data.images import check_background, scaled_size
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
 
-__all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "UNSUPPORTED_MODELS"]
+__all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
+           "UNSUPPORTED_MODELS"]
 
 log = logging.getLogger("cusgs_jax")
 
 TRANSFORMS_FILE = "transforms.json"
 PINHOLE_MODELS = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE")  # perspective: pinhole once the distortion is zero
-UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "EQUIRECTANGULAR", "FISHEYE624", "OMNIDIRECTIONALSTEREO_L",
+FISHEYE_MODEL = "OPENCV_FISHEYE"  # undistorted with its k1..k4 (COLMAP's OPENCV_FISHEYE)
+UNSUPPORTED_MODELS = ("EQUIRECTANGULAR", "FISHEYE624", "OMNIDIRECTIONALSTEREO_L",
                       "OMNIDIRECTIONALSTEREO_R", "VR180_L", "VR180_R")
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
@@ -67,10 +73,10 @@ _FIX = (f"{TRANSFORMS_FILE} must hold fl_x, fl_y, cx, cy, w, h (top level or per
         "[{\"file_path\": ..., \"transform_matrix\": <4x4>}, ...] (nerfstudio layout) — re-export it, e.g. with "
         "`ns-process-data`")
 _UNDISTORT_HINT = (
-    "undistorting nerfstudio frames is not supported yet, but the COLMAP loader undistorts OPENCV and "
-    "OPENCV_FISHEYE cameras itself: when ns-process-data left its COLMAP model in <scene>/colmap/sparse/0, link "
-    "it as <scene>/sparse (`ln -s colmap/sparse <scene>/sparse`) and set data.format=colmap; otherwise undistort "
-    "the images first (e.g. `colmap image_undistorter --output_type COLMAP`) and point data.path at the result")
+    "the COLMAP loader reads more camera models: when ns-process-data left its COLMAP model in "
+    "<scene>/colmap/sparse/0, link it as <scene>/sparse (`ln -s colmap/sparse <scene>/sparse`) and set "
+    "data.format=colmap; otherwise undistort the images first (e.g. `colmap image_undistorter --output_type "
+    "COLMAP`) and point data.path at the result")
 _PANORAMA_HINT = (
     "panoramas cannot be undistorted into one pinhole image: cut them into perspective views first, e.g. "
     "`ns-process-data images --camera-type equirectangular --images-per-equirect 8 --data <panoramas> "
@@ -121,30 +127,88 @@ def _frame_camera(meta: dict, frame: dict, index: int, json_path: pathlib.Path) 
         raise SceneError(f"{where} of {json_path} has invalid intrinsics (fl_x={fx}, fl_y={fy}, w={w}, h={h}): "
                          f"focal lengths must be > 0 and w, h whole numbers of pixels; {_FIX}")
     model = get("camera_model") or "OPENCV"
-    if not isinstance(model, str) or model not in PINHOLE_MODELS + UNSUPPORTED_MODELS:
+    known = PINHOLE_MODELS + (FISHEYE_MODEL,) + UNSUPPORTED_MODELS
+    if not isinstance(model, str) or model not in known:
         raise SceneError(f"unknown camera_model {model!r} in {json_path} ({where}): nerfstudio's models are "
-                         f"{', '.join(PINHOLE_MODELS + UNSUPPORTED_MODELS)}; perspective scenes use OPENCV — "
+                         f"{', '.join(known)}; perspective scenes use OPENCV — "
                          "correct camera_model")
     distortion = {k: _number(get(k), k, where, json_path) for k in DISTORTION_KEYS if get(k) is not None}
     return FrameCamera(model, fx, fy, cx, cy, int(w), int(h), distortion)
 
 
-def _pinhole(camera: FrameCamera, name: str, json_path: pathlib.Path) -> FrameCamera:
-    """``camera`` as an undistorted pinhole camera, or SceneError.
+def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pathlib.Path):
+    """The pycolmap Camera of a frame's camera (PINHOLE, OPENCV or OPENCV_FISHEYE), or SceneError
+    for a model or distortion coefficient COLMAP's matching model does not have."""
+    import pycolmap
 
-    This is the boundary where undistortion would plug in (remap the image, return the new pinhole
-    intrinsics, as data/undistort.py will do for COLMAP); today only cameras that need none pass.
-    """
     if camera.model in UNSUPPORTED_MODELS:
-        hint = _PANORAMA_HINT if camera.model not in ("OPENCV_FISHEYE", "FISHEYE624") else _UNDISTORT_HINT
-        raise SceneError(f"frame {name!r} of {json_path} uses camera_model {camera.model}, but only pinhole "
-                         f"(perspective, undistorted) cameras are supported; {hint}")
-    nonzero = {k: v for k, v in camera.distortion.items() if v != 0.0}
-    if nonzero:
-        coeffs = ", ".join(f"{k}={v:g}" for k, v in nonzero.items())
-        raise SceneError(f"frame {name!r} of {json_path} (camera_model {camera.model}) has non-zero lens "
-                         f"distortion ({coeffs}); {_UNDISTORT_HINT}")
-    return camera
+        hint = _UNDISTORT_HINT if camera.model == "FISHEYE624" else _PANORAMA_HINT
+        raise SceneError(f"frame {name!r} of {json_path} uses camera_model {camera.model}, but only perspective "
+                         f"(OPENCV, PINHOLE, SIMPLE_PINHOLE) and OPENCV_FISHEYE cameras are supported; {hint}")
+    coeff = {k: camera.distortion.get(k, 0.0) for k in DISTORTION_KEYS}
+    extra = ("p1", "p2") if camera.model == FISHEYE_MODEL else ("k3", "k4")
+    stray = {k: coeff[k] for k in extra if coeff[k] != 0.0}
+    if stray:
+        values = ", ".join(f"{k}={v:g}" for k, v in stray.items())
+        raise SceneError(f"frame {name!r} of {json_path} (camera_model {camera.model}) has {values}, which COLMAP's "
+                         f"{camera.model} model does not have, so it cannot be undistorted here; {_UNDISTORT_HINT}")
+    pinhole = [camera.fx, camera.fy, camera.cx, camera.cy]
+    if camera.model == FISHEYE_MODEL:
+        model, params = "OPENCV_FISHEYE", pinhole + [coeff[k] for k in ("k1", "k2", "k3", "k4")]
+    elif any(coeff[k] != 0.0 for k in ("k1", "k2", "p1", "p2")):
+        model, params = "OPENCV", pinhole + [coeff[k] for k in ("k1", "k2", "p1", "p2")]
+    else:
+        model, params = "PINHOLE", pinhole
+    return pycolmap.Camera(camera_id=camera_id, model=model, width=camera.width, height=camera.height,
+                           params=params)
+
+
+def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> list:
+    """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are.
+
+    Args:
+      frames: [(name, image path, FrameCamera)] in view order.
+    Returns:
+      [(image path, FrameCamera, prescaled usable)] — undistorted frames read their image from the
+      cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common size.
+    """
+    import tempfile
+
+    import pycolmap
+
+    from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images
+
+    ids, cameras, views = {}, {}, []
+    for name, image, camera in frames:
+        key = (camera.model, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+               tuple(sorted(camera.distortion.items())))
+        if key not in ids:
+            ids[key] = len(ids) + 1
+            cameras[ids[key]] = _colmap_camera(camera, ids[key], name, json_path)
+        views.append(ids[key])
+    if not any(needs_undistortion(c) for c in cameras.values()):
+        return [(image, camera, True) for _, image, camera in frames]
+    images_dir = scene / "images"
+    names = []
+    for name, image, _ in frames:
+        try:
+            names.append(image.resolve().relative_to(images_dir.resolve()).as_posix())
+        except ValueError:
+            raise SceneError(f"frame {name!r} of {json_path} is distorted and lies outside {images_dir}: COLMAP's "
+                             "undistorter reads the images of a scene from its images/ folder; move the frames "
+                             "there and correct their file_path") from None
+    model = pycolmap.Reconstruction()
+    for camera in cameras.values():
+        model.add_camera_with_trivial_rig(camera)
+    for index, (name, cid) in enumerate(zip(names, views)):
+        model.add_image_with_trivial_frame(pycolmap.Image(name=name, camera_id=cid, image_id=index + 1),
+                                           pycolmap.Rigid3d())
+    with tempfile.TemporaryDirectory(prefix="cusgs-nerfstudio-model-") as model_dir:
+        model.write(model_dir)
+        folder = undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras)
+    pinhole = {cid: FrameCamera("PINHOLE", *(float(v) for v in cam.params), int(cam.width), int(cam.height), {})
+               for cid, cam in undistorted_cameras(cameras).items()}
+    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)]
 
 
 def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -197,7 +261,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
       SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
     Raises:
       SceneError: malformed JSON, missing keys, a missing image, a bad matrix, an unsupported or
-        unknown camera model, differing image sizes — naming the file and the fix.
+        unknown camera model, distortion COLMAP cannot undistort, differing image sizes — naming the file
+        and the fix.
     """
     downscale = _check_int_setting("data.downscale", downscale, minimum=1)
     holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
@@ -215,18 +280,20 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         require_key(frame, "transform_matrix", f"frames[{i}]", json_path, _FIX)
     order = sorted(range(len(frames)), key=lambda i: str(frames[i]["file_path"]))
 
-    names, images_in, viewmats, cameras = [], [], [], []
+    names, viewmats, frames_in = [], [], []
     for i in order:
         frame = frames[i]
         image = frame_path(scene, frame, i, json_path, _FIX)
         name = frame_name(scene, image)
-        camera = _pinhole(_frame_camera(meta, frame, i, json_path), name, json_path)
+        frames_in.append((name, image, _frame_camera(meta, frame, i, json_path)))
         viewmats.append(opengl_c2w_to_viewmat(frame["transform_matrix"], f"frames[{i}]", json_path))
+        names.append(name)
+    images_in, cameras = [], []
+    for name, (image, camera, prescaled_ok) in zip(names, _undistort(scene, frames_in, json_path)):
         prescaled = scene / f"images_{downscale}" / image.name
-        use_prescaled = downscale > 1 and prescaled.is_file()
+        use_prescaled = prescaled_ok and downscale > 1 and prescaled.is_file()
         images_in.append(FrameImage(name, prescaled if use_prescaled else image, (camera.width, camera.height),
                                     use_prescaled))
-        names.append(name)
         cameras.append(camera)
     check_unique_names(names, json_path)
     _check_common_size(names, cameras, downscale, json_path)

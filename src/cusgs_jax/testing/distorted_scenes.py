@@ -93,3 +93,37 @@ def marker_errors(scene) -> list[float]:
             cu, cv = (w * (jj + 0.5)).sum() / w.sum(), (w * (ii + 0.5)).sum() / w.sum()
             errors.append(float(np.hypot(cu - u, cv - v)))
     return errors
+
+
+def nerfstudio_copy(colmap_root, dst):
+    """The distorted COLMAP scene ``colmap_root`` (:func:`distorted_colmap_scene`) as a nerfstudio
+    scene in ``dst``: the same images under ``images/`` and a ``transforms.json`` with each frame's
+    ``camera_model`` (OPENCV / OPENCV_FISHEYE; PINHOLE cameras as OPENCV without distortion),
+    ``fl_x fl_y cx cy w h``, its distortion keys and an OpenGL camera-to-world ``transform_matrix``
+    (what ``ns-process-data`` writes). Returns ``dst``."""
+    import json
+    import pathlib
+    import shutil
+
+    import pycolmap
+
+    colmap_root, dst = pathlib.Path(colmap_root), pathlib.Path(dst)
+    shutil.copytree(colmap_root / "images", dst / "images")
+    rec = pycolmap.Reconstruction(str(colmap_root / "sparse" / "0"))
+    keys = {"OPENCV": ("k1", "k2", "p1", "p2"), "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"), "PINHOLE": ()}
+    frames = []
+    for image in sorted(rec.images.values(), key=lambda im: im.name):
+        cam = rec.cameras[image.camera_id]
+        model = cam.model.name
+        params = [float(v) for v in cam.params]
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        w2c = np.eye(4)
+        w2c[:3] = pose.matrix()
+        c2w = np.linalg.inv(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV → OpenGL camera axes
+        frame = dict(file_path=f"images/{image.name}", transform_matrix=c2w.tolist(),
+                     camera_model="OPENCV" if model == "PINHOLE" else model, w=int(cam.width), h=int(cam.height),
+                     fl_x=params[0], fl_y=params[1], cx=params[2], cy=params[3])
+        frame.update(zip(keys[model], params[4:]))
+        frames.append(frame)
+    (dst / "transforms.json").write_text(json.dumps(dict(frames=frames), indent=1))
+    return dst
