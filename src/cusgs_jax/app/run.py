@@ -118,9 +118,10 @@ def setup(cfg: Config, output_dir) -> Session:
     cfg = resolve_voxel_size(cfg, scene.points)
     train_idx = scene.train_indices
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
-    log.info("scene %s: %d train / %d held-out views at %dx%d, %d points; COLMAP extent %.4g (trained in units "
-             "of it), voxel size %.4g", scene.path, len(train_idx), len(scene.test_indices), scene.width,
-             scene.height, len(scene.points), 1.0 / world.scale, cfg.model.voxel_size)
+    log.info("scene %s (%s): %d train / %d held-out views at %dx%d, %d points; extent %.4g in the scene's frame "
+             "(trained in units of it), voxel size %.4g", scene.path, scene.dataset_format, len(train_idx),
+             len(scene.test_indices), scene.width, scene.height, len(scene.points), 1.0 / world.scale,
+             cfg.model.voxel_size)
     if not len(scene.test_indices):
         log.warning("no held-out views (data.holdout_every=%d): the reported PSNR/SSIM are measured on "
                     "training views and say nothing about novel views", cfg.data.holdout_every)

@@ -32,7 +32,7 @@ def resolve_voxel_size(cfg: Config, points: np.ndarray) -> Config:
     if cfg.model.voxel_size != "auto":
         return cfg
     size = auto_voxel_size(points)
-    log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of %d SfM points)", size, len(points))
+    log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of the %d initial points)", size, len(points))
     return cfg.replace(model=dict(voxel_size=size))
 
 
