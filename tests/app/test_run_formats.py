@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from cusgs_jax.app.run import run
 from cusgs_jax.config import compose_config
 from cusgs_jax.testing.transforms_scenes import write_blender_scene
@@ -14,10 +16,17 @@ TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false"
         "prune.start=2", "prune.interval=2", "prune.ratio=0.05", "data.random_points=1500"]
 
 
-def test_blender_scene_trains_and_evaluates_on_its_test_split(tmp_path):
-    truth = write_blender_scene(tmp_path / "lego", train=4, test=2, width=40, height=30)
-    out = tmp_path / "run"
-    result = run(compose_config([f"data.path={truth['root']}", *TINY]), out)  # voxel size auto, format auto
+@pytest.fixture(scope="module")
+def blender_run(tmp_path_factory):
+    """(scene truth, run folder, run result) of a 6-step run on a tiny Blender scene (voxel size and format auto)."""
+    root = tmp_path_factory.mktemp("blender")
+    truth = write_blender_scene(root / "lego", train=6, test=2, width=40, height=30)
+    result = run(compose_config([f"data.path={truth['root']}", *TINY]), root / "run")
+    return truth, root / "run", result
+
+
+def test_blender_scene_trains_and_evaluates_on_its_test_split(blender_run):
+    truth, out, result = blender_run
 
     saved = json.loads((out / "eval.json").read_text())
     assert saved["dataset_format"] == "blender" and saved["split"] == "transforms_test"
@@ -57,7 +66,7 @@ def test_render_ply_on_a_blender_scene(tmp_path, capsys):
                                                      "train_r_1.png", "train_r_2.png"]
 
 
-def test_blender_run_exports_to_the_scenes_own_frame(tmp_path):
+def test_blender_run_exports_to_the_scenes_own_frame(blender_run, tmp_path):
     """cusgs-export writes the PLY in the frame of transforms_*.json: the Blender-frame cameras (as the loader
     reads them) see every exported Gaussian at the pixel where the training cameras saw it in the normalised
     frame, and the PLY rendered at the test cameras scores as the run's own evaluation. (These noise images make
@@ -71,10 +80,7 @@ def test_blender_run_exports_to_the_scenes_own_frame(tmp_path):
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.io import read_ply
 
-    truth = write_blender_scene(tmp_path / "lego", train=6, test=2, width=40, height=30)
-    out = tmp_path / "run"
-    tiny = [o for o in TINY if not o.startswith("train.iterations")]
-    run(compose_config([f"data.path={truth['root']}", "train.iterations=40", *tiny]), out)
+    truth, out, _ = blender_run
     saved = json.loads((out / "eval.json").read_text())
     scene_frame = export_run(out, tmp_path / "scene_frame.ply", progress=False)
     normalised = export_run(out, tmp_path / "normalised.ply", colmap_frame=False, progress=False)
