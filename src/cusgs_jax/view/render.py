@@ -121,8 +121,10 @@ class ViewRenderer:
 
         from cusgs_jax.training.render import view_work_probe
 
+        probe = view_work_probe(cfg)
+        # The viewer's render takes (anchors, nets, camera, banks) and always the mean appearance, index 0.
         self._render = ExactRender(lambda capacities: _build(cfg, capacities), None, cfg.model.n_offsets,
-                                   fit=view_work_probe(cfg))
+                                   fit=lambda anchors, nets, camera, banks: probe(anchors, nets, camera, 0))
 
     def render(self, model: ViewModel, camera, *, features: bool = False):
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
