@@ -6,9 +6,12 @@ import importlib.util
 import math
 import pathlib
 
+import pytest
+
 from cusgs_jax.data.demo import generate_demo_scene
 
 
+@pytest.mark.slow  # a whole multi-job sweep / example run: .ci/run runs it with -m slow
 def test_custom_step_example_trains(tmp_path):
     scene = generate_demo_scene(tmp_path / "demo", num_views=6, width=40, height=30, num_points=1500)
     path = pathlib.Path(__file__).parents[1] / "examples" / "custom_step.py"

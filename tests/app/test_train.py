@@ -100,6 +100,7 @@ def test_bad_settings_exit_2_with_one_line_before_any_work(tmp_path, override):
     assert "Traceback" not in done.stderr and not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow  # a whole multi-job sweep / example run: .ci/run runs it with -m slow
 def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     missing = tmp_path / "no_such_scene"
     sweep = tmp_path / "sweep"

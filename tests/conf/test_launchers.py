@@ -66,6 +66,7 @@ def _two_job_sweep(tiny_sweep, sweep, launcher_overrides):
     return done
 
 
+@pytest.mark.slow  # a whole multi-job sweep / example run: .ci/run runs it with -m slow
 def test_submitit_local_two_job_sweep(tiny_sweep, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     sweep = tmp_path / "submitit"
@@ -73,6 +74,7 @@ def test_submitit_local_two_job_sweep(tiny_sweep, tmp_path):
     assert (sweep / ".submitit").is_dir()  # submitit's own job logs
 
 
+@pytest.mark.slow  # a whole multi-job sweep / example run: .ci/run runs it with -m slow
 def test_ray_two_job_sweep(tiny_sweep, tmp_path):
     """Ray started by the sweep itself with 2 CPUs (ray_local.yaml), stopped when the command exits."""
     pytest.importorskip("hydra_plugins.hydra_ray_launcher")

@@ -17,6 +17,7 @@ pytest.importorskip("optuna")  # the optuna extra
 APP = [sys.executable, "-m", "cusgs_jax.app.train"]
 
 
+@pytest.mark.slow  # a whole multi-job sweep / example run: .ci/run runs it with -m slow
 def test_pareto_search_runs_through_the_cli_and_the_report_marks_its_front(tiny_sweep, tmp_path):
     sweep, (tiny_scene, tiny) = tmp_path / "pareto", tiny_sweep
     cmd = [*APP, "-m", "experiment=pareto_search", f"data.path={tiny_scene}", *tiny, "hydra.sweeper.n_trials=2",
