@@ -179,11 +179,13 @@ def _run_scene(model) -> tuple[pathlib.Path | None, str]:
         if path.is_dir():
             return path, "data.path"
         return None, f"the run's scene data.path={data.path} is not a folder here"
-    from cusgs_jax.data.demo import demo_scene_path
+    from cusgs_jax.data.demo import demo_scene_folder
 
-    # the demo scene is generated deterministically from these settings (cached; regenerated if missing)
-    return demo_scene_path(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
-                           height=data.demo.height), "the built-in demo scene"
+    path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
+                             height=data.demo.height)  # where cusgs-train cached it; nothing is generated here
+    if (path / "scene.json").is_file():
+        return path, "the built-in demo scene"
+    return None, f"the run's scene, the built-in demo scene, is not in its cache folder {path}"
 
 
 def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int, progress: bool):
@@ -202,6 +204,11 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     if refine == 0:
         return splats, dict(steps=0, skipped="--refine 0")
     steps = DEFAULT_REFINE_STEPS if refine is None else int(refine)
+    if not colmap_frame and model.world is None:
+        why = ("the run records no world transform, so the scene's cameras cannot be placed in the normalised "
+               "frame: wrote the unrefined bake (refinement skipped)")
+        log.warning("%s", why)
+        return splats, dict(steps=0, skipped=why)
     if scene_path is None:
         scene_path, found = _run_scene(model)
         if scene_path is None:
@@ -210,11 +217,6 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
             return splats, dict(steps=0, skipped=why)
     else:
         found = "--scene"
-    if not colmap_frame and model.world is None:
-        why = ("the run records no world transform, so the scene's cameras cannot be placed in the normalised "
-               "frame: wrote the unrefined bake (refinement skipped)")
-        log.warning("%s", why)
-        return splats, dict(steps=0, skipped=why)
     data, splat = model.cfg.data, model.cfg.splat
     scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=splat.background, num_random_points=2)
