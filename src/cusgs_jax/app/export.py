@@ -1,9 +1,9 @@
 """``cusgs-export``: bake a trained run into a standard 3DGS PLY that every viewer reads.
 
 ``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
-[--views auto|cameras|sphere] [--colmap-frame | --normalised-frame]`` loads the
-newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
-no scene images needed), decodes every anchor from ``--directions`` sphere
+[--views auto|cameras|sphere] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH]``
+loads the newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
+the bake needs no scene images, the refinement does), decodes every anchor from ``--directions`` sphere
 directions (SH colours) and from the training cameras that see it (one opacity
 and one covariance; the sphere when no camera is known or with ``--views
 sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bake`,
