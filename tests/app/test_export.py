@@ -91,6 +91,8 @@ def test_an_older_run_without_recorded_config_or_transform(trained, tmp_path, ca
     out = capsys.readouterr()
     assert json.loads(out.out)["frame"] == "normalised" and json.loads(out.out)["views"] == "sphere"
     assert "cusgs-export: warning: " in out.err and "records no configuration" in out.err
+    # refinement (on by default) is skipped: the scene's cameras cannot be placed without the transform
+    assert json.loads(out.out)["refine"]["steps"] == 0 and "refinement skipped" in out.err
     assert logging.getLogger("cusgs_jax").propagate and not logging.getLogger("cusgs_jax").handlers  # restored
 
 
@@ -126,7 +128,7 @@ def test_load_trained_errors_name_the_folder(tmp_path):
 def test_export_end_to_end_psnr_close_to_the_run(trained, tmp_path, capsys):
     scene, run_dir = trained
     ply = tmp_path / "out" / "model.ply"
-    assert main([str(run_dir), str(ply), "--quiet"]) == 0
+    assert main([str(run_dir), str(ply), "--quiet", "--refine", "0"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["frame"] == "colmap" and summary["sh_degree"] == 3 and summary["directions"] == 64
     assert summary["gaussians"] + summary["dropped"] == summary["considered"] == 4 * summary["anchors"]
@@ -148,8 +150,9 @@ def test_export_end_to_end_psnr_close_to_the_run(trained, tmp_path, capsys):
 
 def test_export_frames_agree(trained, tmp_path):
     _, run_dir = trained
-    colmap = export_run(run_dir, tmp_path / "c.ply", sh_degree=1, directions=16, progress=False)
-    norm = export_run(run_dir, tmp_path / "n.ply", sh_degree=1, directions=16, colmap_frame=False, progress=False)
+    colmap = export_run(run_dir, tmp_path / "c.ply", sh_degree=1, directions=16, progress=False, refine=0)
+    norm = export_run(run_dir, tmp_path / "n.ply", sh_degree=1, directions=16, colmap_frame=False, progress=False,
+                      refine=0)
     assert norm["frame"] == "normalised" and colmap["gaussians"] == norm["gaussians"]
     c, n = read_ply(tmp_path / "c.ply"), read_ply(tmp_path / "n.ply")
     world = load_trained(run_dir).world
@@ -206,10 +209,93 @@ def test_a_run_in_the_principal_frame_exports_to_the_colmap_frame(trained, tmp_p
     ev = json.loads((tmp_path / "run" / "eval.json").read_text())
     rotation = np.asarray(ev["world_transform"]["rotation"])
     assert not np.allclose(rotation, np.eye(3), atol=1e-3)  # the frame really turned
-    summary = export_run(tmp_path / "run", tmp_path / "p.ply", progress=False)
-    norm = export_run(tmp_path / "run", tmp_path / "n.ply", colmap_frame=False, progress=False)
+    summary = export_run(tmp_path / "run", tmp_path / "p.ply", progress=False, refine=0)
+    norm = export_run(tmp_path / "run", tmp_path / "n.ply", colmap_frame=False, progress=False, refine=0)
     c, n = read_ply(summary["ply"]), read_ply(norm["ply"])
     np.testing.assert_allclose(c.means, load_trained(tmp_path / "run").world.to_colmap(n.means), rtol=1e-6, atol=1e-5)
     result = evaluate_ply(summary["ply"], scene, progress=False)
     print(f"PLY {result['psnr']:.2f} dB vs scaffold {ev['psnr']:.2f} dB (principal frame)")
     assert result["psnr"] > ev["psnr"] - PSNR_TOLERANCE_DB
+
+
+# --- refinement (cusgs-export --refine K, io/refine.py) ---------------------------------------------------------
+
+
+def test_export_refine_0_writes_the_plain_bake(trained, tmp_path, capsys):
+    from cusgs_jax.model.bake import bake_splats, to_colmap_frame
+
+    _, run_dir = trained
+    ply = tmp_path / "bake.ply"
+    assert main([str(run_dir), str(ply), "--refine", "0", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["refine"] == {"steps": 0, "skipped": "--refine 0"}
+    model = load_trained(run_dir)  # the bake computed here, step by step
+    splats, _ = bake_splats(model.anchors, model.nets, model.cfg.model.decoder(), sh_degree=3, directions=64,
+                            min_opacity=0.005, cameras=model.cameras, frustum_margin=model.cfg.model.frustum_margin)
+    means, log_scales, quats, sh = to_colmap_frame(np.asarray(splats.means), np.asarray(splats.log_scales),
+                                                   np.asarray(splats.quats), np.asarray(splats.sh), model.world)
+    written = read_ply(ply)
+    for name, want in (("means", means), ("log_scales", log_scales), ("quats", quats), ("sh", sh),
+                       ("opacity_logits", splats.opacity_logits)):
+        np.testing.assert_array_equal(getattr(written, name), np.asarray(want, np.float32), err_msg=name)
+
+
+def test_export_refines_by_default_against_the_runs_scene(trained, tmp_path, capsys, monkeypatch):
+    import cusgs_jax.app.export as export
+
+    scene, run_dir = trained
+    monkeypatch.setattr(export, "DEFAULT_REFINE_STEPS", 60)  # the default K, shortened for the test
+    ply = tmp_path / "refined.ply"
+    assert main([str(run_dir), str(ply), "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    refine = summary["refine"]
+    assert refine["steps"] == 60 and refine["scene"] == str(scene) and refine["scene_from"] == "data.path"
+    assert (refine["train_views"], refine["held_out_views"]) == (5, 1) and refine["frame"] == "colmap"
+    assert refine["seconds"] > 0 and refine["seconds_per_100_steps"] > 0
+    ev = json.loads((run_dir / "eval.json").read_text())
+    assert refine["psnr_run"] == pytest.approx(ev["psnr"], abs=1e-3)
+    print(f"run {ev['psnr']:.2f} dB, bake {refine['psnr_bake']:.2f} dB, refined {refine['psnr_refined']:.2f} dB")
+    assert refine["psnr_refined"] > refine["psnr_bake"] + 0.2
+    # what cusgs-render-ply measures on the written file is the summary's number (same frame, same views)
+    assert evaluate_ply(ply, scene, progress=False)["psnr"] == pytest.approx(refine["psnr_refined"], abs=1e-3)
+    assert read_ply(ply).num_gaussians == summary["gaussians"]  # no densification
+
+
+def test_export_refines_in_the_normalised_frame_too(trained, tmp_path):
+    scene, run_dir = trained
+    colmap = export_run(run_dir, tmp_path / "c.ply", progress=False, refine=0)
+    norm = export_run(run_dir, tmp_path / "n.ply", progress=False, refine=20, colmap_frame=False, scene=scene)["refine"]
+    assert norm["frame"] == "normalised" and norm["scene_from"] == "--scene"
+    # the same bake seen by the same cameras, moved into the training frame: the same picture
+    assert norm["psnr_bake"] == pytest.approx(evaluate_ply(colmap["ply"], scene, progress=False)["psnr"], abs=0.02)
+    assert norm["psnr_refined"] > norm["psnr_bake"]
+
+
+def test_export_without_the_scene_writes_the_bake_and_warns(trained, tmp_path, capsys):
+    _, run_dir = trained
+    copy = tmp_path / "moved"  # a run whose scene folder is gone
+    shutil.copytree(run_dir / "checkpoints", copy / "checkpoints")
+    shutil.copy(run_dir / "eval.json", copy / "eval.json")
+    meta_file = copy / "checkpoints" / "30" / "meta" / "metadata"
+    meta = json.loads(meta_file.read_text())
+    meta["config"]["data"]["path"] = str(tmp_path / "gone")
+    meta_file.write_text(json.dumps(meta))
+    assert main([str(copy), str(tmp_path / "x.ply"), "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert json.loads(out.out)["refine"]["steps"] == 0
+    assert "cusgs-export: warning:" in out.err and str(tmp_path / "gone") in out.err
+    assert "refinement skipped" in out.err and "--scene" in out.err
+    assert (tmp_path / "x.ply").is_file()
+
+
+def test_export_refine_options_are_checked(trained, tmp_path, capsys):
+    _, run_dir = trained
+    for argv, needle in ((["--refine", "-1"], "--refine"), (["--refine", "many"], "--refine"),
+                         (["--scene", str(tmp_path / "nowhere")], "--scene")):
+        with pytest.raises(SystemExit) as e:
+            main([str(run_dir), str(tmp_path / "x.ply"), "--quiet"] + argv)
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and needle in err and "error" in err, argv
+        assert not (tmp_path / "x.ply").exists()
+    with pytest.raises(UserError, match="--refine -2"):
+        export_run(run_dir, tmp_path / "x.ply", refine=-2, progress=False)

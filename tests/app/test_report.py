@@ -28,7 +28,7 @@ def _jsonl(path, rows, tail=""):
 
 
 def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=None, curve=None, lpips=None,
-          ckpt_bytes=None):
+          ckpt_bytes=None, model_bytes=None):
     params = {"anchors": total // 2, "mlps": total // 4, "appearance": 0, "query_heads": 0,
               "memory_banks": 0, "adapters": 0, "total": total}
     curve = curve or [{"step": 100, "wall_s": wall / 2, "psnr": psnr - 3, "ssim": ssim - 0.1},
@@ -44,6 +44,8 @@ def _eval(job, psnr, ssim, total, anchors, wall, ms, *, before=None, features=No
         result["lpips_vgg"], result["lpips_alex"] = lpips
     if ckpt_bytes is not None:
         result["checkpoint_bytes"] = ckpt_bytes
+    if model_bytes is not None:
+        result["model_bytes"] = model_bytes
     (job / "eval.json").write_text(json.dumps(result))
     _jsonl(job / "metrics.jsonl", [{"step": s, "wall_s": s / 10, "loss": 0.1, "alive_anchors": 1000 - s}
                                    for s in (10, 100, 200)])
@@ -65,9 +67,9 @@ def sweep(tmp_path):
           before=4.75, features=feats, curve=curve, lpips=(0.123456789, 0.0456), ckpt_bytes=12_345_678)
     job1 = _job(root, "1", 0.1)
     _eval(job1, 26.5, 0.85, 3_000_000, 5000, 20.0, 7.5, features={"clip": {"cosine": 0.25, "l2": 1.5}},
-          ckpt_bytes=99_000_000)
+          ckpt_bytes=99_000_000, model_bytes=12_000_000)
     (job1 / "export").mkdir()
-    (job1 / "export" / "point_cloud.ply").write_bytes(b"x" * 2_500_000)  # the PLY beats the checkpoint
+    (job1 / "export" / "point_cloud.ply").write_bytes(b"x" * 2_500_000)  # shown beside the model's size
     failed = _job(root, "2", 0.2)
     (failed / "failed.json").write_text(json.dumps(
         {"error": "FloatingPointError: NaN loss at step 7\nsecond line", "traceback": "Traceback ..."}))
@@ -105,9 +107,10 @@ def test_report_end_to_end(sweep, capsys):
     assert float(first["feature_cosine"]) == pytest.approx(0.3) and float(first["feature_l2"]) == 2.0
     assert rows[1]["render_ms_before_prune"] == "" and float(rows[1]["feature_l2"]) == 1.5
     assert float(first["lpips_vgg"]) == 0.123456789 and float(first["lpips_alex"]) == 0.0456
-    assert float(first["size_mb"]) == 12.345678 and first["size_of"] == "checkpoint"
-    assert rows[1]["lpips_vgg"] == rows[1]["lpips_alex"] == "" and rows[1]["size_of"] == "ply"
-    assert float(rows[1]["size_mb"]) == 2.5
+    # job 0 predates model_bytes: its checkpoint stands in; job 1's size is the model's, its PLY beside it
+    assert float(first["size_mb"]) == 12.345678 and first["size_of"] == "checkpoint" and first["ply_mb"] == ""
+    assert rows[1]["lpips_vgg"] == rows[1]["lpips_alex"] == "" and rows[1]["size_of"] == "model"
+    assert float(rows[1]["size_mb"]) == 12.0 and float(rows[1]["ply_mb"]) == 2.5
     assert [r["pareto"] for r in rows] == ["1", "1", "", "", ""]
     for row in rows[2:]:
         assert row["psnr"] == row["params"] == row["feature_cosine"] == row["lpips_vgg"] == row["size_mb"] == ""
@@ -122,9 +125,10 @@ def test_report_end_to_end(sweep, capsys):
     assert "smallest model: job `0` (prune.ratio=0.01), 200,000 parameters" in md
 
     table1 = md.split("## Table 1 style")[1].split("## Table 2 style")[0]
-    assert "| job | run | size (MB) | parameters | PSNR | SSIM | LPIPS (VGG) |" in table1
-    assert "| 0 | prune.ratio=0.01 | 12.35 (ckpt) | 200,000 | 25.12 | 0.8123 | 0.1235 |" in table1
-    assert "| 1 | prune.ratio=0.1 | 2.50 | 3,000,000 | 26.50 | 0.8500 |  |" in table1
+    assert "| job | run | model (MB) | PLY (MB) | parameters | PSNR | SSIM | LPIPS (VGG) |" in table1
+    assert "| 0 | prune.ratio=0.01 | 12.35 (ckpt) |  | 200,000 | 25.12 | 0.8123 | 0.1235 |" in table1
+    assert "| 1 | prune.ratio=0.1 | 12.00 | 2.50 | 3,000,000 | 26.50 | 0.8500 |  |" in table1
+    assert "no optimiser state" in table1
     assert "| 2 |" not in table1 and "no lpips extra" in table1  # finished runs only; blank LPIPS explained
     table2 = md.split("## Table 2 style")[1]
     assert ("| job | run | clip cos | clip L2 | dino cos | dino L2 | anchors | MLPs | appearance | query heads | "

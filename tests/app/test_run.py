@@ -102,6 +102,22 @@ def test_run_writes_all_outputs(straight):
         assert evaluation["lpips_vgg"] == pytest.approx(np.mean([v["lpips_vgg"] for v in evaluation["per_view"]]))
 
 
+def test_eval_json_model_bytes_is_the_models_arrays_without_optimiser_state(straight):
+    from cusgs_jax.app.load_run import load_trained
+
+    run_dir, result = straight
+    model = load_trained(run_dir)  # the final checkpoint's anchors (compacted to the alive ones) and networks
+    alive = np.asarray(model.anchors.alive)
+    params = model.anchors.params
+    rows = [model.anchors.centers, params.offsets, params.log_scaling, params.latent] + (
+        [] if params.query_table is None else [params.query_table])
+    want = sum(np.asarray(x)[alive].nbytes for x in rows)
+    want += sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(model.nets))
+    want += sum(np.asarray(b).nbytes for b in (model.banks or {}).values())
+    assert result["model_bytes"] == want == 4 * result["params"]["total"]
+    assert result["model_bytes"] < result["checkpoint_bytes"]  # the checkpoint adds the Adam moments
+
+
 def test_last_curve_point_equals_the_final_evaluation(straight):
     """The curve is evaluated at the final step with the same renderer as eval.json."""
     tmp_path, result = straight

@@ -1,16 +1,20 @@
 """``cusgs-export``: bake a trained run into a standard 3DGS PLY that every viewer reads.
 
 ``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
-[--views auto|cameras|sphere] [--colmap-frame | --normalised-frame]`` loads the
-newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
-no scene images needed), decodes every anchor from ``--directions`` sphere
+[--views auto|cameras|sphere] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH]``
+loads the newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
+the bake needs no scene images, the refinement does), decodes every anchor from ``--directions`` sphere
 directions (SH colours) and from the training cameras that see it (one opacity
 and one covariance; the sphere when no camera is known or with ``--views
 sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bake`,
 whose docstring gives and measures every choice), moves the result to the
 COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
-``cusgs-render-ply --colmap`` expects) and writes it
-(:func:`cusgs_jax.io.write_ply`). A JSON summary goes to stdout. Only argparse
+``cusgs-render-ply --colmap`` expects), then refines it as plain 3DGS against the
+scene's training views (``--refine K`` steps, :func:`cusgs_jax.io.refine_splats`; on by
+default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
+the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it
+(:func:`cusgs_jax.io.write_ply`). A JSON summary goes to stdout, with the held-out
+PSNR of the bake before and after refinement. Only argparse
 is imported before the arguments are parsed, so ``--help`` does not load JAX; a
 :class:`~cusgs_jax.errors.UserError` is one line on stderr and exit code 2.
 """
@@ -25,9 +29,12 @@ from collections.abc import Sequence
 from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
-__all__ = ["main", "export_run"]
+__all__ = ["main", "export_run", "DEFAULT_REFINE_STEPS"]
 
 PROG = "cusgs-export"
+
+DEFAULT_REFINE_STEPS = 1000
+"""Refinement steps when ``--refine`` is not given (benchmarks/results/refine/: the measured PSNR-vs-steps curve)."""
 
 
 def _sh_degree(text: str) -> int:
@@ -61,21 +68,37 @@ def _parser() -> argparse.ArgumentParser:
                        help="write in the scene's COLMAP frame (default)")
     frame.add_argument("--normalised-frame", "--normalized-frame", dest="colmap_frame", action="store_false",
                        help="write in the normalised training frame (camera extent 1, centred on the cameras)")
+    ap.add_argument("--refine", type=int_at_least(0), default=None, metavar="K",
+                    help=f"refine the baked Gaussians as plain 3DGS for K steps against the scene's training views "
+                         f"(default {DEFAULT_REFINE_STEPS} when the run's scene is found; 0: write the plain bake)")
+    ap.add_argument("--scene", default=None, metavar="PATH",
+                    help="the run's scene folder for --refine (default: the run's data.path, or the built-in demo "
+                         "scene)")
+    ap.add_argument("--seed", type=int_at_least(0), default=0, metavar="S",
+                    help="random order of the training views during refinement (default 0)")
     ap.add_argument("--quiet", action="store_true", help="no progress bar")
     return ap
 
 
 def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_opacity: float = 0.005,
                colmap_frame: bool = True, views: str = "auto", step: int | None = None, chunk_anchors: int = 1024,
-               progress: bool = True) -> dict:
-    """Bake the run's newest (or ``step``) checkpoint into the standard PLY ``out``.
+               progress: bool = True, refine: int | None = None, scene=None, seed: int = 0) -> dict:
+    """Bake the run's newest (or ``step``) checkpoint into the standard PLY ``out``, refined by default.
+
+    ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :data:`DEFAULT_REFINE_STEPS`
+    when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
+    ``data.path``, or the demo scene for a demo run). Without a scene the plain bake is written and a
+    warning says so. ``seed``: the refinement's view order.
 
     Returns:
       {"ply", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
        opacity ≤ min_opacity from every view), "considered" (alive anchors × N), "anchors",
        "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
-       splatter settings), "file_mb", "checkpoint_mb", "seconds"}.
+       splatter settings), "file_mb", "checkpoint_mb", "seconds", "refine": {"steps", "scene", "frame",
+       "train_views", "held_out_views", "psnr_run" (eval.json), "psnr_bake", "psnr_refined" (held-out,
+       None without held-out views), "seconds", "first_step_seconds" (compiling included),
+       "seconds_per_100_steps" (the steps after the first)} or {"steps": 0, "skipped": why}}.
     Raises:
       UserError: not a run folder, no or damaged checkpoint, no world transform for
         the COLMAP frame, a bad setting, or an unwritable output.
@@ -95,7 +118,10 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     if directions < num_sh_coeffs(sh_degree):
         raise UserError(f"--directions {directions} cannot determine the {num_sh_coeffs(sh_degree)} SH coefficients "
                         f"of degree {sh_degree}: pass --directions ≥ {num_sh_coeffs(sh_degree)} (64 is the default)")
+    if refine is not None and int(refine) < 0:
+        raise UserError(f"--refine {refine}: expected a number of steps ≥ 0 (0 writes the plain bake)")
     out = pathlib.Path(out)
+    scene_path = _scene_folder(scene) if scene is not None else None
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
@@ -118,7 +144,9 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                                                        np.asarray(splats.quats), np.asarray(splats.sh), model.world)
         splats = dataclasses.replace(splats, means=means.astype(np.float32), log_scales=log_scales.astype(np.float32),
                                      quats=quats.astype(np.float32), sh=sh.astype(np.float32))
-    path = write_ply(out, splats)
+    refined, refine_summary = _refine(splats, model, refine, scene_path, colmap_frame=colmap_frame, seed=seed,
+                                      progress=progress)
+    path = write_ply(out, refined)
     dropped = summary.considered - summary.gaussians
     return dict(
         ply=str(path), run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
@@ -130,7 +158,105 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
         # how the run rendered (cusgs-render-ply --background R G B [--antialiased] to score it the same way)
         background=list(model.cfg.splat.background_color), antialiased=bool(model.cfg.splat.antialiased),
         file_mb=round(pathlib.Path(path).stat().st_size / 2**20, 3),
-        checkpoint_mb=round(model.checkpoint_bytes / 2**20, 3), seconds=round(time.perf_counter() - start, 3))
+        checkpoint_mb=round(model.checkpoint_bytes / 2**20, 3), seconds=round(time.perf_counter() - start, 3),
+        refine=refine_summary)
+
+
+def _scene_folder(scene) -> pathlib.Path:
+    """``--scene PATH`` checked: an existing folder (UserError naming the option otherwise)."""
+    path = pathlib.Path(scene).expanduser()
+    if not path.is_dir():
+        raise UserError(f"--scene {scene}: {'no such folder' if not path.exists() else 'not a folder'} (pass the "
+                        "scene folder the run was trained on: COLMAP, Blender or nerfstudio)")
+    return path
+
+
+def _run_scene(model) -> tuple[pathlib.Path | None, str]:
+    """(the run's scene folder or None, where it came from / why not): ``data.path``, else the demo scene."""
+    data = model.cfg.data
+    if data.path:
+        path = pathlib.Path(str(data.path)).expanduser()
+        if path.is_dir():
+            return path, "data.path"
+        return None, f"the run's scene data.path={data.path} is not a folder here"
+    from cusgs_jax.data.demo import demo_scene_folder
+
+    path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
+                             height=data.demo.height)  # where cusgs-train cached it; nothing is generated here
+    if (path / "scene.json").is_file():
+        return path, "the built-in demo scene"
+    return None, f"the run's scene, the built-in demo scene, is not in its cache folder {path}"
+
+
+def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int, progress: bool):
+    """(the model to write, the "refine" summary): refined against the scene's training views, or as baked."""
+    import dataclasses
+    import logging
+    import time
+
+    import numpy as np
+    from tqdm import tqdm
+
+    from cusgs_jax.data.layouts import load_any_scene
+    from cusgs_jax.io import heldout_psnr, refine_splats
+
+    log = logging.getLogger("cusgs_jax")
+    if refine == 0:
+        return splats, dict(steps=0, skipped="--refine 0")
+    steps = DEFAULT_REFINE_STEPS if refine is None else int(refine)
+    if not colmap_frame and model.world is None:
+        why = ("the run records no world transform, so the scene's cameras cannot be placed in the normalised "
+               "frame: wrote the unrefined bake (refinement skipped)")
+        log.warning("%s", why)
+        return splats, dict(steps=0, skipped=why)
+    if scene_path is None:
+        scene_path, found = _run_scene(model)
+        if scene_path is None:
+            why = f"{found}: wrote the unrefined bake (refinement skipped); pass --scene PATH to refine"
+            log.warning("%s", why)
+            return splats, dict(steps=0, skipped=why)
+    else:
+        found = "--scene"
+    data, splat = model.cfg.data, model.cfg.splat
+    scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
+                           background=splat.background, num_random_points=2)
+    if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there
+        scene = dataclasses.replace(scene, viewmats=model.world.viewmats(scene.viewmats))
+    if _run_size(model) not in ((0, 0), (scene.width, scene.height)):
+        log.warning("the scene %s loads at %dx%d but the run trained at %s: refining at the scene's size",
+                    scene_path, scene.width, scene.height, "x".join(map(str, _run_size(model))))
+    settings = dict(background=scene.background, sh_degree=splats.sh_degree, antialiased=bool(splat.antialiased))
+    before = heldout_psnr(splats, scene, **settings)
+    start = time.perf_counter()
+    ticks = []  # when each step ended: the first one includes compiling the step
+
+    with tqdm(total=steps, desc="refine", unit="step", disable=not progress) as bar:
+        def tick(count):
+            ticks.append(time.perf_counter())
+            bar.update(count)
+
+        refined = refine_splats(splats, scene, steps, l1_weight=model.cfg.loss.l1_weight,
+                                ssim_weight=model.cfg.loss.ssim_weight, seed=seed, progress=tick, **settings)
+    seconds = time.perf_counter() - start
+    steady = 100.0 * (ticks[-1] - ticks[0]) / (steps - 1) if steps > 1 else None
+    after = heldout_psnr(refined, scene, **settings)
+
+    def db(value):
+        return None if not np.isfinite(value) else round(float(value), 3)
+
+    run_psnr = (model.evaluation or {}).get("psnr")
+    return refined, dict(
+        steps=steps, scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
+        train_views=int(len(scene.train_indices)), held_out_views=int(len(scene.test_indices)),
+        psnr_run=None if run_psnr is None else round(float(run_psnr), 3), psnr_bake=db(before), psnr_refined=db(after),
+        seconds=round(seconds, 3), first_step_seconds=round(ticks[0] - start, 3),
+        seconds_per_100_steps=None if steady is None else round(steady, 3))
+
+
+def _run_size(model) -> tuple[int, int]:
+    """(width, height) the run trained at (its training cameras), or (0, 0) when unknown."""
+    cams = model.cameras
+    return (int(cams.width), int(cams.height)) if cams is not None else (0, 0)
 
 
 class _WarningLines:
@@ -158,15 +284,15 @@ class _WarningLines:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """CLI: ``cusgs-export RUN_DIR OUT.ply [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
-    [--chunk A] [--colmap-frame | --normalised-frame] [--quiet]``."""
+    [--chunk A] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH] [--seed S] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
     try:
         with _WarningLines():
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,
                                 min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, views=args.views,
-                                step=args.step,
-                                chunk_anchors=args.chunk, progress=not args.quiet)
+                                step=args.step, chunk_anchors=args.chunk, progress=not args.quiet,
+                                refine=args.refine, scene=args.scene, seed=args.seed)
     except UserError as e:  # a bad run folder, checkpoint or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")
     print(json.dumps(result, indent=2))

@@ -1,7 +1,9 @@
 """The CUS-GS paper's Table-1 and Table-2 style tables of a sweep, for ``cusgs-report``.
 
-* Table 1 (novel-view synthesis and size): one row per finished run — size in MB, trained
-  parameters, PSNR, SSIM and LPIPS (VGG; AlexNet in the CSV).
+* Table 1 (novel-view synthesis and size): one row per finished run — the model's size in MB
+  (``eval.json`` ``model_bytes``: parameters and PSC banks, no optimiser state), the exported
+  PLY's size in MB when the job folder has one, trained parameters, PSNR, SSIM and LPIPS (VGG;
+  AlexNet in the CSV).
 * Table 2 (feature fields): one row per finished run that trained feature fields — the cosine
   and L2 distance of each feature model's rendered maps (a column pair per model, as the paper
   lays out its foundation models side by side), then the parameter split of ``eval.json``'s
@@ -20,7 +22,7 @@ from cusgs_jax.eval.sweep_plots import finite_or_none
 __all__ = ["CSV_COLUMNS", "PARAM_PARTS", "paper_fields", "table1_markdown", "table2_markdown"]
 
 #: Columns added to ``report.csv`` (record keys).
-CSV_COLUMNS = ("lpips_vgg", "lpips_alex", "size_mb", "size_of")
+CSV_COLUMNS = ("lpips_vgg", "lpips_alex", "size_mb", "size_of", "ply_mb")
 
 #: ``eval.json`` ``params`` parts in Table-2 order, with their headers.
 PARAM_PARTS = (("anchors", "anchors"), ("mlps", "MLPs"), ("appearance", "appearance"),
@@ -42,14 +44,17 @@ def paper_fields(result: dict, job: Path) -> dict:
 
     Returns:
       {"lpips_vgg", "lpips_alex": float or None (absent without the lpips extra),
-       "size_mb": PLY bytes / 1e6 when the run has a PLY, else ``checkpoint_bytes`` / 1e6, or None,
-       "size_of": "ply" | "checkpoint" | None,
+       "size_mb": ``model_bytes`` / 1e6 (the trained parameters and PSC banks, no optimiser state),
+       else — a run older than ``model_bytes`` — ``checkpoint_bytes`` / 1e6, or None,
+       "size_of": "model" | "checkpoint" | None,
+       "ply_mb": the exported PLY's bytes / 1e6 (``ply_bytes``, else the newest ``*.ply`` in the job folder), or None,
        "param_split": {part: count} (keys of :data:`PARAM_PARTS` present in ``params``),
        "feature_models": {model: {"cosine", "l2"}} (floats or None; empty without features)}.
     """
     ply = _ply_bytes(result, job)
+    model = finite_or_none(result.get("model_bytes"))
     ckpt = finite_or_none(result.get("checkpoint_bytes"))
-    size_mb, size_of = (ply / 1e6, "ply") if ply is not None else (
+    size_mb, size_of = (model / 1e6, "model") if model is not None else (
         (ckpt / 1e6, "checkpoint") if ckpt is not None else (None, None))
     params = result.get("params")
     split = {k: finite_or_none(params.get(k)) for k, _ in PARAM_PARTS} if isinstance(params, dict) else {}
@@ -58,7 +63,7 @@ def paper_fields(result: dict, job: Path) -> dict:
     feature_models = {str(name): {"cosine": finite_or_none(m.get("cosine")), "l2": finite_or_none(m.get("l2"))}
                       for name, m in (models.items() if isinstance(models, dict) else ()) if isinstance(m, dict)}
     return dict(lpips_vgg=finite_or_none(result.get("lpips_vgg")), lpips_alex=finite_or_none(result.get("lpips_alex")),
-                size_mb=size_mb, size_of=size_of, param_split={k: v for k, v in split.items() if v is not None},
+                size_mb=size_mb, size_of=size_of, ply_mb=None if ply is None else ply / 1e6, param_split={k: v for k, v in split.items() if v is not None},
                 feature_models=feature_models)
 
 
@@ -76,14 +81,16 @@ def table1_markdown(records, label) -> list[str]:
     lines = ["## Table 1 style: size and image quality", ""]
     if not ok:
         return lines + ["No job has finished yet."]
-    lines += [_row(["job", "run", "size (MB)", "parameters", "PSNR", "SSIM", "LPIPS (VGG)"]),
-              "|---|---|---:|---:|---:|---:|---:|"]
+    lines += [_row(["job", "run", "model (MB)", "PLY (MB)", "parameters", "PSNR", "SSIM", "LPIPS (VGG)"]),
+              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in ok:
         size = _cell(r.get("size_mb"), "{:.2f}") + (" (ckpt)" if r.get("size_of") == "checkpoint" else "")
-        lines.append(_row([r["job"], label(r), size, _cell(r["params"], "{:,.0f}"), _cell(r["psnr"], "{:.2f}"),
-                           _cell(r["ssim"], "{:.4f}"), _cell(r.get("lpips_vgg"), "{:.4f}")]))
-    notes = ["Size: the exported PLY when the run has one, else the final checkpoint (marked \"(ckpt)\"; "
-             "it also holds optimiser state), in 10^6 bytes."]
+        lines.append(_row([r["job"], label(r), size, _cell(r.get("ply_mb"), "{:.2f}"), _cell(r["params"], "{:,.0f}"),
+                           _cell(r["psnr"], "{:.2f}"), _cell(r["ssim"], "{:.4f}"), _cell(r.get("lpips_vgg"), "{:.4f}")]))
+    notes = ["model (MB): the trained parameters and PSC banks (eval.json model_bytes; no optimiser state), in "
+             "10^6 bytes; a run older than model_bytes shows its final checkpoint instead, marked \"(ckpt)\" (it "
+             "also holds the Adam moments). PLY (MB): the exported standard 3DGS PLY (cusgs-export) when the job "
+             "folder has one."]
     if any(r.get("lpips_vgg") is None for r in ok):
         notes.append("A blank LPIPS: the run had no lpips extra (pip install -e '.[lpips]') or views too small.")
     return lines + [""] + notes

@@ -116,31 +116,17 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
 
 
 def _recentred(model, scene):
-    """The model moved by −c (c = mean camera centre, float64), so float32 keeps a far-off scene's detail.
+    """The model moved by −c (c = mean camera centre, float64): :func:`cusgs_jax.io.recentre_splats`."""
+    from cusgs_jax.io import recentre_splats
 
-    Rendering is translation-invariant (view directions are mean − camera centre),
-    so moving the Gaussians and cameras together changes nothing else.
-    """
-    import dataclasses
-
-    import numpy as np
-
-    shift = scene.camera_centers.mean(axis=0)
-    means = (np.asarray(model.means, np.float64) - shift).astype(np.float32)
-    return dataclasses.replace(model, means=means), shift
+    return recentre_splats(model, scene.camera_centers.mean(axis=0))
 
 
 def _camera(scene, view: int, shift):
-    """The scene's camera ``view`` in the frame moved by −``shift``: x_cam = R(x + shift) + t."""
-    import jax.numpy as jnp
-    import numpy as np
+    """The scene's camera ``view`` in the frame moved by −``shift``: :func:`cusgs_jax.io.scene_camera`."""
+    from cusgs_jax.io import scene_camera
 
-    from cusgs_jax.types import Camera
-
-    viewmat = np.array(scene.viewmats[view], np.float64)
-    viewmat[:3, 3] += viewmat[:3, :3] @ shift
-    return Camera(jnp.asarray(scene.Ks[view], jnp.float32), jnp.asarray(viewmat, jnp.float32),
-                  scene.width, scene.height)
+    return scene_camera(scene, view, shift)
 
 
 def main(argv: Sequence[str] | None = None) -> int:

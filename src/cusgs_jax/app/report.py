@@ -7,10 +7,10 @@ Input. A *job folder* is any folder under the multirun folder that holds ``.hydr
 
 * ``.hydra/overrides.yaml`` -- the job's command-line overrides (``["prune.ratio=0.01", ...]``).
 * ``eval.json`` -- written when a run finishes: ``psnr``, ``ssim``, ``params`` (``total`` and its
-  parts), ``alive_anchors``, ``train_wall_s``, ``render_ms_per_view``, ``checkpoint_bytes``,
+  parts), ``alive_anchors``, ``train_wall_s``, ``render_ms_per_view``, ``model_bytes``, ``checkpoint_bytes``,
   optional ``lpips_vgg`` / ``lpips_alex`` (the lpips extra), ``render_ms_before_prune``,
   ``ply_bytes``, ``features.models.<name>.{cosine,l2}`` and the held-out ``curve``.
-* ``*.ply`` -- an exported PLY in the job folder gives Table 1's size (else the checkpoint's).
+* ``*.ply`` -- an exported PLY in the job folder gives Table 1's PLY size (its model size is ``model_bytes``).
 * ``eval_curve.jsonl`` -- the held-out curve so far (used while a run is still going).
 * ``metrics.jsonl`` -- training log rows; ``step`` and ``alive_anchors`` are used.
 * ``failed.json`` -- ``{"error": "Type: message", "traceback": ...}`` when the job raised.
@@ -21,13 +21,14 @@ A job is ``ok`` (has ``eval.json``), ``failed: <first error line>`` (has ``faile
 Output, in ``<root>/report/`` unless ``--out`` says otherwise:
 
 * ``report.md`` -- the table (CUS-GS Table 4 style, rounded) and a line naming the best-PSNR and
-  the smallest run, then a Table-1 style table (size MB, parameters, PSNR, SSIM, LPIPS) and a
+  the smallest run, then a Table-1 style table (model MB, PLY MB, parameters, PSNR, SSIM, LPIPS) and a
   Table-2 style table (per feature model cosine / L2 distance, parameter split;
   :mod:`cusgs_jax.app.paper_tables`); also printed to stdout.
   Its ``Pareto`` column marks (★) the non-dominated runs: no other finished run has at least the
   held-out PSNR with at most the parameters, one of them strictly (:func:`mark_pareto`).
 * ``report.csv`` -- the Table-4 rows at full precision with one column per swept override key,
-  ``pareto`` (1 on the front, 0 off it, empty without both numbers), plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` and ``size_of`` (``ply`` or ``checkpoint``).
+  ``pareto`` (1 on the front, 0 off it, empty without both numbers), plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` (the model: ``model_bytes``), ``size_of`` (``model``, or ``checkpoint`` for a run older than
+  ``model_bytes``) and ``ply_mb``.
 * ``psnr_vs_time.png`` -- held-out PSNR against training wall-clock seconds, one line per run.
 * ``feature_error_vs_time.png`` -- feature cosine distance and L2 error against wall-clock
   seconds; not written when no run evaluated feature fields.

@@ -8,7 +8,8 @@
   restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
 * ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
-  ``lpips`` extra), model size, times, pruning summary, the scene's layout (``dataset_format``: colmap,
+  ``lpips`` extra), model size (``model_bytes``: parameters and PSC banks, no optimiser state; and
+  ``checkpoint_bytes``), times, pruning summary, the scene's layout (``dataset_format``: colmap,
   blender, nerfstudio), its held-out ``split`` (``every_8th``, ``transforms_test``, ``none``) and the
   ``background`` rendered on
 * ``renders/`` — held-out renders beside ground truth (PNG)
@@ -46,7 +47,7 @@ from cusgs_jax.config import Config, require
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
-from cusgs_jax.eval.views import count_parameters, evaluate_views
+from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training import capacity
@@ -403,6 +404,8 @@ def finalise(session: Session) -> dict:
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
         alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
+        # the model alone (parameters and PSC banks) beside the checkpoint (which adds the Adam moments)
+        model_bytes=model_bytes(state.anchors, state.nets, session.banks),
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
         render_ms_before_prune=session.prune["render_ms_before_prune"],

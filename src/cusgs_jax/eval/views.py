@@ -69,6 +69,24 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
                 render_ms_per_view=float(np.median(times) * 1e3) if time_renders and times else None)
 
 
+def model_bytes(anchors: AnchorState, nets: dict, banks: dict | None = None) -> int:
+    """Bytes of the model itself: what a viewer needs to render it, no optimiser state.
+
+    The sum of ``nbytes`` over the alive anchors' rows of every per-anchor array (centres,
+    offsets, scaling, latent, per-Gaussian query table), every network array in ``nets``
+    (decoder MLPs, appearance embeddings, query heads, memory adapters) and the PSC
+    ``banks`` ({model: [M, D]}). For float32 arrays it is 4 × :func:`count_parameters`'s
+    ``total``. The checkpoint is larger: it also holds the Adam moments, dead anchor slots and
+    the densification statistics.
+    """
+    alive = np.asarray(anchors.alive)
+    per_anchor = [anchors.centers, anchors.params.offsets, anchors.params.log_scaling, anchors.params.latent]
+    if anchors.params.query_table is not None:
+        per_anchor.append(anchors.params.query_table)
+    rows = sum(int(np.asarray(x)[alive].nbytes) for x in per_anchor)
+    return rows + sum(int(np.asarray(x).nbytes) for x in jax.tree_util.tree_leaves((nets, banks or {})))
+
+
 def count_parameters(anchors: AnchorState, nets: dict, banks: dict | None = None) -> dict:
     """Parameter counts by part.
 

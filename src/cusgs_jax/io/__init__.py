@@ -1,7 +1,9 @@
-"""Models that leave the project: the standard 3DGS PLY in and out, and rendering one (DESIGN.md §7)."""
+"""Models that leave the project: the standard 3DGS PLY in and out, rendering one and refining one (DESIGN.md §7)."""
 
 from cusgs_jax.io.ply import PlyError, SplatModel, ply_property_names, read_ply, write_ply
-from cusgs_jax.io.render import render_splats, render_splats_exact, splat_colors
+from cusgs_jax.io.refine import heldout_psnr, make_refine_step, refine_splats
+from cusgs_jax.io.render import recentre_splats, render_splats, render_splats_exact, scene_camera, splat_colors
 
-__all__ = ["PlyError", "SplatModel", "ply_property_names", "read_ply", "render_splats", "render_splats_exact",
+__all__ = ["PlyError", "SplatModel", "heldout_psnr", "make_refine_step", "ply_property_names", "read_ply",
+           "recentre_splats", "refine_splats", "render_splats", "render_splats_exact", "scene_camera",
            "splat_colors", "write_ply"]

@@ -11,10 +11,12 @@ Naming (:mod:`cusgs_jax.types`): G Gaussians, K SH coefficients, H×W image.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.config import SplatConfig
 from cusgs_jax.errors import UserError
@@ -24,7 +26,7 @@ from cusgs_jax.splat.sh import MAX_SH_DEGREE, sh_to_rgb
 from cusgs_jax.training.capacity import grown_pairs_per_gaussian, max_pairs
 from cusgs_jax.types import Camera
 
-__all__ = ["render_splats", "render_splats_exact", "splat_colors"]
+__all__ = ["recentre_splats", "render_splats", "render_splats_exact", "scene_camera", "splat_colors"]
 
 
 def _degree(model: SplatModel, sh_degree: int | None) -> int:
@@ -97,3 +99,26 @@ def render_splats_exact(model: SplatModel, camera: Camera, *, background, sh_deg
         if int(out.overflow) == 0:
             return out, per
         per = grown_pairs_per_gaussian(per, int(out.num_pairs) + int(out.overflow), num)
+
+
+def recentre_splats(model: SplatModel, centre) -> tuple[SplatModel, np.ndarray]:
+    """(the model moved by −``centre``, ``centre`` [3] float64): float32 keeps a far-off scene's detail.
+
+    Rendering is translation-invariant (view directions are mean − camera centre), so moving the
+    Gaussians and the cameras (:func:`scene_camera`) together changes nothing else. ``centre`` is
+    usually the scene's mean camera centre; the means are shifted in float64.
+    """
+    centre = np.asarray(centre, np.float64).reshape(3)
+    means = (np.asarray(model.means, np.float64) - centre).astype(np.float32)
+    return dataclasses.replace(model, means=means), centre
+
+
+def scene_camera(scene, view: int, shift) -> Camera:
+    """The scene's camera ``view`` in the frame moved by −``shift`` [3]: x_cam = R(x + shift) + t (float64).
+
+    ``scene``: a :class:`~cusgs_jax.data.colmap.SceneData` (``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3]).
+    """
+    viewmat = np.array(scene.viewmats[view], np.float64)
+    viewmat[:3, 3] += viewmat[:3, :3] @ np.asarray(shift, np.float64)
+    return Camera(jnp.asarray(scene.Ks[view], jnp.float32), jnp.asarray(viewmat, jnp.float32),
+                  scene.width, scene.height)
