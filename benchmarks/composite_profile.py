@@ -23,7 +23,7 @@ import json
 import time
 
 
-def sorted_inputs(scene_path: str, view: int):
+def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -45,6 +45,8 @@ def sorted_inputs(scene_path: str, view: int):
         from cusgs_jax.data.demo import demo_scene_path
         scene_path = str(demo_scene_path())
     cfg = Config().replace(features=dict(models=()))
+    if tile_size:
+        cfg = cfg.replace(splat=dict(tile_size=tile_size))
     scene, _ = normalize_scene(load_scene(scene_path, holdout_every=8))
     cfg = resolve_voxel_size(cfg, scene.points)
     train_idx = scene.train_indices
@@ -76,7 +78,7 @@ def sorted_inputs(scene_path: str, view: int):
     inputs = jax.block_until_ready(prepare(anchors, nets, camera, index))
     lengths = np.asarray(inputs[6] - inputs[5])
     info = dict(scene=scene_path, view=view, width=int(camera.width), height=int(camera.height),
-                tiles=int(grid.num_tiles), pairs=int(lengths.sum()), busiest_tile=int(lengths.max()),
+                tiles=int(grid.num_tiles), tile_size=int(grid.tile_size), pairs=int(lengths.sum()), busiest_tile=int(lengths.max()),
                 tiles_with_work=int((lengths > 0).sum()), gaussians=int(inputs[0].shape[0]),
                 chunk_default=int(cfg.splat.chunk_size))
     return grid, inputs, info
@@ -130,12 +132,13 @@ def main(argv=None):
     parser.add_argument("--view", type=int, default=0)
     parser.add_argument("--lanes", type=int, nargs="*", default=None, help="default: the library's choice")
     parser.add_argument("--chunk", type=int, nargs="*", default=None, help="default: the config's chunk size")
+    parser.add_argument("--tile-size", type=int, default=None, help="default: the config's")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--trace", action="store_true",
                         help="also profile one fwd+bwd with jax.profiler and list the costliest XLA ops")
     args = parser.parse_args(argv)
 
-    grid, inputs, info = sorted_inputs(args.scene, args.view)
+    grid, inputs, info = sorted_inputs(args.scene, args.view, args.tile_size)
     rng = np.random.default_rng(0)
     rows = []
     for lanes in args.lanes or [default_lanes(grid.num_tiles)]:

@@ -12,7 +12,7 @@ import pytest
 
 from cusgs_jax.config import PruneConfig
 from cusgs_jax.densify.base import ViewRecord
-from cusgs_jax.densify.feature_prune import (FeaturePruneStrategy, PruneStats, _floor_ratio,
+from cusgs_jax.densify.feature_prune import (FeaturePruneStrategy, PruneStats, _floor_ratio, kth_smallest,
                                              accumulate_prune_stats, anchor_scores, gaussian_volume_weight,
                                              prune_due, prune_pass, select_prune, stats_window)
 from cusgs_jax.densify.scaffold import GrowStats
@@ -176,6 +176,25 @@ def test_volume_weight_matches_lightgaussian():
     # no active Gaussian at all → all zero, finite
     none = gaussian_volume_weight(jnp.asarray(scales, jnp.float32), jnp.zeros(20, bool), cfg)
     np.testing.assert_array_equal(none, np.zeros(20))
+
+
+@pytest.mark.parametrize("case", ["random", "ties_zeros_inf", "negative_and_nan", "one"])
+def test_kth_smallest_equals_the_sorted_entry(case):
+    rng = np.random.default_rng(3)
+    if case == "random":
+        values = rng.lognormal(-9.0, 3.0, 5000)
+    elif case == "ties_zeros_inf":
+        values = np.concatenate([rng.choice([0.0, 1e-30, 2.5, 2.5, np.inf], 300), rng.random(200)])
+    elif case == "negative_and_nan":
+        values = np.concatenate([rng.normal(size=400) * 1e3, [np.nan, -0.0, 0.0, -np.inf, np.inf]])
+    else:
+        values = np.array([7.0])
+    values = values.astype(np.float32)
+    kth = jax.jit(kth_smallest)
+    ascending = np.sort(values)  # NumPy also sorts NaN last
+    ks = sorted({0, len(values) - 1, *rng.integers(0, len(values), 40).tolist()})
+    got = np.array([float(kth(jnp.asarray(values), jnp.int32(k))) for k in ks])
+    np.testing.assert_array_equal(got, ascending[ks])
 
 
 def test_floor_ratio_is_exact():

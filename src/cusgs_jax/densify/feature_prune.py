@@ -130,6 +130,39 @@ def _floor_ratio(count: jax.Array, ratio) -> jax.Array:
     return jnp.floor(count.astype(jnp.float32) * jnp.asarray(ratio, jnp.float32)).astype(jnp.int32)
 
 
+def _order_key(values: jax.Array) -> jax.Array:
+    """uint32 keys whose order is the float32 order of ``values`` (−0 before +0, NaN last)."""
+    bits = jax.lax.bitcast_convert_type(values.astype(jnp.float32), jnp.uint32)
+    negative = bits >> 31 == 1
+    return jnp.where(negative, ~bits, bits | jnp.uint32(0x80000000))
+
+
+def kth_smallest(values: jax.Array, k: jax.Array) -> jax.Array:
+    """``jnp.sort(values)[k]`` without the sort: a bisection over the 32-bit order keys.
+
+    32 counting passes over [G] (O(32·G), vectorised) instead of an O(G log G) sort,
+    which XLA's CPU backend runs element by element (18 ms of a 320×240 step at 170k
+    Gaussians). Exact: the result is an element of ``values``.
+
+    Args:
+      values: [G] float32; k: [] int32 in [0, G).
+    Returns:
+      [] float32, the k-th smallest entry (0-based; ties counted with multiplicity).
+    """
+    keys = _order_key(values)
+    need = jnp.asarray(k, jnp.int32) + 1
+
+    def halve(_, bounds):  # invariant: count(keys ≤ hi) ≥ need, and the answer lies in [lo, hi]
+        lo, hi = bounds
+        mid = lo + (hi - lo) // 2
+        enough = jnp.sum(keys <= mid, dtype=jnp.int32) >= need
+        return jnp.where(enough, lo, mid + 1), jnp.where(enough, mid, hi)
+
+    bounds = (jnp.uint32(0), jnp.uint32(0xFFFFFFFF))
+    _, key = jax.lax.fori_loop(0, 32, halve, bounds)
+    return jnp.max(jnp.where(keys == key, values.astype(jnp.float32), -jnp.inf))  # the element itself
+
+
 def gaussian_volume_weight(scales: jax.Array, active: jax.Array, cfg: PruneConfig = PruneConfig()) -> jax.Array:
     """LightGaussian's volume weight ``(V / V_ref)^power`` of one view's Gaussians.
 
@@ -149,9 +182,9 @@ def gaussian_volume_weight(scales: jax.Array, active: jax.Array, cfg: PruneConfi
     scales = jax.lax.stop_gradient(scales).astype(jnp.float32)
     volume = jnp.prod(scales, axis=-1)
     n = jnp.sum(active).astype(jnp.int32)
-    ascending = jnp.sort(jnp.where(active, volume, jnp.inf))  # the n active volumes come first
     k_desc = jnp.minimum(_floor_ratio(n, cfg.volume_percentile / 100.0), n - 1)
-    v_ref = ascending[jnp.clip(n - 1 - k_desc, 0, volume.shape[0] - 1)]
+    # the n active volumes come first in increasing order; V_ref is entry n − 1 − k_desc
+    v_ref = kth_smallest(jnp.where(active, volume, jnp.inf), jnp.clip(n - 1 - k_desc, 0, volume.shape[0] - 1))
     v_ref = jnp.where((n > 0) & (v_ref > 0) & jnp.isfinite(v_ref), v_ref, 1.0)
     ratio = jnp.where(active, volume / v_ref, 0.0)
     return jnp.where(active, ratio ** cfg.volume_power, 0.0)

@@ -210,6 +210,22 @@ def _running_sum(terms: jax.Array) -> jax.Array:
     return jnp.stack(out, axis=1)
 
 
+def _fold_kept(keep, a, k0, trans, n_contrib, last):
+    """Fold one chunk's composited Gaussians into each pixel's running state (unrolled over B).
+
+    ``trans · Π_kept (1 − α)``, ``n_contrib + #kept`` and ``last`` = one past the slot of the
+    last kept Gaussian, for [M, B, S] ``keep``/``a``, [M] chunk starts ``k0`` and [M, S] state.
+    Reductions over the middle (chunk) axis of [M, B, S] — above all the int32 max behind
+    ``last`` — are slow on CPU; B elementwise selects fuse into one pass.
+    """
+    for k in range(keep.shape[1]):
+        kept = keep[:, k]
+        trans = jnp.where(kept, trans * (1.0 - a[:, k]), trans)
+        n_contrib = n_contrib + kept.astype(jnp.int32)
+        last = jnp.where(kept, (k0 + (k + 1))[:, None], last)  # later slots are larger: the last kept wins
+    return trans, n_contrib, last
+
+
 SMALL_CHANNELS = 8  # up to this many channels the per-lane contractions are written out channel by channel
 
 
@@ -269,11 +285,8 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         keep = ch.valid & (t_after > TRANSMITTANCE_STOP) & ~done[:, None, :]
         weight = jnp.where(keep, a * t_before, 0.0)
         color = color + _weighted_sum(weight, features[ch.gid])
-        trans = trans * jnp.prod(jnp.where(keep, 1.0 - a, 1.0), axis=1)
         done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
-        n_contrib = n_contrib + jnp.sum(keep, axis=1, dtype=jnp.int32)
-        slot = k0[:, None] + jnp.arange(1, chunk + 1, dtype=jnp.int32)[None, :]
-        last = jnp.maximum(last, jnp.max(jnp.where(keep, slot[..., None], 0), axis=1))
+        trans, n_contrib, last = _fold_kept(keep, a, k0, trans, n_contrib, last)
         # LightGaussian significance Σ o·T and hit counts, per pair then per Gaussian.
         sig = jnp.sum(jnp.where(keep, ch.opacity[..., None] * t_before, 0.0), axis=-1)
         hit = jnp.sum(keep, axis=-1).astype(dtype)
@@ -362,13 +375,14 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         slot = k0[:, None] + jnp.arange(chunk, dtype=jnp.int32)[None, :]
         keep = ch.valid & (slot[..., None] < last[safe][:, None, :])
         a = jnp.where(keep, ch.alpha, 0.0)
-        t_before, _ = _running_product(1.0 - a, trans)
+        t_before, t_after = _running_product(1.0 - a, trans)
         weight = a * t_before  # zero where not kept
         feat = features[ch.gid]  # [M, B, C]
         lane_g = g_color[safe]  # [M, S, C]
         g_dot_c = _channel_dot(lane_g, feat)
         contrib = g_dot_c * weight
-        suffix = (total[safe] - prefix + tail[safe])[:, None, :] - _running_sum(contrib)
+        running = _running_sum(contrib)
+        suffix = (total[safe] - prefix + tail[safe])[:, None, :] - running
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
         d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
         d_sigma = -d_alpha * a
@@ -394,8 +408,8 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
             axis=-1,
         )
         grads = grads.at[ch.gid].add(jnp.where(ch.in_range[..., None], pair, 0.0))
-        trans = trans * jnp.prod(1.0 - a, axis=1)
-        prefix = prefix + jnp.sum(contrib, axis=1)
+        trans = t_after[:, -1]  # trans · Π_b (1 − α_b)
+        prefix = prefix + running[:, -1]
         k0 = k0 + chunk
         finished = (tile < num_tiles) & (k0 >= need[safe])
         tile, cursor = _next_tiles(schedule, tile, finished, cursor)
