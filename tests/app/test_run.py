@@ -248,6 +248,21 @@ def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_
         assert caps.pairs(state.anchors.capacity, n) >= work["pairs"]
 
 
+def test_a_scene_whose_points_no_training_view_sees_is_refused_at_setup(tmp_path):
+    """Points behind every camera would train the background alone to a black image (exit 0); refused instead."""
+    from cusgs_jax.data.errors import SceneError
+    from cusgs_jax.testing.scenes import object_scene
+
+    scene = object_scene(tmp_path / "away", views=6, width=32, height=24, num_points=300, facing_away=True)
+    with pytest.raises(SceneError, match=r"data\.path=.*away.*none of the \d+ initial anchors .* is seen by any of "
+                                         r"the 5 training views probed.*same reconstruction"):
+        setup(_cfg(scene, "model.voxel_size=auto"), tmp_path / "run")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+    # the same cameras turned towards the points set up as usual
+    facing = object_scene(tmp_path / "facing", views=6, width=32, height=24, num_points=300)
+    assert setup(_cfg(facing, "model.voxel_size=auto"), tmp_path / "run2").capacities is not None
+
+
 def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
     from cusgs_jax.errors import ConfigError
 

@@ -43,6 +43,7 @@ from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.load_run import BANKS_FILE
 from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.config import Config, require
+from cusgs_jax.data.errors import SceneError
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
@@ -156,6 +157,14 @@ def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities
     positions = _spread(np.arange(len(session.train_idx)), probes)
     needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), jnp.int32(p))
                                                   for p in positions], cfg)
+    if needs["visible_anchors"] == 0:
+        raise SceneError(
+            f"data.path={str(scene.path)!r}: none of the {int(np.sum(state.anchors.alive))} initial anchors (from the "
+            f"{len(scene.points)} SfM points) is seen by any of the {len(positions)} training views probed "
+            f"(spread over all {len(session.train_idx)}): the points lie behind or beside every camera, and training "
+            "would only fit the background. Check that the points and the cameras come from the same reconstruction "
+            "and frame (not a points file of another run, not poses read as camera-to-world where world-to-camera "
+            "is meant), and that data.path names the right scene")
     fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
     log.info("work capacities from %d probed views (at most %d visible anchors, %d active Gaussians, %d tile "
              "pairs): %s", len(positions), needs["visible_anchors"], needs["active_gaussians"],
