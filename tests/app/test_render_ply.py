@@ -76,6 +76,15 @@ def test_bad_scene_exits_2(scene_and_ply, tmp_path, capsys):
     assert e.value.code == 2 and "no scene" in capsys.readouterr().err
 
 
+def test_images_smaller_than_the_ssim_window_exit_2_naming_downscale(scene_and_ply, capsys):
+    scene_dir, ply = scene_and_ply
+    with pytest.raises(SystemExit) as e:  # 32x24 / 3 = 11x8: no SSIM
+        main([str(ply), "--colmap", str(scene_dir), "--downscale", "3", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1
+    assert "11x8 pixels with --downscale=3" in err and "use a smaller --downscale (e.g. --downscale=2)" in err
+
+
 def test_help_does_not_import_jax():
     src = str(pathlib.Path(cusgs_jax.__file__).parents[1])
     code = ("import sys\nfrom cusgs_jax.app.render_ply import main\ntry:\n    main(['--help'])\n"

@@ -37,7 +37,34 @@ def load_data(cfg: Config):
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=cfg.splat.background, num_random_points=data.random_points,
                            seed=cfg.train.seed)
+    require_ssim_size(scene, data.downscale, "data.downscale")
     return normalize_scene(scene, align=data.align)
+
+
+def require_ssim_size(scene, downscale: int, option: str) -> None:
+    """SceneError unless ``scene``'s images are at least as large as the SSIM window (11×11 pixels).
+
+    The training loss and every evaluation take the SSIM of whole images, which cannot be computed
+    on images smaller than its window; ``option`` names the downscale setting in the message
+    (``data.downscale`` for ``cusgs-train``, ``--downscale`` for ``cusgs-render-ply``).
+    """
+    from cusgs_jax.data.errors import SceneError
+    from cusgs_jax.losses import gaussian_window
+
+    k = len(gaussian_window())
+    if scene.width >= k and scene.height >= k:
+        return
+    if downscale > 1:
+        from cusgs_jax.data.images import scaled_size
+
+        smallest = (min(scene.width, scene.height) - 0.5) * downscale  # the full-size side is at least this
+        fits = [d for d in range(1, downscale) if scaled_size(int(smallest), d) >= k]
+        fix = (f"use a smaller {option} (e.g. {option}={max(fits)})" if fits
+               else f"use {option}=1 (full-size images), or give it images of at least {k}x{k} pixels")
+    else:
+        fix = f"give it images of at least {k}x{k} pixels"
+    raise SceneError(f"{scene.path}: its images load at {scene.width}x{scene.height} pixels with {option}={downscale}, "
+                     f"smaller than the {k}x{k} pixels of the SSIM window that training and evaluation need; {fix}")
 
 
 def resolve_background(cfg: Config, scene) -> Config:

@@ -73,6 +73,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     import numpy as np
     from tqdm import tqdm
 
+    from cusgs_jax.app.inputs import require_ssim_size
     from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact
@@ -82,6 +83,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     every = 0 if all_views or holdout_every <= 1 else holdout_every
     scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=every,
                            background=None if background is None else tuple(background))
+    require_ssim_size(scene, downscale, "--downscale")  # before any render: SSIM needs 11x11 pixels
     background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
     degree = model.sh_degree if sh_degree is None else sh_degree
