@@ -1,5 +1,5 @@
 """What a run reads (app/inputs.py): feature targets keep every value float16 cannot hold; images smaller
-than the SSIM window are refused at load."""
+than the SSIM window are refused at load; feature targets far larger than the extractors' are warned about."""
 
 from __future__ import annotations
 
@@ -39,3 +39,37 @@ def test_images_smaller_than_the_ssim_window_are_refused_at_load_naming_the_fix(
     tiny = object_scene(tmp_path / "tiny", views=4, width=8, height=8, num_points=50)
     with pytest.raises(SceneError, match=r"8x8 pixels with data\.downscale=1.*images of at least 11x11 pixels"):
         load_data(compose_config([f"data.path={tiny}", "features=none"]))
+
+
+@pytest.mark.parametrize("damage", ["one_value", "every_map"])
+def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at_load(demo, tmp_path, caplog,
+                                                                                       damage):
+    import shutil
+
+    from cusgs_jax.app.inputs import load_feature_targets
+    from cusgs_jax.data.features import feature_dir
+    from cusgs_jax.extract import ensure_extracted
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(demo, scene_dir)
+    ensure_extracted(scene_dir, "semantic", progress=False)
+    cfg = compose_config([f"data.path={scene_dir}", "features.models=[{name: semantic}]"])
+    scene, _ = load_data(cfg)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        load_feature_targets(cfg.features.resolve(demo_scene=False), scene, 0)
+    assert "target vectors" not in caplog.text  # the extractor's own maps: unit vectors
+    files = sorted(feature_dir(scene_dir, "semantic").glob("*.npy"))
+    for i, f in enumerate(files):
+        maps = np.load(f).astype(np.float32)
+        if damage == "every_map":
+            maps *= 1e5
+        elif i == 2:
+            maps[3, 4, 0] = 1e6
+        np.save(f, maps)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        load_feature_targets(cfg.features.resolve(demo_scene=False), scene, 0)
+    assert "feature model semantic: target vectors in" in caplog.text and "re-extract" in caplog.text
+    if damage == "one_value":
+        assert "norms 1 to 1e+06 (median 1); 1 of " in caplog.text and files[2].name in caplog.text
+    else:
+        assert "norms 1e+05 to 1e+05" in caplog.text
