@@ -308,6 +308,17 @@ def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_
     assert result["psnr"] == straight[1]["psnr"] and _latest_checkpoint(out) == 30
 
 
+def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)  # a finished 30-step run
+    before = (out / "eval.json").read_text()
+    with pytest.raises(ConfigError, match=r"train\.iterations=20: the run to resume in .*checkpoints is already at "
+                                          r"step 30, past the asked iterations.*set train\.iterations=30 or more.*"
+                                          r"new output folder"):
+        setup(_cfg(tiny_scene, "train.resume=true", "train.iterations=20"), out)
+    assert (out / "eval.json").read_text() == before and _latest_checkpoint(out) == 30
+
+
 def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_logged_step(caplog):
     from types import SimpleNamespace
 

@@ -116,6 +116,7 @@ def setup(cfg: Config, output_dir) -> Session:
     require(cfg.train.resume or latest is None, "train.resume", False,
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
+    _require_not_past(cfg, latest, ckpt.directory)
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
@@ -200,6 +201,7 @@ def _resume(session: Session) -> None:
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
+    _require_not_past(session.cfg, step, session.ckpt.directory)
     session.capacities = session.capacities.restored(meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
@@ -209,6 +211,15 @@ def _resume(session: Session) -> None:
     _trim_jsonl(session.out / "metrics.jsonl", step)
     _trim_jsonl(session.out / "eval_curve.jsonl", step)
     log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+
+
+def _require_not_past(cfg: Config, step: int | None, directory) -> None:
+    """A resumed run cannot train backwards: refuse a checkpoint already past ``train.iterations``."""
+    require(not cfg.train.resume or step is None or step <= cfg.train.iterations, "train.iterations",
+            cfg.train.iterations, f"the run to resume in {directory} is already at step {step}, past the asked "
+            "iterations (resuming cannot undo steps, and its eval.json would report a model of more steps)",
+            f"set train.iterations={step} or more to continue it, or train {cfg.train.iterations} steps in a new "
+            "output folder (hydra.run.dir=...)")
 
 
 def _trim_jsonl(path: pathlib.Path, last_step: int) -> None:
