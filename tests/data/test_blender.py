@@ -208,5 +208,10 @@ def test_error_no_train_file(tmp_path):
 
 def test_error_corrupt_image(blender):
     (blender["root"] / "train" / "r_3.png").write_bytes(b"not a png")
-    with pytest.raises(SceneError, match=r"cannot read image .*r_3.png"):
+    with pytest.raises(SceneError, match=r"cannot decode image .*r_3.png.*corrupt or not an image.*delete its frame"
+                       ) as raised:
+        load_blender_scene(blender["root"])
+    assert "pip install" not in str(raised.value)
+    (blender["root"] / "train" / "r_3.png").write_bytes(b"")
+    with pytest.raises(SceneError, match=r"image .*r_3.png is an empty file \(0 bytes\)"):
         load_blender_scene(blender["root"])

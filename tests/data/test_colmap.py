@@ -350,7 +350,7 @@ def test_error_image_missing_on_disk(tmp_path):
 def test_error_image_corrupt(tmp_path):
     make_scene(tmp_path)
     (tmp_path / "images" / "img_02.png").write_bytes(b"\x89PNG not really")
-    with pytest.raises(SceneError, match=r"cannot read image .*img_02\.png.*corrupt"):
+    with pytest.raises(SceneError, match=r"cannot decode image .*img_02\.png.*corrupt"):
         load_scene(tmp_path)
 
 
