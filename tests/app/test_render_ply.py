@@ -73,7 +73,13 @@ def test_bad_scene_exits_2(scene_and_ply, tmp_path, capsys):
     _, ply = scene_and_ply
     with pytest.raises(SystemExit) as e:
         main([str(ply), "--colmap", str(tmp_path / "no scene"), "--quiet"])
-    assert e.value.code == 2 and "no scene" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "no scene" in err
+    assert "set --colmap to a COLMAP scene" in err and "data." not in err  # its own flag, not cusgs-train's option
+    with pytest.raises(SystemExit) as e:
+        main([str(ply), "--colmap", str(scene_and_ply[0]), "--format", "blender", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "set --colmap to such a folder, or --format to the layout" in err and "data." not in err
 
 
 def test_images_smaller_than_the_ssim_window_exit_2_naming_downscale(scene_and_ply, capsys):

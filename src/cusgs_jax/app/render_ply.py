@@ -18,12 +18,15 @@ import json
 import pathlib
 from collections.abc import Sequence
 
-from cusgs_jax.app.argtypes import int_at_least, number_in
+from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
 
 PROG = "cusgs-render-ply"
+#: cusgs-train's option names in the loaders' messages → this tool's flags
+FLAGS = {"data.path": "--colmap", "data.format": "--format", "data.downscale": "--downscale",
+         "data.holdout_every": "--holdout-every", "splat.background": "--background"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -157,7 +160,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                               sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet,
                               format=args.format)
     except UserError as e:  # a bad PLY, scene or setting: one line, exit 2 (as every CLI)
-        ap.exit(2, f"{PROG}: error: {e}\n")
+        ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(json.dumps(result, indent=2))
     return 0
 
