@@ -354,6 +354,14 @@ def test_error_image_corrupt(tmp_path):
         load_scene(tmp_path)
 
 
+def test_a_downscale_that_leaves_no_pixel_is_refused_before_reading_images(tmp_path):
+    make_scene(tmp_path)
+    (tmp_path / "images" / "img_00.png").write_bytes(b"")  # not read: the check comes first
+    with pytest.raises(SceneError, match=rf"data\.downscale=64 shrinks the images \({W}x{H} in .*cameras\..*\) to "
+                                         r"\d+x0 pixels; use data\.downscale="):
+        load_scene(tmp_path, downscale=64)
+
+
 def test_error_no_points(tmp_path):
     make_scene(tmp_path, num_points=0)
     with pytest.raises(SceneError, match=r"no points.*points3D\.bin.*triangulat"):

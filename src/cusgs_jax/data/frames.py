@@ -24,7 +24,8 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import _downscale, _to_rgb_uint8, _warn_alpha, read_image_file, scaled_size
+from cusgs_jax.data.images import (_downscale, _to_rgb_uint8, _warn_alpha, read_image_file, require_loadable_size,
+                                   scaled_size)
 
 __all__ = ["FrameImage", "read_json", "require_key", "frame_list", "frame_path", "frame_name",
            "opengl_c2w_to_viewmat", "load_frame_images", "check_unique_names", "fov_focal"]
@@ -189,6 +190,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
         h, w = img.shape[:2]
         if full is None:
             full = frame.size if frame.size is not None else (w, h)
+            require_loadable_size(full[0], full[1], downscale, json_path)
         expected = frame.size if frame.size is not None else full
         file_scale = downscale if frame.prescaled else 1
         exp_w, exp_h = scaled_size(expected[0], file_scale), scaled_size(expected[1], file_scale)

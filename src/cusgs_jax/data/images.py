@@ -32,6 +32,19 @@ def scaled_size(size: int, downscale: int) -> int:
     return int(math.floor(size / downscale + 0.5))
 
 
+def require_loadable_size(width: int, height: int, downscale: int, source) -> None:
+    """SceneError unless ``width``×``height`` images of ``source`` keep at least a pixel a side at
+    ``downscale`` (``data.downscale``); the message says how far it may go (11 pixels a side: the SSIM
+    window that training and evaluation need)."""
+    w, h = scaled_size(width, downscale), scaled_size(height, downscale)
+    if w >= 1 and h >= 1:
+        return
+    fits = [d for d in range(1, downscale) if scaled_size(min(width, height), d) >= 11]
+    fix = f"use data.downscale={max(fits)} or less" if fits else "use data.downscale=1"
+    raise SceneError(f"data.downscale={downscale} shrinks the images ({width}x{height} in {source}) to {w}x{h} "
+                     f"pixels; {fix}")
+
+
 def image_dir(scene: pathlib.Path, downscale: int) -> tuple[pathlib.Path, bool]:
     """(folder to read, True when it already holds images downscaled by `downscale`)."""
     if downscale > 1:
