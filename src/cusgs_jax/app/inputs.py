@@ -117,7 +117,8 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
 FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65504
 TARGET_NORM_MAX = 1e3
 """Largest feature target norm taken as plausible: the built-in extractors give norms ≤ 1 (descriptors,
-semantic) and CLIP / DINOv2 tokens a few tens; far larger targets make the feature loss dwarf the image
+semantic, vgg16); CLIP / DINOv2 tokens (LayerNorm outputs, √D ≈ 20 with unit gains) are expected at tens, an
+estimate not measured on real weights; far larger targets make the feature loss dwarf the image
 loss (and a single stray value makes some steps' loss explode)."""
 
 
