@@ -39,3 +39,17 @@ def test_cli_errors(demo, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         main([str(demo), "--model", "sift"])
     assert e.value.code == 2
+
+
+def test_scene_errors_name_the_tools_own_arguments_not_data_path(demo, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([str(tmp_path / "nowhere"), "--model", "daisy", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "set SCENE to a COLMAP scene" in err and "data." not in err
+    with pytest.raises(SystemExit) as e:  # a COLMAP scene read as nerfstudio: --format names the layout
+        main([str(demo), "--model", "daisy", "--format", "nerfstudio", "--overwrite", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "transforms.json does not exist" in err and "SCENE" in err and "data." not in err
+    with pytest.raises(SystemExit) as e:
+        main([str(demo), "--model", "daisy", "--downscale", "0"])
+    assert e.value.code == 2 and "--downscale" in capsys.readouterr().err

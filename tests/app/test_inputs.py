@@ -1,10 +1,14 @@
-"""What a run reads (app/inputs.py): feature targets keep every value float16 cannot hold."""
+"""What a run reads (app/inputs.py): feature targets keep every value float16 cannot hold; images smaller
+than the SSIM window are refused at load; feature targets far larger than the extractors' are warned about."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
-from cusgs_jax.app.inputs import FLOAT16_MAX, feature_targets
+from cusgs_jax.app.inputs import FLOAT16_MAX, feature_targets, load_data
+from cusgs_jax.config import compose_config
+from cusgs_jax.data.errors import SceneError
 
 
 class _Maps:
@@ -21,3 +25,51 @@ def test_feature_targets_are_float16_unless_a_value_would_overflow_it():
     assert np.all(np.isfinite(np.asarray(targets["large"]))) and float(np.max(targets["large"])) == 1e5
     np.testing.assert_array_equal(np.asarray(targets["large"]), large[[0, 1]])
     assert FLOAT16_MAX == 65504.0
+
+
+def test_images_smaller_than_the_ssim_window_are_refused_at_load_naming_the_fix(demo, tmp_path):
+    from cusgs_jax.testing.scenes import object_scene
+
+    scene, _ = load_data(compose_config([f"data.path={demo}", "data.downscale=2", "features=none"]))
+    assert (scene.width, scene.height) == (20, 15)  # 40x30 / 2: large enough
+    with pytest.raises(SceneError, match=r"demo.*: its images load at 10x8 pixels with data\.downscale=4, smaller "
+                                         r"than the 11x11 pixels .*SSIM.*use a smaller data\.downscale "
+                                         r"\(e\.g\. data\.downscale=2\)"):
+        load_data(compose_config([f"data.path={demo}", "data.downscale=4", "features=none"]))
+    tiny = object_scene(tmp_path / "tiny", views=4, width=8, height=8, num_points=50)
+    with pytest.raises(SceneError, match=r"8x8 pixels with data\.downscale=1.*images of at least 11x11 pixels"):
+        load_data(compose_config([f"data.path={tiny}", "features=none"]))
+
+
+@pytest.mark.parametrize("damage", ["one_value", "every_map"])
+def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at_load(demo, tmp_path, caplog,
+                                                                                       damage):
+    import shutil
+
+    from cusgs_jax.app.inputs import load_feature_targets
+    from cusgs_jax.data.features import feature_dir
+    from cusgs_jax.extract import ensure_extracted
+
+    scene_dir = tmp_path / "scene"
+    shutil.copytree(demo, scene_dir)
+    ensure_extracted(scene_dir, "semantic", progress=False)
+    cfg = compose_config([f"data.path={scene_dir}", "features.models=[{name: semantic}]"])
+    scene, _ = load_data(cfg)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        load_feature_targets(cfg.features.resolve(demo_scene=False), scene, 0)
+    assert "target vectors" not in caplog.text  # the extractor's own maps: unit vectors
+    files = sorted(feature_dir(scene_dir, "semantic").glob("*.npy"))
+    for i, f in enumerate(files):
+        maps = np.load(f).astype(np.float32)
+        if damage == "every_map":
+            maps *= 1e5
+        elif i == 2:
+            maps[3, 4, 0] = 1e6
+        np.save(f, maps)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        load_feature_targets(cfg.features.resolve(demo_scene=False), scene, 0)
+    assert "feature model semantic: target vectors in" in caplog.text and "re-extract" in caplog.text
+    if damage == "one_value":
+        assert "norms 1 to 1e+06 (median 1); 1 of " in caplog.text and files[2].name in caplog.text
+    else:
+        assert "norms 1e+05 to 1e+05" in caplog.text

@@ -21,6 +21,12 @@ from cusgs_jax.app.overrides import check_command_line
     (["experiment=nope"], r"Could not find 'experiment/nope'; choose one of \['pareto_search', 'prune_ratio'"),
     (["data.path=/my", "scenes/garden"], r"'scenes/garden'.*a path with spaces must be quoted.*data\.path="),
     (["-m", "model.voxel_size=0.01,0"], r"model\.voxel_size=0: "),  # every swept value is checked
+    (["-m", "hydra/sweeper=pareto", "model.voxel_size=tag(log, interval(0.08, 0.008))"],
+     r"model\.voxel_size=tag\(log, interval\(0\.08, 0\.008\)\): the interval runs from 0\.08 down to 0\.008; "
+     r"write model\.voxel_size=tag\(log, interval\(0\.008, 0\.08\)\)"),
+    (["-m", "hydra/sweeper=pareto", "+hydra.sweeper.params.model.voxel_size=tag(log, interval(0.008, 0.08))"],
+     r"Hydra cannot sweep its own hydra\.\* settings; .*'model\.voxel_size=tag\(log, interval\(0\.008, 0\.08\)\)'"),
+    (["-m", "hydra.sweeper.n_trials=1,2"], r"give hydra\.sweeper\.n_trials one value"),
 ])
 def test_bad_command_lines_are_named_with_the_fix(argv, expected, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)

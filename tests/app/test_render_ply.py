@@ -73,7 +73,22 @@ def test_bad_scene_exits_2(scene_and_ply, tmp_path, capsys):
     _, ply = scene_and_ply
     with pytest.raises(SystemExit) as e:
         main([str(ply), "--colmap", str(tmp_path / "no scene"), "--quiet"])
-    assert e.value.code == 2 and "no scene" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "no scene" in err
+    assert "set --colmap to a COLMAP scene" in err and "data." not in err  # its own flag, not cusgs-train's option
+    with pytest.raises(SystemExit) as e:
+        main([str(ply), "--colmap", str(scene_and_ply[0]), "--format", "blender", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "set --colmap to such a folder, or --format to the layout" in err and "data." not in err
+
+
+def test_images_smaller_than_the_ssim_window_exit_2_naming_downscale(scene_and_ply, capsys):
+    scene_dir, ply = scene_and_ply
+    with pytest.raises(SystemExit) as e:  # 32x24 / 3 = 11x8: no SSIM
+        main([str(ply), "--colmap", str(scene_dir), "--downscale", "3", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1
+    assert "11x8 pixels with --downscale=3" in err and "use a smaller --downscale (e.g. --downscale=2)" in err
 
 
 def test_help_does_not_import_jax():

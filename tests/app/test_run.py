@@ -264,6 +264,21 @@ def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_
         assert caps.pairs(state.anchors.capacity, n) >= work["pairs"]
 
 
+def test_a_scene_whose_points_no_training_view_sees_is_refused_at_setup(tmp_path):
+    """Points behind every camera would train the background alone to a black image (exit 0); refused instead."""
+    from cusgs_jax.data.errors import SceneError
+    from cusgs_jax.testing.scenes import object_scene
+
+    scene = object_scene(tmp_path / "away", views=6, width=32, height=24, num_points=300, facing_away=True)
+    with pytest.raises(SceneError, match=r"data\.path=.*away.*none of the \d+ initial anchors .* is seen by any of "
+                                         r"the 5 training views probed.*same reconstruction"):
+        setup(_cfg(scene, "model.voxel_size=auto"), tmp_path / "run")
+    assert not (tmp_path / "run" / "metrics.jsonl").exists()
+    # the same cameras turned towards the points set up as usual
+    facing = object_scene(tmp_path / "facing", views=6, width=32, height=24, num_points=300)
+    assert setup(_cfg(facing, "model.voxel_size=auto"), tmp_path / "run2").capacities is not None
+
+
 def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
     from cusgs_jax.errors import ConfigError
 
@@ -309,7 +324,18 @@ def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_
     assert result["psnr"] == straight[1]["psnr"] and _latest_checkpoint(out) == 30
 
 
-def test_a_first_image_loss_far_outside_the_normal_range_is_warned_about(caplog):
+def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, tiny_scene, tmp_path):
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)  # a finished 30-step run
+    before = (out / "eval.json").read_text()
+    with pytest.raises(ConfigError, match=r"train\.iterations=20: the run to resume in .*checkpoints is already at "
+                                          r"step 30, past the asked iterations.*set train\.iterations=30 or more.*"
+                                          r"new output folder"):
+        setup(_cfg(tiny_scene, "train.resume=true", "train.iterations=20"), out)
+    assert (out / "eval.json").read_text() == before and _latest_checkpoint(out) == 30
+
+
+def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_logged_step(caplog):
     from types import SimpleNamespace
 
     from cusgs_jax.app.run import _log_row
@@ -318,14 +344,26 @@ def test_a_first_image_loss_far_outside_the_normal_range_is_warned_about(caplog)
     cfg = Config()
     state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
     session = SimpleNamespace(cfg=cfg, state=state, banks=None, clock=SimpleNamespace(total=1.0),
-                              prune=dict(pruned=0), replays=0, recompilations=0)
-    metrics = dict(loss=720.0, loss_image=720.0, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
-                   dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)
+                              prune=dict(pruned=0), replays=0, recompilations=0, alarmed=set())
+    normal = dict(loss=0.5, loss_image=0.3, loss_l1=0.2, loss_feature=0.4, loss_feat_semantic_l2=0.05,
+                  loss_feat_semantic_cos=0.35, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
+                  dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)
     with caplog.at_level("WARNING", logger="cusgs_jax"):
-        row = _log_row(session, cfg.train.log_every, metrics, 0.1)
-        _log_row(session, cfg.train.log_every, dict(metrics, loss=0.3, loss_image=0.3), 0.1)
+        row = _log_row(session, cfg.train.log_every, normal, 0.1)
+        assert caplog.text == ""
+        # a later logged step: the image loss alone is far too large
+        _log_row(session, 7 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)
+        _log_row(session, 8 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)  # said once
+        # the image loss is normal, a feature model's L2 term explodes (a stray target value of 1e6)
+        _log_row(session, 9 * cfg.train.log_every, dict(normal, loss=3e8, loss_feature=3e8,
+                                                         loss_feat_semantic_l2=3e8), 0.1)
+        _log_row(session, 10 * cfg.train.log_every, dict(normal, loss=float("nan"), loss_l1=float("nan")), 0.1)
     assert row["dropped_anchors"] == row["dropped_pairs"] == 0
-    assert caplog.text.count("far above the normal range") == 1 and "model.voxel_size" in caplog.text
+    assert caplog.text.count("far above the normal range") == 2 and "model.voxel_size" in caplog.text
+    assert f"step {7 * cfg.train.log_every}: image loss 720" in caplog.text
+    assert f"step {9 * cfg.train.log_every}: the L2 feature loss of model semantic is 3e+08" in caplog.text
+    assert "features/semantic/" in caplog.text
+    assert f"step {10 * cfg.train.log_every}: the loss term l1 is nan" in caplog.text
 
 
 def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path):

@@ -92,3 +92,19 @@ def test_a_text_query_becomes_the_query_of_its_feature_model(feature_run):
         np.testing.assert_allclose(viewer._queries["semantic"], encode("a red chair"), rtol=1e-5)
     finally:
         viewer.stop()
+
+
+def test_a_busy_port_is_said_when_the_viewer_moves_to_another(feature_run, caplog):
+    import socket
+
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        with caplog.at_level("WARNING", logger="cusgs_jax"):
+            viewer = open_viewer(feature_run, port=port)
+        try:
+            assert viewer.port != port
+            assert f"port {port} on 127.0.0.1 is busy: serving on port {viewer.port} instead" in caplog.text
+        finally:
+            viewer.stop()

@@ -206,7 +206,18 @@ def test_error_no_train_file(tmp_path):
         load_blender_scene(tmp_path)
 
 
+def test_a_downscale_that_leaves_no_pixel_is_refused(blender):
+    with pytest.raises(SceneError, match=r"data\.downscale=64 shrinks the images \(16x12 in .*transforms_train\.json\) "
+                                         r"to 0x0 pixels; use data\.downscale=1"):
+        load_blender_scene(blender["root"], downscale=64)
+
+
 def test_error_corrupt_image(blender):
     (blender["root"] / "train" / "r_3.png").write_bytes(b"not a png")
-    with pytest.raises(SceneError, match=r"cannot read image .*r_3.png"):
+    with pytest.raises(SceneError, match=r"cannot decode image .*r_3.png.*corrupt or not an image.*delete its frame"
+                       ) as raised:
+        load_blender_scene(blender["root"])
+    assert "pip install" not in str(raised.value)
+    (blender["root"] / "train" / "r_3.png").write_bytes(b"")
+    with pytest.raises(SceneError, match=r"image .*r_3.png is an empty file \(0 bytes\)"):
         load_blender_scene(blender["root"])

@@ -350,8 +350,16 @@ def test_error_image_missing_on_disk(tmp_path):
 def test_error_image_corrupt(tmp_path):
     make_scene(tmp_path)
     (tmp_path / "images" / "img_02.png").write_bytes(b"\x89PNG not really")
-    with pytest.raises(SceneError, match=r"cannot read image .*img_02\.png.*corrupt"):
+    with pytest.raises(SceneError, match=r"cannot decode image .*img_02\.png.*corrupt"):
         load_scene(tmp_path)
+
+
+def test_a_downscale_that_leaves_no_pixel_is_refused_before_reading_images(tmp_path):
+    make_scene(tmp_path)
+    (tmp_path / "images" / "img_00.png").write_bytes(b"")  # not read: the check comes first
+    with pytest.raises(SceneError, match=rf"data\.downscale=64 shrinks the images \({W}x{H} in .*cameras\..*\) to "
+                                         r"\d+x0 pixels; use data\.downscale="):
+        load_scene(tmp_path, downscale=64)
 
 
 def test_error_no_points(tmp_path):

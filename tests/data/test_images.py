@@ -1,4 +1,5 @@
-"""Image loading: alpha channels composited onto the rendering background (splat.background)."""
+"""Image loading: alpha channels composited onto the rendering background (splat.background); empty or
+undecodable files named as such."""
 
 from __future__ import annotations
 
@@ -145,3 +146,19 @@ def test_error_bad_background(demo_copy, bad):
 def test_check_background_accepts_sequences():
     assert check_background([1, 0.5, 0]) == (1.0, 0.5, 0.0)
     assert check_background(np.array([0.1, 0.2, 0.3], np.float32)) == pytest.approx((0.1, 0.2, 0.3))
+
+
+@pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its legacy plugins
+def test_an_empty_or_undecodable_image_is_named_without_a_backend_install_hint(demo_copy):
+    path = demo_copy / "images" / "view_001.png"
+    good = path.read_bytes()
+    path.write_bytes(b"")
+    with pytest.raises(SceneError, match=r"image .*view_001\.png is an empty file \(0 bytes\).*replace it with a valid "
+                                         r"copy or remove the image from the reconstruction") as raised:
+        load_scene(demo_copy)
+    assert "pip install" not in str(raised.value)
+    path.write_bytes(good[:300])  # truncated
+    with pytest.raises(SceneError, match=r"cannot decode image .*view_001\.png \(300 bytes; .*corrupt or not an image"
+                       ) as raised:
+        load_scene(demo_copy)
+    assert "pip install" not in str(raised.value)

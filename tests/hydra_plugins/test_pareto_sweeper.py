@@ -51,6 +51,7 @@ def test_pareto_search_runs_through_the_cli_and_the_report_marks_its_front(tiny_
     ("hydra.sweeper.n_trials=0", "hydra.sweeper.n_trials=0 must be a whole number >= 1"),
     ("hydra.sweeper.directions=[up,minimize]", "'up' is not one of"),
     ("prune.ratio=interval(0.5, 2)", "prune.ratio=2.0: is the fraction of alive anchors"),
+    ("model.voxel_size=tag(log, interval(0.08, 0.008))", "the interval runs from 0.08 down to 0.008"),
 ])
 def test_bad_search_settings_exit_2_with_one_line(override, message, tmp_path):
     done = subprocess.run([*APP, "-m", "experiment=pareto_search", override, f"hydra.sweep.dir={tmp_path}/x"],

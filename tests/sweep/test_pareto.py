@@ -59,6 +59,26 @@ def test_check_sweeper_settings():
     assert "hydra.sweeper.params" in check_sweeper_settings({**good, "params": {"prune.ratio": "interval(0"}})
 
 
+@pytest.mark.parametrize("params, arguments, expected", [
+    ({}, ["model.voxel_size=tag(log, interval(0.08, 0.008))"],
+     "model.voxel_size=tag(log, interval(0.08, 0.008)): the interval runs from 0.08 down to 0.008; write "
+     "model.voxel_size=tag(log, interval(0.008, 0.08))"),
+    ({"prune.ratio": "interval(0.05, 0)"}, [],
+     "prune.ratio=interval(0.05, 0): the interval runs from 0.05 down to 0.0; write prune.ratio=interval(0.0, 0.05)"),
+    ({}, ["model.voxel_size=tag(log, interval(0, 0.08))"], "a log interval needs a low end > 0"),
+    ({}, ["model.n_offsets=range(12, 4, 2)"], "range(12, 4, 2) holds no value"),
+    ({"model": {"voxel_size": "tag(log, interval(0.008, 0.08))"}}, [],
+     "hydra.sweeper.params.model holds a group of options, not one search dimension"),
+])
+def test_a_search_space_optuna_would_refuse_is_named_before_any_trial(params, arguments, expected):
+    good = {"n_trials": 4, "n_jobs": 2, "objectives": ["psnr", "params"], "directions": ["maximize", "minimize"]}
+    problem = check_sweeper_settings({**good, "params": params}, arguments)
+    assert problem is not None and expected in problem and "\n" not in problem
+    assert check_sweeper_settings({**good, "params": {"prune.ratio": "interval(0, 0.05)"}},
+                                  ["model.voxel_size=tag(log, interval(0.008, 0.08))", "model.n_offsets=range(4, 12, 2)"]
+                                  ) is None
+
+
 class _Return:
     """Stands in for Hydra's JobReturn: ``return_value`` re-raises a job's exception."""
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import re
 from typing import Callable
 
 
@@ -32,3 +33,13 @@ def number_in(low: float, high: float, *, include_high: bool = True) -> Callable
             raise argparse.ArgumentTypeError(f"expected a number in [{low:g}, {high:g}{closing}, got {text!r}")
         return value
     return parse
+
+
+def in_cli_terms(message: str, names: dict[str, str]) -> str:
+    """``message`` (a :class:`~cusgs_jax.errors.UserError`'s, written in ``cusgs-train``'s option names)
+    with each option of ``names`` replaced by what the tool calls it: ``{"data.path": "--colmap"}`` turns
+    ``data.path=/x`` into ``--colmap /x`` and ``set data.path to`` into ``set --colmap to``."""
+    for option, flag in names.items():
+        message = re.sub(rf"(?<![\w.-]){re.escape(option)}(?![\w])(=?)",
+                         lambda m, flag=flag: flag + (" " if m.group(1) else ""), message)
+    return message

@@ -9,20 +9,27 @@ import argparse
 from collections.abc import Sequence
 from typing import Any
 
+from cusgs_jax.app.argtypes import in_cli_terms, int_at_least
 from cusgs_jax.errors import UserError
 from cusgs_jax.extract import MODELS, extract
 
 __all__ = ["main"]
 
+PROG = "cusgs-extract"
+#: cusgs-train's option names in the loaders' messages → this tool's arguments
+FLAGS = {"data.path": "SCENE", "data.format": "--format", "data.downscale": "--downscale"}
+
 
 def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
-        prog="cusgs-extract",
+        prog=PROG,
         description="Extract dense per-view feature maps into SCENE/features/MODEL/ "
                     "(one .npy per image + meta.json).")
-    ap.add_argument("scene", help="scene folder: COLMAP (images/, sparse/0/), Blender (transforms_train.json) "
+    ap.add_argument("scene", metavar="SCENE", help="scene folder: COLMAP (images/, sparse/0/), Blender (transforms_train.json) "
                                   "or nerfstudio (transforms.json)")
     ap.add_argument("--model", required=True, choices=MODELS)
+    ap.add_argument("--format", default="auto", choices=("auto", "colmap", "blender", "nerfstudio"),
+                    help="the scene's layout (default: detected from the files present)")
     ap.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"), default=None,
                     help="feature map size (default: the image size; vgg16: 1/4 of it; "
                          "clip/dinov2: patch grid)")
@@ -30,7 +37,7 @@ def _parser() -> argparse.ArgumentParser:
                     help="daisy/hog/gabor: describe each CIE-Lab channel (3x the dimension)")
     ap.add_argument("--overwrite", action="store_true", help="replace existing features")
     ap.add_argument("--dtype", choices=("float16", "float32"), default="float16")
-    ap.add_argument("--downscale", type=int, default=1, help="load images at 1/D resolution")
+    ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D", help="load images at 1/D resolution")
     ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (32)")
     ap.add_argument("--layer", default=None,
                     help="vgg16: the VGG16 tap, relu1_2|relu2_2|relu3_3|relu4_3|relu5_3 (relu3_3)")
@@ -61,10 +68,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             options[key] = getattr(args, key)
     try:
         s = extract(args.scene, args.model, resolution=args.resolution, downscale=args.downscale,
-                    dtype=args.dtype, overwrite=args.overwrite, progress=not args.quiet,
+                    dtype=args.dtype, overwrite=args.overwrite, progress=not args.quiet, format=args.format,
                     **options)
     except UserError as e:  # bad scene, features or options: one line, exit 2 (as cusgs-train)
-        ap.exit(2, f"cusgs-extract: error: {e}\n")
+        ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(f"{s.model} features -> {s.folder}\n"
           f"  {s.num_views} views, {s.resolution[0]}x{s.resolution[1]}x{s.dim} {s.dtype}, "
           f"{100 * s.valid_fraction:.1f}% pixels with a target\n"

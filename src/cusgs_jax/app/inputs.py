@@ -37,7 +37,34 @@ def load_data(cfg: Config):
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=cfg.splat.background, num_random_points=data.random_points,
                            seed=cfg.train.seed)
+    require_ssim_size(scene, data.downscale, "data.downscale")
     return normalize_scene(scene, align=data.align)
+
+
+def require_ssim_size(scene, downscale: int, option: str) -> None:
+    """SceneError unless ``scene``'s images are at least as large as the SSIM window (11×11 pixels).
+
+    The training loss and every evaluation take the SSIM of whole images, which cannot be computed
+    on images smaller than its window; ``option`` names the downscale setting in the message
+    (``data.downscale`` for ``cusgs-train``, ``--downscale`` for ``cusgs-render-ply``).
+    """
+    from cusgs_jax.data.errors import SceneError
+    from cusgs_jax.losses import gaussian_window
+
+    k = len(gaussian_window())
+    if scene.width >= k and scene.height >= k:
+        return
+    if downscale > 1:
+        from cusgs_jax.data.images import scaled_size
+
+        smallest = (min(scene.width, scene.height) - 0.5) * downscale  # the full-size side is at least this
+        fits = [d for d in range(1, downscale) if scaled_size(int(smallest), d) >= k]
+        fix = (f"use a smaller {option} (e.g. {option}={max(fits)})" if fits
+               else f"use {option}=1 (full-size images), or give it images of at least {k}x{k} pixels")
+    else:
+        fix = f"give it images of at least {k}x{k} pixels"
+    raise SceneError(f"{scene.path}: its images load at {scene.width}x{scene.height} pixels with {option}={downscale}, "
+                     f"smaller than the {k}x{k} pixels of the SSIM window that training and evaluation need; {fix}")
 
 
 def resolve_background(cfg: Config, scene) -> Config:
@@ -74,6 +101,7 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
                 scene.path, model.name, progress=False):
             log.info("extracted %s features for %s", model.name, scene.path)
         fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
+        _warn_on_target_norms(scene.path, model.name, fs.maps, scene.names)  # every view: held-out ones are scored
         rows = fs.maps[scene.train_indices].reshape(-1, fs.dim)
         rows = rows[np.any(rows != 0, axis=-1)]
         rng = np.random.default_rng([seed, 7, index])
@@ -87,6 +115,33 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
 
 
 FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65504
+TARGET_NORM_MAX = 1e3
+"""Largest feature target norm taken as plausible: the built-in extractors give norms ≤ 1 (descriptors,
+semantic, vgg16); CLIP / DINOv2 tokens (LayerNorm outputs, √D ≈ 20 with unit gains) are expected at tens, an
+estimate not measured on real weights; far larger targets make the feature loss dwarf the image
+loss (and a single stray value makes some steps' loss explode)."""
+
+
+def _warn_on_target_norms(scene_path, name: str, maps: np.ndarray, names) -> None:
+    """Warn when the non-zero target vectors of ``maps`` [N, h, w, D] (feature model ``name``, views
+    ``names``) have norms far above what the extractors produce (:data:`TARGET_NORM_MAX`): a scaled or
+    corrupted feature folder. The message gives their range and the file holding the largest."""
+    from cusgs_jax.data.features import feature_dir, feature_file
+
+    per_view = np.linalg.norm(maps.reshape(len(maps), -1, maps.shape[-1]).astype(np.float64), axis=-1)
+    norms = per_view[per_view != 0]  # all-zero vectors: no target
+    if not len(norms):
+        return
+    low, median, high = (float(v) for v in np.quantile(norms, [0.0, 0.5, 1.0]))
+    if not np.isfinite(high) or high > TARGET_NORM_MAX:
+        view = int(np.argmax(np.nan_to_num(per_view, nan=np.inf).max(axis=1)))
+        worst = feature_file(scene_path, name, names[view])
+        count = int(np.sum(~np.isfinite(norms) | (norms > TARGET_NORM_MAX)))
+        log.warning("feature model %s: target vectors in %s have norms %.3g to %.3g (median %.3g); %d of %d are "
+                    "above %g, far beyond what the extractors produce (at most a few tens; the largest is in %s): the "
+                    "feature loss will dwarf the image loss or explode at the steps that sample them. Check the maps "
+                    "(a stray value, a scale factor) or re-extract them with cusgs-extract", name,
+                    feature_dir(scene_path, name), low, high, median, count, len(norms), TARGET_NORM_MAX, worst)
 
 
 def feature_targets(feature_sets: dict, views: np.ndarray) -> dict:

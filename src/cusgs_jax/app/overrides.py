@@ -26,9 +26,11 @@ def check_command_line(argv: list[str]) -> str | None:
         return None
     try:
         overrides = _parse(args.overrides)
+        _check_hydra_sweeps(overrides)
         for variant in _variants(overrides):
             _compose(variant)
-        _check_sweeper([o.input_line for o in overrides if not o.is_sweep_override()])
+        _check_sweeper([o.input_line for o in overrides if not o.is_sweep_override()],
+                       [o.input_line for o in overrides])
         if not args.multirun and not any(o.is_sweep_override() for o in overrides):
             _check_writable(_run_dir(overrides))
     except UserError as error:
@@ -78,8 +80,25 @@ def _sweep_values(sweep) -> list:
 _EXTRAS = {"hydra/launcher/ray": "ray", "hydra/launcher/submitit": "slurm"}
 
 
-def _check_sweeper(fixed: list[str]) -> None:
-    """``hydra/sweeper=pareto``: its settings, and every end / choice of its search space, must compose."""
+def _check_hydra_sweeps(overrides) -> None:
+    """Hydra cannot sweep its own ``hydra.*`` settings (it stops with exit 1): say what to write instead."""
+    for o in overrides:
+        key = o.get_key_element()
+        if not (o.is_sweep_override() and key.lstrip("+~").startswith("hydra.")):
+            continue
+        prefix = "hydra.sweeper.params."
+        if key.lstrip("+").startswith(prefix):
+            option, value = key.lstrip("+")[len(prefix):], o.input_line.split("=", 1)[1]
+            raise UserError(f"{o.input_line!r}: Hydra cannot sweep its own hydra.* settings; give the search "
+                            f"dimension as its own override, '{option}={value}' (the "
+                            "command line's sweeps join hydra.sweeper.params)")
+        raise UserError(f"{o.input_line!r}: Hydra cannot sweep its own hydra.* settings; give {key.lstrip('+')} "
+                        "one value")
+
+
+def _check_sweeper(fixed: list[str], arguments: list[str] = ()) -> None:
+    """``hydra/sweeper=pareto``: its settings, its search space (``params`` and the sweeps of the command
+    line ``arguments``) and every end / choice of ``params`` must compose."""
     from omegaconf import OmegaConf
 
     from cusgs_jax.config import compose_node
@@ -93,7 +112,7 @@ def _check_sweeper(fixed: list[str]) -> None:
         raise UserError("hydra/sweeper=pareto needs Optuna: pip install -e \".[optuna]\"") from None
     from cusgs_jax.sweep.pareto import check_sweeper_settings
 
-    problem = check_sweeper_settings(OmegaConf.to_container(sweeper, resolve=False))
+    problem = check_sweeper_settings(OmegaConf.to_container(sweeper, resolve=False), arguments)
     if problem:
         raise UserError(problem)
     params = sweeper.get("params") or {}

@@ -18,12 +18,15 @@ import json
 import pathlib
 from collections.abc import Sequence
 
-from cusgs_jax.app.argtypes import int_at_least, number_in
+from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
 
 PROG = "cusgs-render-ply"
+#: cusgs-train's option names in the loaders' messages → this tool's flags
+FLAGS = {"data.path": "--colmap", "data.format": "--format", "data.downscale": "--downscale",
+         "data.holdout_every": "--holdout-every", "splat.background": "--background"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -73,6 +76,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     import numpy as np
     from tqdm import tqdm
 
+    from cusgs_jax.app.inputs import require_ssim_size
     from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact
@@ -82,6 +86,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     every = 0 if all_views or holdout_every <= 1 else holdout_every
     scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=every,
                            background=None if background is None else tuple(background))
+    require_ssim_size(scene, downscale, "--downscale")  # before any render: SSIM needs 11x11 pixels
     background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
     degree = model.sh_degree if sh_degree is None else sh_degree
@@ -141,7 +146,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                               sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet,
                               format=args.format)
     except UserError as e:  # a bad PLY, scene or setting: one line, exit 2 (as every CLI)
-        ap.exit(2, f"{PROG}: error: {e}\n")
+        ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(json.dumps(result, indent=2))
     return 0
 

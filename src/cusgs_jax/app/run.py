@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import pathlib
 import time
 
@@ -44,6 +45,7 @@ from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.load_run import BANKS_FILE
 from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.config import Config, require
+from cusgs_jax.data.errors import SceneError
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
@@ -59,6 +61,7 @@ from cusgs_jax.view.live import live_view
 
 log = logging.getLogger("cusgs_jax")
 LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
+FEATURE_L2_ALARM = 100.0  # mean squared error per feature component; the extractors' targets keep it below ~10
 
 
 @dataclasses.dataclass
@@ -84,6 +87,7 @@ class Session:
     capacities: capacity.Capacities = None  # the step's work capacities: owned, grown and checkpointed here
     recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
     replays: int = 0  # steps replayed because a capacity was too small
+    alarmed: set = dataclasses.field(default_factory=set)  # loss terms already warned about (_loss_alarms)
     step_fn: object = None
     render: object = None
     feature_render: object = None
@@ -113,6 +117,7 @@ def setup(cfg: Config, output_dir) -> Session:
     require(cfg.train.resume or latest is None, "train.resume", False,
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
+    _require_not_past(cfg, latest, ckpt.directory)
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
@@ -157,6 +162,14 @@ def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities
     positions = _spread(np.arange(len(session.train_idx)), probes)
     needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), jnp.int32(p))
                                                   for p in positions], cfg)
+    if needs["visible_anchors"] == 0:
+        raise SceneError(
+            f"data.path={str(scene.path)!r}: none of the {int(np.sum(state.anchors.alive))} initial anchors (from the "
+            f"{len(scene.points)} SfM points) is seen by any of the {len(positions)} training views probed "
+            f"(spread over all {len(session.train_idx)}): the points lie behind or beside every camera, and training "
+            "would only fit the background. Check that the points and the cameras come from the same reconstruction "
+            "and frame (not a points file of another run, not poses read as camera-to-world where world-to-camera "
+            "is meant), and that data.path names the right scene")
     fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
     log.info("work capacities from %d probed views (at most %d visible anchors, %d active Gaussians, %d tile "
              "pairs): %s", len(positions), needs["visible_anchors"], needs["active_gaussians"],
@@ -189,6 +202,7 @@ def _resume(session: Session) -> None:
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
+    _require_not_past(session.cfg, step, session.ckpt.directory)
     session.capacities = session.capacities.restored(meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
@@ -198,6 +212,15 @@ def _resume(session: Session) -> None:
     _trim_jsonl(session.out / "metrics.jsonl", step)
     _trim_jsonl(session.out / "eval_curve.jsonl", step)
     log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+
+
+def _require_not_past(cfg: Config, step: int | None, directory) -> None:
+    """A resumed run cannot train backwards: refuse a checkpoint already past ``train.iterations``."""
+    require(not cfg.train.resume or step is None or step <= cfg.train.iterations, "train.iterations",
+            cfg.train.iterations, f"the run to resume in {directory} is already at step {step}, past the asked "
+            "iterations (resuming cannot undo steps, and its eval.json would report a model of more steps)",
+            f"set train.iterations={step} or more to continue it, or train {cfg.train.iterations} steps in a new "
+            "output folder (hydra.run.dir=...)")
 
 
 def _trim_jsonl(path: pathlib.Path, last_step: int) -> None:
@@ -329,11 +352,37 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
                dropped_gaussians=int(metrics["dropped_gaussians"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
                recompilations=session.recompilations, step_s=round(step_s, 4))
-    if step == session.cfg.train.log_every and float(metrics["loss_image"]) > LOSS_ALARM:
-        log.warning("step %d: image loss %.4g is far above the normal range (< %g for images in [0, 1]): check the "
-                    "scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of the "
-                    "scene extent", step, float(metrics["loss_image"]), LOSS_ALARM)
+    _loss_alarms(session, step, metrics)
     return row
+
+
+def _loss_alarms(session: Session, step: int, metrics: dict) -> None:
+    """Warn (once per loss term and run) when a logged step's loss term is far outside its normal range.
+
+    Every term of ``metrics`` is looked at: the image loss (:data:`LOSS_ALARM`), each feature model's
+    L2 term (:data:`FEATURE_L2_ALARM`) and any term that is not finite.
+    """
+    for key, value in metrics.items():
+        if not key.startswith("loss") or key in session.alarmed:
+            continue
+        value = float(value)
+        if key == "loss_image" and value > LOSS_ALARM:
+            log.warning("step %d: image loss %.4g is far above the normal range (< %g for images in [0, 1]): check "
+                        "the scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of "
+                        "the scene extent", step, value, LOSS_ALARM)
+        elif key.startswith("loss_feat_") and key.endswith("_l2") and value > FEATURE_L2_ALARM:
+            name = key[len("loss_feat_"):-len("_l2")]
+            log.warning("step %d: the L2 feature loss of model %s is %.4g, far above the normal range (< %g for "
+                        "the targets the extractors produce): its target maps (features/%s/ of the scene) hold "
+                        "values far too large (a stray value or a scale factor; see the warning on their norms at "
+                        "load); fix or re-extract them with cusgs-extract", step, name, value, FEATURE_L2_ALARM,
+                        name)
+        elif not math.isfinite(value):
+            log.warning("step %d: the loss term %s is %s (the step's update was skipped): check the scene's images "
+                        "and feature targets for non-finite values", step, key.removeprefix("loss_") or key, value)
+        else:
+            continue
+        session.alarmed.add(key)
 
 
 def _evaluate(session: Session, anchors, **kwargs) -> dict:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import logging
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least
@@ -20,6 +21,7 @@ from cusgs_jax.errors import UserError
 __all__ = ["main", "open_viewer"]
 
 PROG = "cusgs-view"
+log = logging.getLogger("cusgs_jax")
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -71,6 +73,9 @@ def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int
                         text_unavailable=reason)
     except OSError as e:
         raise UserError(f"cannot listen on {host}:{port} ({e.strerror or e}): pick another --port") from e
+    if port and viewer.port != port:  # viser moves on to the next free port by itself
+        log.warning("port %d on %s is busy: serving on port %d instead (--port picks another)", port, host,
+                    viewer.port)
     return viewer.start()
 
 

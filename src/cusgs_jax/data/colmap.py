@@ -37,7 +37,7 @@ import numpy as np
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_centers, camera_extent
-from cusgs_jax.data.images import check_background, image_dir, load_images, scaled_size
+from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -322,6 +322,8 @@ def _poses(entries, files: dict[str, pathlib.Path]) -> tuple[list[str], np.ndarr
 def _check_common_size(entries, cameras: dict[int, dict], downscale: int,
                        files: dict[str, pathlib.Path]) -> None:
     """SceneError unless every camera of ``entries`` loads at the same size at ``downscale``."""
+    for cid in {image.camera_id for _, _, image in entries}:
+        require_loadable_size(cameras[cid]["width"], cameras[cid]["height"], downscale, files["cameras"])
     expected = {cid: (scaled_size(cam["width"], downscale), scaled_size(cam["height"], downscale))
                 for cid, cam in cameras.items()}
     first_cam = entries[0][2].camera_id

@@ -24,7 +24,8 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import _downscale, _to_rgb_uint8, _warn_alpha, scaled_size
+from cusgs_jax.data.images import (_downscale, _to_rgb_uint8, _warn_alpha, read_image_file, require_loadable_size,
+                                   scaled_size)
 
 __all__ = ["FrameImage", "read_json", "require_key", "frame_list", "frame_path", "frame_name",
            "opengl_c2w_to_viewmat", "load_frame_images", "check_unique_names", "fov_focal"]
@@ -164,14 +165,7 @@ class FrameImage(NamedTuple):
 
 
 def _read(path: pathlib.Path, background) -> tuple[np.ndarray, np.ndarray | None]:
-    try:
-        import imageio.v3 as iio
-
-        raw = iio.imread(path)
-    except Exception as e:  # imageio raises many types for a corrupt file
-        raise SceneError(f"cannot read image {path}: {type(e).__name__}: {e}. The file is corrupt or not an "
-                         "image — replace it with a valid copy or delete its frame") from e
-    return _to_rgb_uint8(raw, path, background)
+    return _to_rgb_uint8(read_image_file(path, "delete its frame"), path, background)
 
 
 def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, background: tuple[float, float, float],
@@ -196,6 +190,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
         h, w = img.shape[:2]
         if full is None:
             full = frame.size if frame.size is not None else (w, h)
+            require_loadable_size(full[0], full[1], downscale, json_path)
         expected = frame.size if frame.size is not None else full
         file_scale = downscale if frame.prescaled else 1
         exp_w, exp_h = scaled_size(expected[0], file_scale), scaled_size(expected[1], file_scale)

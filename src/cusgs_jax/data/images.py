@@ -32,6 +32,19 @@ def scaled_size(size: int, downscale: int) -> int:
     return int(math.floor(size / downscale + 0.5))
 
 
+def require_loadable_size(width: int, height: int, downscale: int, source) -> None:
+    """SceneError unless ``width``×``height`` images of ``source`` keep at least a pixel a side at
+    ``downscale`` (``data.downscale``); the message says how far it may go (11 pixels a side: the SSIM
+    window that training and evaluation need)."""
+    w, h = scaled_size(width, downscale), scaled_size(height, downscale)
+    if w >= 1 and h >= 1:
+        return
+    fits = [d for d in range(1, downscale) if scaled_size(min(width, height), d) >= 11]
+    fix = f"use data.downscale={max(fits)} or less" if fits else "use data.downscale=1"
+    raise SceneError(f"data.downscale={downscale} shrinks the images ({width}x{height} in {source}) to {w}x{h} "
+                     f"pixels; {fix}")
+
+
 def image_dir(scene: pathlib.Path, downscale: int) -> tuple[pathlib.Path, bool]:
     """(folder to read, True when it already holds images downscaled by `downscale`)."""
     if downscale > 1:
@@ -179,6 +192,31 @@ def load_image(folder: pathlib.Path, name: str, cam: dict, camera_id: int, downs
                        check_background(background))[0]
 
 
+def read_image_file(path: pathlib.Path, remove: str) -> np.ndarray:
+    """The decoded pixels of the image file ``path``; SceneError naming the file when it is empty or
+    cannot be decoded. ``remove``: how to drop the image instead of repairing it (the layout's way).
+
+    imageio's own message for an undecodable file suggests installing more backends (``pip install
+    imageio[pyav]``), which does not help a truncated or empty file: only its first sentence is kept.
+    """
+    fix = f"replace it with a valid copy or {remove}"
+    try:
+        size = path.stat().st_size
+    except OSError as e:
+        raise SceneError(f"cannot read image {path} ({e.strerror or e}): {fix}") from e
+    if size == 0:
+        raise SceneError(f"image {path} is an empty file (0 bytes), e.g. from an interrupted copy: {fix}")
+    try:
+        import imageio.v3 as iio
+
+        return iio.imread(path)
+    except Exception as e:  # imageio raises many types for a corrupt file
+        detail = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        detail = detail.split(" Based on the extension")[0].rstrip(". ")
+        raise SceneError(f"cannot decode image {path} ({size} bytes; {type(e).__name__}: {detail}): the file is "
+                         f"corrupt or not an image; {fix}") from e
+
+
 def _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
                 background) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`load_image`, also returning the image's alpha ([H, W] float64 in [0, 1], at the
@@ -189,14 +227,7 @@ def _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
             f"image {name!r} from the COLMAP model is missing: {folder / name} does not exist; "
             f"copy it into {folder} or remove the image from the reconstruction (data.path="
             f"{scene})")
-    try:
-        import imageio.v3 as iio
-        raw = iio.imread(path)
-    except Exception as e:
-        raise SceneError(
-            f"cannot read image {path}: {type(e).__name__}: {e}. The file is corrupt or not an "
-            "image — replace it with a valid copy or remove the image from the reconstruction"
-        ) from e
+    raw = read_image_file(path, "remove the image from the reconstruction")
     img, alpha = _to_rgb_uint8(raw, path, background)
     h, w = img.shape[:2]
 

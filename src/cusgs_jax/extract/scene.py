@@ -209,7 +209,7 @@ def _check_request(scene_path: str | os.PathLike, model: str,
 
 def extract(scene_path: str | os.PathLike, model: str, *,
             resolution: tuple[int, int] | None = None, downscale: int = 1,
-            dtype: str = "float16", overwrite: bool = False, progress: bool = True,
+            dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = "auto",
             **options) -> ExtractSummary:
     """Extract dense features of ``model`` for every image of a scene and write them to
     ``<scene>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
@@ -224,6 +224,7 @@ def extract(scene_path: str | os.PathLike, model: str, *,
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
+      format: the scene's layout, ``auto`` (detected), ``colmap``, ``blender`` or ``nerfstudio``.
       **options: per model — daisy: radius, rings, histograms, orientations, lab;
         hog: cell, orientations, lab; gabor: frequencies, orientations, bandwidth, lab;
         semantic: dim, seed; vgg16: layer; clip: weights, arch, device, net; dinov2: weights, arch,
@@ -239,7 +240,7 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     t_start = time.perf_counter()
     resolution = _check_request(scene_path, model, resolution, overwrite)
     extractor = _EXTRACTORS[model](model, dict(options))
-    scene = load_any_scene(scene_path, downscale=downscale, holdout_every=0, num_random_points=2)
+    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=0, num_random_points=2)
 
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()

@@ -32,14 +32,19 @@ import json
 import math
 from pathlib import Path
 
-__all__ = ["ParetoSearch", "check_sweeper_settings", "distributions_from_overrides", "objective_values",
+__all__ = ["ParetoSearch", "SearchSpaceError", "check_sweeper_settings", "distributions_from_overrides", "objective_values",
            "result_objectives"]
 
 DIRECTIONS = ("maximize", "minimize")
 
 
-def check_sweeper_settings(sweeper: dict) -> str | None:
-    """One line naming a bad ``hydra.sweeper.*`` setting of ``hydra/sweeper=pareto`` and its fix, or None."""
+def check_sweeper_settings(sweeper: dict, arguments=()) -> str | None:
+    """One line naming a bad ``hydra.sweeper.*`` setting of ``hydra/sweeper=pareto`` and its fix, or None.
+
+    ``arguments``: the command line's overrides, whose sweeps join (and replace) ``params``, as
+    :meth:`ParetoSweeper.sweep` builds the search space from both; every dimension is checked
+    (:func:`distributions_from_overrides`) before any trial.
+    """
     for key in ("n_trials", "n_jobs"):
         value = sweeper.get(key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -51,8 +56,21 @@ def check_sweeper_settings(sweeper: dict) -> str | None:
     bad = [d for d in directions if d not in DIRECTIONS]
     if bad:
         return f"hydra.sweeper.directions: {bad[0]!r} is not one of {list(DIRECTIONS)}"
+    params = sweeper.get("params") or {}
+    for key, value in params.items():
+        if isinstance(value, dict):  # +hydra.sweeper.params.model.voxel_size=... nests a dict under "model"
+            inner, example = key, value
+            while isinstance(example, dict) and example:
+                name, example = next(iter(example.items()))
+                inner = f"{inner}.{name}"
+            return (f"hydra.sweeper.params.{key} holds a group of options, not one search dimension (a dotted key "
+                    f"after hydra.sweeper.params. on the command line nests them): give the dimension as its own "
+                    f"override, e.g. '{inner}={example}', or as the key '{inner}' of hydra.sweeper.params in a "
+                    "config file")
     try:
-        space, _ = distributions_from_overrides(f"{k}={v}" for k, v in (sweeper.get("params") or {}).items())
+        distributions_from_overrides([f"{k}={v}" for k, v in params.items()] + list(arguments))
+    except SearchSpaceError as error:
+        return f"the search space of hydra/sweeper=pareto: {error}"
     except Exception as error:  # noqa: BLE001 - Hydra's parser and Optuna raise several types
         return f"hydra.sweeper.params: {str(error).splitlines()[0]}; use interval(a, b), tag(log, interval(a, b)), " \
                "range(a, b, step) or choice(x, y, ...)"
@@ -96,14 +114,37 @@ def _distribution(override):
     if isinstance(value, ChoiceSweep):
         return CategoricalDistribution(list(value.list))
     log = "log" in (getattr(value, "tags", None) or set())
+    line = override.input_line
     if isinstance(value, IntervalSweep):
-        return FloatDistribution(float(value.start), float(value.end), log=log)
+        low, high = float(value.start), float(value.end)
+        if not low <= high:
+            flipped = f"interval({value.end}, {value.start})"
+            return _bad_dimension(line, f"the interval runs from {value.start} down to {value.end}",
+                                  f"{override.get_key_element()}={f'tag(log, {flipped})' if log else flipped}")
+        if log and low <= 0:
+            return _bad_dimension(line, f"a log interval needs a low end > 0, not {value.start}",
+                                  f"{override.get_key_element()}=tag(log, interval({high / 100:g}, {value.end})) "
+                                  f"or {override.get_key_element()}=interval({value.start}, {value.end})")
+        return FloatDistribution(low, high, log=log)
     if isinstance(value, RangeSweep):
         start, stop, step = value.start, value.stop, value.step
+        if not step > 0 or not stop - step >= start:
+            return _bad_dimension(line, f"range({start}, {stop}, {step}) holds no value",
+                                  "a start below the stop (which is excluded) and a step > 0, e.g. range(4, 12, 2)")
         if all(isinstance(x, int) for x in (start, stop, step)):
+            if log and start <= 0:
+                return _bad_dimension(line, f"a log range needs a start > 0, not {start}", "a start >= 1")
             return IntDistribution(start, stop - step, step=step, log=log)
         return FloatDistribution(float(start), float(stop) - float(step), step=float(step))
     raise ValueError(f"{override.input_line}: cannot turn {type(value).__name__} into a search dimension")
+
+
+class SearchSpaceError(ValueError):
+    """A sweep override that cannot be a search dimension; the message names it and the fix."""
+
+
+def _bad_dimension(line: str, problem: str, fix: str):
+    raise SearchSpaceError(f"{line}: {problem}; write {fix}")
 
 
 def distributions_from_overrides(lines) -> tuple[dict, dict[str, str]]:

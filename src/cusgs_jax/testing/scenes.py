@@ -120,14 +120,16 @@ def transformed_scene(src, dst, *, scale: float, translation=(0.0, 0.0, 0.0), ro
 
 
 def object_scene(dst, *, views: int = 8, width: int = 32, height: int = 24, num_points: int = 300,
-                 seed: int = 0):
+                 seed: int = 0, facing_away: bool = False):
     """A small object seen whole by every camera: a COLMAP text model plus images.
 
     ``num_points`` SfM points fill a ball of radius 0.5 at the origin; ``views``
     cameras on a ring of radius 4 (height 1) look at it with a focal length that
     keeps the ball inside every image, so every anchor is visible in every view
     (the 360° case where a frustum gather can skip nothing). Each image paints
-    the points' colours over grey. Returns the scene folder ``dst``.
+    the points' colours over grey. ``facing_away`` turns every camera round (half a turn about its
+    y axis, same centre): the ball is then behind every camera and the images are plain grey, as
+    poses read in the wrong convention would leave it. Returns the scene folder ``dst``.
     """
     import pathlib
 
@@ -152,6 +154,8 @@ def object_scene(dst, *, views: int = 8, width: int = 32, height: int = 24, num_
         right = np.cross(forward, [0.0, 0.0, 1.0])
         right /= np.linalg.norm(right)
         rot = np.stack([right, np.cross(forward, right), forward])  # OpenCV: x right, y down, z forward
+        if facing_away:
+            rot = np.diag([-1.0, 1.0, -1.0]) @ rot
         trans = -rot @ eye
         x, y, z, w = Rotation.from_matrix(rot).as_quat()
         name = f"view_{v:03d}.png"
@@ -161,6 +165,7 @@ def object_scene(dst, *, views: int = 8, width: int = 32, height: int = 24, num_
         r = np.clip((focal * cam[:, 1] / cam[:, 2] + height / 2).astype(int), 0, height - 1)
         image = np.full((height, width, 3), 128, np.uint8)
         order = np.argsort(-cam[:, 2])  # far to near: nearer points paint over
+        order = order[cam[order, 2] > 0]  # only points in front of the camera
         image[r[order], u[order]] = colors[order]
         iio.imwrite(images / name, image)
     (model / "images.txt").write_text("".join(lines))
