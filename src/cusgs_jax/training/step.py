@@ -116,7 +116,8 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
     [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``
-    shared) and the step is :func:`make_batched_step`'s.
+    shared), the views are sharded over a mesh and the step is placed on it
+    (:func:`make_batched_step`). B = 1 runs the same body with one view and no mesh.
 
     **No truncated step.** When the view has more visible anchors than the
     static visible slots, more active Gaussians than G_act or more tile pairs than
@@ -128,27 +129,82 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
     if cfg.train.batch_size > 1:
         return make_batched_step(cfg, tx, strategies, capacities)
+    return jax.jit(_step_body(cfg, tx, strategies, capacities, mesh=None), donate_argnums=0)
+
+
+def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities, mesh):
+    """``step(state, batch) -> (state, metrics)`` for B = ``train.batch_size`` views (not jitted).
+
+    B = 1 (``mesh`` None): the batch has no view axis; the view's S anchor rows are updated
+    row-sparsely (``optim.sparse``) or scattered into a dense gradient. B > 1: the views are
+    rendered and differentiated on the devices of ``mesh`` (``shard_map``), their dense
+    gradients averaged, and the update is dense. Everything after the per-view passes —
+    finite check, completeness, statistics of every view in view order, metrics, update —
+    is the same code for both.
+    """
+    from jax.sharding import PartitionSpec as P
+
+    from cusgs_jax.training import parallel
+
+    batch_size = cfg.train.batch_size
+    sparse = cfg.optim.sparse and batch_size == 1
 
     def step(state: TrainState, batch):
         camera = batch["camera"]
         capacity = state.anchors.capacity
         one = _view_pass(cfg, capacities, capacity)
         key = jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), state.step)
-        loss, grads, parts = one(state.trainable, state.anchors, batch, key)
-        finite = _all_finite(loss, grads)  # O(S): the anchor gradients have S rows
-        work = parts["work"]
-        complete = (work["dropped_anchors"] == 0) & (work["dropped_gaussians"] == 0) & (work["dropped_pairs"] == 0)
-        record = _record(parts, grads["anchor"].latent, capacity, camera, state.step, finite & complete)
-        densify = {s.name: s.accumulate(state.densify[s.name], record) for s in strategies}  # gated by record.finite
-        metrics = _metrics(loss, finite, parts, lambda v, _: v)
-        view = parts["view"]
-        if cfg.optim.sparse:
-            state = _apply_rows(state, tx, grads, view.slots, view.valid, finite & complete)
+        if batch_size == 1:
+            loss, grads, parts = one(state.trainable, state.anchors, batch, key)
+            latent_grads = [grads["anchor"].latent]
+            views = [parts]
+            reduce = lambda v, _: v  # noqa: E731
         else:
-            state = _apply(state, tx, _dense(grads, view, capacity), finite & complete)
+            def local_views(trainable, anchors, views, banks, keys):
+                """On one device: its B/D views' losses, parts and row gradients, and the dense gradient sum."""
+                def visit(args):
+                    view, view_key = args
+                    loss, grads, parts = one(trainable, anchors,
+                                             dict(view, banks=banks) if banks is not None else view, view_key)
+                    return loss, grads, parts, _dense(grads, parts["view"], capacity)
+
+                loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
+                total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), dense)
+                return loss, grads["anchor"].latent, parts, total
+
+            sharded = jax.shard_map(local_views, mesh=mesh,
+                                    in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS)),
+                                    out_specs=(P(parallel.AXIS),) * 3 + (P(),),
+                                    check_vma=False)  # the splatter's scans carry values that vary over views
+            keys = jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch_size))
+            per_view = {k: v for k, v in batch.items() if k != "banks"}
+            losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, per_view,
+                                                          batch.get("banks"), keys)
+            loss = jnp.mean(losses_b)
+            grads = jax.tree_util.tree_map(lambda g: g / batch_size, total)
+            pick = lambda tree, b: jax.tree_util.tree_map(lambda x: x[b], tree)  # noqa: E731
+            latent_grads = [latent_grad[b] for b in range(batch_size)]
+            views = [pick(parts, b) for b in range(batch_size)]
+            reduce = lambda v, fold: fold(v)  # noqa: E731
+        finite = _all_finite(loss, grads)  # O(S) with the sparse update: the anchor gradients have S rows
+        work = parts["work"]
+        complete = ((jnp.all(work["dropped_anchors"] == 0) & jnp.all(work["dropped_gaussians"] == 0)
+                     & jnp.all(work["dropped_pairs"] == 0)))
+        apply = finite & complete
+        densify = dict(state.densify)
+        for view_parts, latent_grad in zip(views, latent_grads):  # every view's statistics, in view order
+            record = _record(view_parts, latent_grad, capacity, camera, state.step, apply)
+            densify = {s.name: s.accumulate(densify[s.name], record) for s in strategies}  # gated by record.finite
+        metrics = _metrics(loss, finite, parts, reduce)
+        if sparse:
+            state = _apply_rows(state, tx, grads, parts["view"].slots, parts["view"].valid, apply)
+        elif batch_size == 1:  # optim.sparse=false: the S rows scattered into a dense [A] gradient
+            state = _apply(state, tx, _dense(grads, parts["view"], capacity), apply)
+        else:
+            state = _apply(state, tx, grads, apply)
         return _finish(state, finite, complete, densify), metrics
 
-    return jax.jit(step, donate_argnums=0)
+    return step
 
 
 def _all_finite(loss, grads) -> jax.Array:
@@ -230,58 +286,16 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
     order, so growing and pruning count every view (gsplat's strategies rescale the
     batch-mean gradient by the number of cameras for the same reason). The step is complete
     only when no view dropped work; the metrics report the worst view's shortfall. The
-    view-b key is ``fold_in(key(step), b)``.
+    view-b key is ``fold_in(key(step), b)``. The body is :func:`_step_body`'s, as for B = 1.
 
     Inputs are placed on the mesh before the jitted call (state replicated, views split), so
     arrays coming back from host-side growing and pruning never change the compiled step.
     """
-    from jax.sharding import PartitionSpec as P
-
     from cusgs_jax.training import parallel
 
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
     mesh = parallel.view_mesh(cfg)
-    batch_size = cfg.train.batch_size
-
-    def step(state: TrainState, batch):
-        camera = batch["camera"]
-        capacity = state.anchors.capacity
-        one = _view_pass(cfg, capacities, capacity)
-
-        def local_views(trainable, anchors, views, banks, keys):
-            """On one device: its B/D views' losses, parts and row gradients, and the dense gradient sum."""
-            def visit(args):
-                view, key = args
-                loss, grads, parts = one(trainable, anchors, dict(view, banks=banks) if banks is not None else view,
-                                         key)
-                return loss, grads, parts, _dense(grads, parts["view"], capacity)
-
-            loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
-            total = jax.tree_util.tree_map(lambda g: jax.lax.psum(jnp.sum(g, axis=0), parallel.AXIS), dense)
-            return loss, grads["anchor"].latent, parts, total
-
-        sharded = jax.shard_map(local_views, mesh=mesh, in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS)),
-                                out_specs=(P(parallel.AXIS),) * 3 + (P(),),
-                                check_vma=False)  # the splatter's scans carry values that vary over views
-        key = jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), state.step)
-        keys = jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch_size))
-        views = {k: v for k, v in batch.items() if k != "banks"}
-        losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, views, batch.get("banks"), keys)
-        loss = jnp.mean(losses_b)
-        grads = jax.tree_util.tree_map(lambda g: g / batch_size, total)
-        finite = _all_finite(loss, grads)
-        work = parts["work"]
-        complete = (jnp.all(work["dropped_anchors"] == 0) & jnp.all(work["dropped_gaussians"] == 0)
-                    & jnp.all(work["dropped_pairs"] == 0))
-        densify = dict(state.densify)
-        for b in range(batch_size):  # statistics of every view, in view order (static unroll)
-            pick = lambda tree: jax.tree_util.tree_map(lambda x: x[b], tree)  # noqa: E731, B023
-            record = _record(pick(parts), latent_grad[b], capacity, camera, state.step, finite & complete)
-            densify = {s.name: s.accumulate(densify[s.name], record) for s in strategies}
-        metrics = _metrics(loss, finite, parts, lambda v, fold: fold(v))
-        return _finish(_apply(state, tx, grads, finite & complete), finite, complete, densify), metrics
-
-    jitted = jax.jit(step, donate_argnums=0)
+    jitted = jax.jit(_step_body(cfg, tx, strategies, capacities, mesh), donate_argnums=0)
 
     def placed_step(state: TrainState, batch):
         state, batch = parallel.place_step_inputs(mesh, state, batch)
@@ -290,4 +304,3 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
     placed_step.jitted = jitted  # for compile counts (``jitted._cache_size()``)
     placed_step.mesh = mesh
     return placed_step
-
