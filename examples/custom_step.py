@@ -19,7 +19,8 @@ import optax
 import cusgs_jax as cg
 
 
-def main(argv=None) -> float:
+def main(argv=None) -> list[float]:
+    """Train; returns the loss of every step."""
     parser = argparse.ArgumentParser()
     parser.add_argument("scene", nargs="?", default=None)
     parser.add_argument("--steps", type=int, default=200)
@@ -63,7 +64,7 @@ def main(argv=None) -> float:
         losses.append(float(loss))
         if (i + 1) % 50 == 0:
             print(f"step {i + 1}: loss {np.mean(losses[-50:]):.4f}")
-    return float(np.mean(losses[-10:]))
+    return losses
 
 
 if __name__ == "__main__":

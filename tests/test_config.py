@@ -131,8 +131,57 @@ def test_yaml_options_hold_only_overrides_of_known_fields():
         data = {k: v for k, v in data.items() if k != "defaults"}
         if group in groups:
             from_dict({group: data})  # raises on an unknown key
-        elif group != "experiment":
+        elif group != "experiment":  # experiments: composed whole by test_experiments_compose_and_sweep_config_fields
             pytest.fail(f"unexpected config group folder {path.parent}")
+
+
+EXPERIMENTS = sorted(p.stem for p in (CONF / "experiment").glob("*.yaml"))
+
+
+def _sweep_values(spec) -> list[str]:
+    """The options of a sweeper value: ``a,b,c``, ``choice(a, b)``; none for ``interval(...)``/``tag(...)``."""
+    text = str(spec).strip()
+    if text.startswith(("interval(", "tag(", "range(")):
+        return []
+    if text.startswith("choice(") and text.endswith(")"):
+        text = text[len("choice("):-1]
+    return [v.strip() for v in text.split(",") if v.strip()]
+
+
+def test_experiments_are_all_checked():
+    assert {"voxel_size", "prune_ratio", "pareto_search"} <= set(EXPERIMENTS) and len(EXPERIMENTS) >= 6
+
+
+@pytest.mark.parametrize("experiment", EXPERIMENTS)
+def test_experiments_compose_and_sweep_config_fields(experiment):
+    """Each conf/experiment/*.yaml composes through Hydra into a Config, and every key its sweeper sweeps
+    (hydra.sweeper.params) is a Config field (or a config group whose swept options exist); the first
+    listed value of each composes too."""
+    from omegaconf import OmegaConf
+
+    from cusgs_jax.config import compose_node
+
+    base = [f"experiment={experiment}"]
+    assert isinstance(compose_config(base), Config)
+    params = OmegaConf.to_container(compose_node(base, return_hydra_config=True).hydra.sweeper.params) or {}
+    assert params, f"experiment={experiment} sweeps nothing"
+    for key, spec in params.items():
+        values = _sweep_values(spec)
+        if (CONF / key).is_dir():  # a config group (prune=weights_2_8,...): each option is a file of it
+            assert key in {f.name for f in dataclasses.fields(Config)}, key
+            assert values, (key, spec)
+            missing = [v for v in values if not (CONF / key / f"{v}.yaml").is_file()]
+            assert not missing, f"experiment={experiment} sweeps {key} over missing options {missing}"
+        else:
+            cls = Config
+            for part in key.split("."):
+                assert dataclasses.is_dataclass(cls), f"experiment={experiment} sweeps {key}: {part} is inside a leaf"
+                hints = _field_types(cls)
+                assert part in hints, f"experiment={experiment} sweeps {key}, not a Config field"
+                cls = hints[part]
+            assert not dataclasses.is_dataclass(cls), f"experiment={experiment} sweeps {key}, a whole section"
+        if values:
+            assert isinstance(compose_config([*base, f"{key}={values[0]}"]), Config)
 
 
 def test_scaffold_grow_option_and_demo_features():

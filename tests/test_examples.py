@@ -6,6 +6,7 @@ import importlib.util
 import math
 import pathlib
 
+import numpy as np
 import pytest
 
 from cusgs_jax.data.demo import generate_demo_scene
@@ -18,7 +19,8 @@ def test_custom_step_example_trains(tmp_path):
     spec = importlib.util.spec_from_file_location("custom_step", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    first = module.main([str(scene), "--steps", "1"])
-    last = module.main([str(scene), "--steps", "60"])
-    assert math.isfinite(first) and math.isfinite(last)
-    assert last < first
+    losses = module.main([str(scene), "--steps", "60"])
+    assert len(losses) == 60 and all(math.isfinite(loss) for loss in losses)
+    # the views cycle, so compare whole epochs (6 steps): measured 0.343 over the first, 0.1995 over the tenth (0.58×)
+    first, last = np.mean(losses[:6]), np.mean(losses[-6:])
+    assert last < 0.75 * first, losses

@@ -52,7 +52,13 @@ def test_render_ply_cli(scene_and_ply, tmp_path, capsys):
             "per_view"} <= set(result)
     assert result["evaluated_on"] == "holdout" and result["num_views"] == 2 and result["sh_degree"] == 0
     assert [r["name"] for r in result["per_view"]] == ["view_000.png", "view_002.png"]
-    assert math.isfinite(result["psnr"]) and math.isfinite(result["ssim"]) and result["psnr"] > 5
+    assert math.isfinite(result["psnr"]) and math.isfinite(result["ssim"])
+    # the SfM points as small Gaussians cover part of each view: they must beat a blank (black background)
+    # render of the same views by 1.2 dB. Measured: blank 8.59 dB, the render 10.53 dB (+1.94)
+    scene = load_scene(scene_dir, holdout_every=2)
+    targets = scene.images[scene.test_indices].astype(np.float64) / 255
+    blank = np.mean([-10 * np.log10(np.mean(t ** 2)) for t in targets])
+    assert result["psnr"] > blank + 1.2, (result["psnr"], blank)
     assert all(math.isfinite(r["psnr"]) and -1 <= r["ssim"] <= 1 for r in result["per_view"])
     assert np.isclose(result["psnr"], np.mean([r["psnr"] for r in result["per_view"]]))
     assert sorted(os.listdir(out_dir)) == ["view_000.png", "view_002.png"]

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.app.inputs import view_order
+from cusgs_jax.app.inputs import load_data, view_order
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import compose_config, demo_feature_models
 from cusgs_jax.data.demo import generate_demo_scene
@@ -76,9 +76,20 @@ def test_view_order_is_a_permutation_per_epoch():
     assert seq[:7] != seq[7:]  # a fresh permutation per epoch
 
 
-def test_run_writes_all_outputs(straight):
+def _psnr(image, target):
+    return -10 * np.log10(np.mean((np.asarray(image, np.float64) - target) ** 2))
+
+
+def test_run_writes_all_outputs(straight, tiny_scene):
     tmp_path, result = straight
-    assert np.isfinite(result["psnr"]) and result["psnr"] > 8
+    # a blank render (the background everywhere) of the same held-out views: the run must beat it by 3 dB.
+    # Measured: blank 9.57 dB, the run 13.52 dB (+3.95). The 30-step run does NOT beat the best flat image:
+    # the training views' mean colour scores 13.76 dB (a 90-step run reaches 15.37 dB, but takes 35 s longer)
+    scene, _ = load_data(_cfg(tiny_scene))
+    targets = scene.images[scene.test_indices].astype(np.float64) / 255
+    assert [v["name"] for v in result["per_view"]] == [scene.names[i] for i in scene.test_indices]
+    blank = np.mean([_psnr(np.broadcast_to(scene.background, t.shape), t) for t in targets])
+    assert np.isfinite(result["psnr"]) and result["psnr"] > blank + 3.0, (result["psnr"], blank)
     for name in ("metrics.jsonl", "eval_curve.jsonl", "eval.json", "error_vs_time.png"):
         assert (tmp_path / name).is_file(), name
     rows = _jsonl(tmp_path / "metrics.jsonl")
@@ -126,7 +137,10 @@ def test_last_curve_point_equals_the_final_evaluation(straight):
     assert curve[-1]["psnr"] == result["psnr"] and curve[-1]["ssim"] == result["ssim"]
     assert result["psnr"] == pytest.approx(np.mean([v["psnr"] for v in result["per_view"]]), abs=1e-12)
     assert result["curve"] == curve  # eval.json carries the same curve as eval_curve.jsonl
-    assert curve[0]["psnr"] != curve[-1]["psnr"]  # the curve really moved
+    # the curve rises from step 15 to 30. Measured: 13.445 -> 13.519 dB (+0.074); thin, since the tiny run
+    # barely learns in 30 steps (its untrained model scores 13.07 dB; evaluated every 5 steps the curve
+    # wanders 13.63, 13.49, 13.45, 13.50, 13.44, 13.52)
+    assert curve[-1]["psnr"] > curve[0]["psnr"] + 0.03, curve
 
 
 def test_resume_continues_exactly(tiny_scene, straight, tmp_path):

@@ -110,10 +110,13 @@ def test_feature_training_step_runs_and_learns(feature_scene):
     state, tx = init_train_state(cfg, feature_scene.points(), 1, 2.0, strategies, banks=feature_scene.banks())
     step = make_train_step(cfg, tx, strategies)
     batch = feature_scene.batch()
-    first = None
+    losses = []
     for _ in range(15):
         state, metrics = step(state, batch)
-        first = float(metrics["loss_feature"]) if first is None else first
-    assert bool(metrics["finite"]) and np.isfinite(float(metrics["loss_feature"]))
-    assert float(metrics["loss_feature"]) < first
+        losses.append(float(metrics["loss_feature"]))
+    assert bool(metrics["finite"]) and np.all(np.isfinite(losses))
+    # each step samples other pixels, so single losses are noisy (steps 4-15 move between 3.36 and 3.61): compare
+    # means. Measured: first 3 steps 3.881, last 5 steps 3.437, a ratio of 0.886
+    first, last = np.mean(losses[:3]), np.mean(losses[-5:])
+    assert last < 0.95 * first, losses
     assert step._cache_size() == 1

@@ -288,7 +288,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
     try:
-        with _WarningLines():
+        from cusgs_jax.training.checkpoint import quiet_orbax
+
+        with _WarningLines(), quiet_orbax():  # orbax's repeats after a damaged checkpoint: dropped
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,
                                 min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, views=args.views,
                                 step=args.step, chunk_anchors=args.chunk, progress=not args.quiet,

@@ -51,7 +51,7 @@ from cusgs_jax.densify.base import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.model.anchors import compact
-from cusgs_jax.training.checkpoint import Checkpointer
+from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
@@ -486,8 +486,10 @@ def finalise(session: Session) -> dict:
 def run(cfg: Config, output_dir, progress_label: str = "train") -> dict:
     """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
 
-    ``progress_label`` names the progress bar (a sweep labels each job's bar).
+    ``progress_label`` names the progress bar (a sweep labels each job's bar). While it runs, the
+    noise orbax repeats after a failed checkpoint save or read is dropped (:func:`quiet_orbax`).
     """
-    session = setup(cfg, output_dir)
-    train(session, progress_label)
-    return finalise(session)
+    with quiet_orbax():
+        session = setup(cfg, output_dir)
+        train(session, progress_label)
+        return finalise(session)

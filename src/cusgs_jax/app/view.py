@@ -86,10 +86,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     ap = _parser()
     args = ap.parse_args(argv)
+    from cusgs_jax.training.checkpoint import quiet_orbax
+
     try:
-        viewer = open_viewer(args.run_dir, port=args.port, host=args.host, step=args.step, height=args.height,
-                             jpeg_quality=None if args.png else args.jpeg_quality, clip=args.clip,
-                             clip_arch=args.clip_arch)
+        with quiet_orbax():  # orbax's repeats after a damaged checkpoint: dropped
+            viewer = open_viewer(args.run_dir, port=args.port, host=args.host, step=args.step, height=args.height,
+                                 jpeg_quality=None if args.png else args.jpeg_quality, clip=args.clip,
+                                 clip_arch=args.clip_arch)
     except UserError as e:  # a bad run folder, checkpoint or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")
     print(f"{PROG}: serving {args.run_dir} at {viewer.url} (Ctrl-C stops)", flush=True)

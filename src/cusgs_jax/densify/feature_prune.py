@@ -61,7 +61,8 @@ module is traced or stored.
 
 Naming (:mod:`cusgs_jax.types`): A anchor capacity, S gathered (visible) slots
 per view, N Gaussians per anchor, F latent size, G = S·N Gaussians of a view
-in slot order. (Docstrings below write V for S.)
+in slot order. V in the volume formulas (``V``, ``V_ref``) is LightGaussian's Gaussian volume,
+not the table's V (views).
 """
 
 from __future__ import annotations

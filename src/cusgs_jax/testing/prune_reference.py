@@ -28,9 +28,10 @@ def significance_reference(latent: np.ndarray, alive: np.ndarray, views: Iterabl
     Args:
       latent: [A, F].
       alive: [A] bool.
-      views: per view a mapping with ``slots`` [V], ``valid`` [V],
-        ``latent_grad`` [V, F], ``significance`` [V·N], ``scales`` [V·N, 3],
-        ``active`` [V·N] and optionally ``enabled`` (default True).
+      views: per view a mapping with ``slots`` [S], ``valid`` [S],
+        ``latent_grad`` [S, F], ``significance`` [S·N], ``scales`` [S·N, 3],
+        ``active`` [S·N] and optionally ``enabled`` (default True); S visible slots,
+        N Gaussians per anchor (:mod:`cusgs_jax.types`).
       cfg: the pruning configuration; only its ``volume_percentile``, ``volume_power``,
         ``lambda_norm`` and ``lambda_grad`` attributes are read.
     Returns:

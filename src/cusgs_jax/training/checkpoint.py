@@ -20,8 +20,12 @@ On top of that, :class:`Checkpointer` turns the failures a user can fix into one
 * saving a step that already exists (a fresh run pointed at an old folder).
 
 After a failed read or write orbax's abandoned threads keep reporting the same
-error (absl and asyncio logs, unraisable "Event loop is closed"); a narrow filter
-(:class:`_Aftermath`, installed once per process) drops those.
+error (absl and asyncio logs, unraisable "Event loop is closed", "coroutine was
+never awaited" warnings), possibly long after the call returned. The library
+leaves the process's logging, warnings and ``sys.unraisablehook`` alone; an
+application that wants that noise gone enters :func:`quiet_orbax` around its
+work (``cusgs-train`` does), which installs a narrow filter (:class:`_Aftermath`)
+until it exits.
 """
 
 from __future__ import annotations
@@ -104,7 +108,6 @@ class Checkpointer:
             raise CheckpointError(f"checkpoint {step} already exists in {self.directory}: resume with "
                                   f"train.resume=true, or {_NEW_RUN}")
         existed = self.folder(step).exists()
-        _AFTERMATH.mute()  # TensorStore may call into closed event loops while the save is failing
         with _OrbaxLogCapture() as orbax_log:
             try:
                 self.manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
@@ -216,7 +219,6 @@ class Checkpointer:
 
     def _restore_step(self, step: int, make_template):
         """Restore one step; damage is raised as :class:`_Damaged` (its cause the orbax error)."""
-        _AFTERMATH.mute()
         with _OrbaxLogCapture() as orbax_log:
             try:
                 meta = self._read_meta(step)
@@ -294,6 +296,27 @@ class Checkpointer:
         self.manager.close()
 
 
+@contextlib.contextmanager
+def quiet_orbax():
+    """Drop the noise orbax leaves behind after a failed save or read, while the block runs.
+
+    The failure itself still arrives as one :class:`~cusgs_jax.errors.CheckpointError`
+    (or one warning line); what this drops is the repetition that orbax's
+    abandoned threads print afterwards: ``absl`` and ``asyncio`` log records
+    naming the failed checkpoint folder, unraisable "Event loop is closed"
+    errors and "coroutine ... was never awaited" warnings. Everything else
+    passes. On exit the ``absl``/``asyncio`` filters, ``sys.unraisablehook`` and
+    ``warnings.filters`` are as they were. Nests; not meant for concurrent use
+    from several threads (it changes process-wide hooks while active).
+    """
+    with warnings.catch_warnings():
+        _AFTERMATH.install()
+        try:
+            yield
+        finally:
+            _AFTERMATH.uninstall()
+
+
 def read_arrays(directory: str | pathlib.Path, keys: tuple[str, ...] = ("anchors", "nets"),
                 step: int | None = None) -> tuple[int, dict, dict]:
     """Read part of a stored state without a template and without writing anything.
@@ -318,7 +341,6 @@ def read_arrays(directory: str | pathlib.Path, keys: tuple[str, ...] = ("anchors
     directory = pathlib.Path(directory).absolute()
     if not directory.is_dir():
         raise CheckpointError(f"no checkpoint folder {directory}: expected the checkpoints/ of a cusgs-train run")
-    _AFTERMATH.mute()
     with _OrbaxLogCapture():  # orbax warns that a read-only manager saves nothing: dropped
         manager = ocp.CheckpointManager(
             directory, options=ocp.CheckpointManagerOptions(create=False, read_only=True),
@@ -513,27 +535,44 @@ class _Aftermath(logging.Filter):
     the same error again (``absl``), their futures report "exception was never
     retrieved" (``asyncio``), and TensorStore calls back into closed event loops
     (unraisable "Event loop is closed"), possibly long after the call returned.
-    Once :meth:`mute` named a folder, records and unraisable exceptions that
-    mention it, or that are such asyncio leftovers of an OS error, are dropped;
-    everything else passes. Installed on first use.
+    While installed by :func:`quiet_orbax`, once :meth:`mute` named a folder,
+    records and unraisable exceptions that mention it, or that are such asyncio
+    leftovers of an OS error, are dropped; everything else passes.
     """
 
     def __init__(self):
         super().__init__()
         self.paths: set[str] = set()
         self.previous_hook = None
+        self.depth = 0
 
-    def mute(self, prefix: str | None = None) -> None:
-        """Install (once), and drop from now on what mentions ``prefix``."""
-        if prefix is not None:
-            self.paths.add(prefix)
-            # the writes or reads orbax abandoned are garbage-collected unawaited
-            warnings.filterwarnings("ignore", r"coroutine '.*' was never awaited", RuntimeWarning)
-        if self.previous_hook is None:
-            logging.getLogger("absl").addFilter(self)
-            logging.getLogger("asyncio").addFilter(self)
-            self.previous_hook = sys.unraisablehook
-            sys.unraisablehook = self.unraisable
+    def mute(self, prefix: str) -> None:
+        """While installed (inside :func:`quiet_orbax`), drop from now on what mentions ``prefix``."""
+        if self.depth == 0:
+            return
+        self.paths.add(prefix)
+        # the writes or reads orbax abandoned are garbage-collected unawaited (quiet_orbax restores the filters)
+        warnings.filterwarnings("ignore", r"coroutine '.*' was never awaited", RuntimeWarning)
+
+    def install(self) -> None:
+        self.depth += 1
+        if self.depth > 1:
+            return
+        logging.getLogger("absl").addFilter(self)
+        logging.getLogger("asyncio").addFilter(self)
+        self.previous_hook = sys.unraisablehook
+        sys.unraisablehook = self.unraisable
+
+    def uninstall(self) -> None:
+        self.depth -= 1
+        if self.depth > 0:
+            return
+        logging.getLogger("absl").removeFilter(self)
+        logging.getLogger("asyncio").removeFilter(self)
+        if sys.unraisablehook == self.unraisable:
+            sys.unraisablehook = self.previous_hook
+        self.previous_hook = None
+        self.paths.clear()
 
     def is_noise(self, text: str, error: BaseException | None) -> bool:
         text = text + " " + (str(error) if error is not None else "")
@@ -554,7 +593,7 @@ class _Aftermath(logging.Filter):
         if (code is not None and f"{os.sep}orbax{os.sep}" in code.co_filename) or self.is_noise(
                 unraisable.err_msg or "", unraisable.exc_value):
             return
-        self.previous_hook(unraisable)
+        (self.previous_hook or sys.__unraisablehook__)(unraisable)
 
 
 _LOOP_GONE = ("Event loop is closed", "cannot schedule new futures after shutdown")
