@@ -302,7 +302,7 @@ def test_failed_save_removes_the_partial_checkpoint(fresh, tmp_path, monkeypatch
 def _process_hooks():
     """What a library call must leave as it found: unraisable hook, warning filters, logger set-ups."""
     loggers = {name: logging.getLogger(name) for name in ("", "absl", "asyncio", "cusgs_jax")}
-    return dict(unraisablehook=sys.unraisablehook, warnings=list(warnings.filters),
+    return dict(unraisablehook=sys.unraisablehook, excepthook=sys.excepthook, warnings=list(warnings.filters),
                 loggers={name: (list(lg.handlers), list(lg.filters), lg.level, lg.propagate, lg.disabled)
                          for name, lg in loggers.items()})
 

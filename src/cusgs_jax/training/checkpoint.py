@@ -543,7 +543,7 @@ class _Aftermath(logging.Filter):
     def __init__(self):
         super().__init__()
         self.paths: set[str] = set()
-        self.previous_hook = None
+        self.previous_hook = self.previous_excepthook = None
         self.depth = 0
 
     def mute(self, prefix: str) -> None:
@@ -562,6 +562,10 @@ class _Aftermath(logging.Filter):
         logging.getLogger("asyncio").addFilter(self)
         self.previous_hook = sys.unraisablehook
         sys.unraisablehook = self.unraisable
+        # TensorStore reports an exception raised in its Python callbacks with PyErr_Print, which
+        # goes through sys.excepthook: "Event loop is closed" from a loop orbax already closed.
+        self.previous_excepthook = sys.excepthook
+        sys.excepthook = self.excepthook
 
     def uninstall(self) -> None:
         self.depth -= 1
@@ -571,7 +575,9 @@ class _Aftermath(logging.Filter):
         logging.getLogger("asyncio").removeFilter(self)
         if sys.unraisablehook == self.unraisable:
             sys.unraisablehook = self.previous_hook
-        self.previous_hook = None
+        if sys.excepthook == self.excepthook:
+            sys.excepthook = self.previous_excepthook
+        self.previous_hook = self.previous_excepthook = None
         self.paths.clear()
 
     def is_noise(self, text: str, error: BaseException | None) -> bool:
@@ -587,6 +593,11 @@ class _Aftermath(logging.Filter):
             return True
         error = record.exc_info[1] if record.exc_info else None
         return not self.is_noise(record.getMessage(), error)
+
+    def excepthook(self, kind, value, traceback) -> None:
+        if isinstance(value, RuntimeError) and str(value) in _LOOP_GONE:
+            return
+        (self.previous_excepthook or sys.__excepthook__)(kind, value, traceback)
 
     def unraisable(self, unraisable) -> None:
         code = getattr(unraisable.object, "cr_code", None)
