@@ -24,7 +24,7 @@ from typing import Any, Optional
 
 from cusgs_jax.errors import ConfigError
 
-# M3's split of its 160 query channels when all six models are present (DESIGN.md §1).
+# M3's split of its 160 query channels when all six models are present (docs/method.md#hierarchical-queries).
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
@@ -150,7 +150,7 @@ class EvalConfig:
 
 @dataclasses.dataclass(frozen=True)
 class ModelConfig:
-    """Scaffold-GS anchors (DESIGN.md §1).
+    """Scaffold-GS anchors (docs/method.md#scaffold-anchors).
 
     Lengths are in units of the scene extent: every run trains in the normalised
     world frame of :mod:`cusgs_jax.data.normalize` (camera extent 1), so a

@@ -134,7 +134,7 @@ def read_weights(net: str = "vgg", needed_by: str = "LPIPS") -> dict:
 
     Returns:
       {"convs": [(kernel [k, k, C_in, C_out] HWIO, bias [C_out]), ...] in trunk order,
-       "lins": [w [C] for the five taps] (LPIPS v0.1's linear heads)} — float32 NumPy.
+        "lins": [w [C] for the five taps] (LPIPS v0.1's linear heads)} — float32 NumPy.
     Raises:
       UserError: the extra is missing or the file does not hold the expected layout.
     """

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Camera:
-    """A pinhole camera: OpenCV axes (+z forward, +y down), gsplat conventions (DESIGN.md §2).
+    """A pinhole camera: OpenCV axes (+z forward, +y down), gsplat conventions (docs/rasterizer.md#projection).
 
     Attributes:
       K: [3, 3] intrinsics.

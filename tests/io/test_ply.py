@@ -1,4 +1,4 @@
-"""io/ply.py and io/render.py: the standard 3DGS PLY (DESIGN.md §7) in and out, and rendering one."""
+"""io/ply.py and io/render.py: the standard 3DGS PLY (docs/formats.md#standard-3dgs-ply) in and out, and rendering one."""
 
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 The scene may be in any layout ``cusgs-train`` reads (COLMAP, Blender, nerfstudio;
 ``--format``, detected by default: :mod:`cusgs_jax.data.layouts`). The PLY may come
 from any tool (graphdeco, gsplat, our exporter); it is taken to be in the frame of
-the scene's poses, which is therefore NOT normalised (DESIGN.md §7, §10). Held-out
+the scene's poses, which is therefore NOT normalised (docs/formats.md#scene-scale). Held-out
 views are every ``--holdout-every``-th image, as ``cusgs-train`` holds them out
 (a Blender scene's test frames); ``--all`` scores every image. PSNR/SSIM per view
 and their means go to stdout as JSON; ``--out-dir`` also writes ``<image>.png``

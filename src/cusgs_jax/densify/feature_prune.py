@@ -1,4 +1,4 @@
-"""CUS-GS feature-aware anchor pruning (DESIGN.md §1, "Feature-aware pruning").
+"""CUS-GS feature-aware anchor pruning (docs/method.md#feature-aware-pruning).
 
 Every anchor ``v`` gets a score
 

@@ -1,4 +1,4 @@
-"""Scaffold-GS anchor growing and opacity-based pruning, as a densification strategy (DESIGN.md §1).
+"""Scaffold-GS anchor growing and opacity-based pruning, as a densification strategy (docs/method.md#growing-and-opacity-pruning).
 
 Statistics are accumulated inside the jitted step (:func:`accumulate_stats`);
 growing and pruning run between steps on the host

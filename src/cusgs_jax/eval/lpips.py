@@ -60,7 +60,7 @@ def load_params(net: str = "vgg") -> dict:
 
     Returns:
       {"convs": [(kernel [k, k, C_in, C_out] HWIO, bias [C_out]), ...] in trunk order,
-       "lins": [w [C] for the five taps]} — float32.
+        "lins": [w [C] for the five taps]} — float32.
     Raises:
       UserError: the extra is missing or the file does not hold the expected layout.
     """

@@ -92,7 +92,7 @@ def count_parameters(anchors: AnchorState, nets: dict, banks: dict | None = None
 
     Returns:
       {"anchors", "mlps", "appearance", "query_heads", "memory_banks",
-       "adapters", "total"} — anchors count alive anchors only (their centres
+        "adapters", "total"} — anchors count alive anchors only (their centres
       included); query heads include a per-Gaussian query table's alive rows;
       memory banks count the PSC entries; adapters are the memory heads (key
       projection, temperature, adapter).

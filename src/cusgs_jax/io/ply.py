@@ -1,4 +1,4 @@
-"""The standard 3DGS PLY (DESIGN.md §7): what every viewer reads, in and out.
+"""The standard 3DGS PLY (docs/formats.md#standard-3dgs-ply): what every viewer reads, in and out.
 
 Layout (graphdeco ``scene/gaussian_model.py`` ``save_ply``): binary
 little-endian, one ``vertex`` element, float32 properties in the order
@@ -80,7 +80,7 @@ class SplatModel:
 
 
 def ply_property_names(sh_degree: int, normals: bool = True) -> list[str]:
-    """The standard property order for SH degree d (DESIGN.md §7, graphdeco ``construct_list_of_attributes``)."""
+    """The standard property order for SH degree d (docs/formats.md#standard-3dgs-ply, graphdeco ``construct_list_of_attributes``)."""
     rest = 3 * ((sh_degree + 1) ** 2 - 1)
     return (["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + [f"f_dc_{i}" for i in range(3)]
             + [f"f_rest_{i}" for i in range(rest)] + ["opacity"] + [f"scale_{i}" for i in range(3)]
@@ -109,7 +109,7 @@ def _host(model: SplatModel, path) -> dict[str, np.ndarray]:
 
 
 def write_ply(path: str | os.PathLike, gaussians: SplatModel) -> pathlib.Path:
-    """Write ``gaussians`` as a standard 3DGS PLY (binary little-endian float32, DESIGN.md §7).
+    """Write ``gaussians`` as a standard 3DGS PLY (binary little-endian float32, docs/formats.md#standard-3dgs-ply).
 
     Returns the path written. Raises PlyError for bad shapes, non-finite values or
     a file that cannot be written.

@@ -105,7 +105,7 @@ def split_params(model: SplatModel) -> dict:
 
     Returns:
       {"means": [G, 3], "quats": [G, 4], "log_scales": [G, 3], "opacity_logits": [G],
-       "sh_dc": [G, 1, 3], "sh_rest": [G, K−1, 3]}.
+        "sh_dc": [G, 1, 3], "sh_rest": [G, K−1, 3]}.
     """
     sh = jnp.asarray(model.sh, jnp.float32)
     return dict(means=jnp.asarray(model.means, jnp.float32), quats=jnp.asarray(model.quats, jnp.float32),

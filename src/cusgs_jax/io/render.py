@@ -2,8 +2,8 @@
 
 Colours are evaluated per Gaussian and view as graphdeco's renderer and gsplat
 do: ``rgb = max(0, 0.5 + Σ_k c_k Y_k(normalize(mean − camera centre)))``
-(:func:`cusgs_jax.splat.sh.sh_to_rgb`, DESIGN.md §7), then
-:func:`cusgs_jax.splat.rasterize` composites them (DESIGN.md §2; classic mode
+(:func:`cusgs_jax.splat.sh.sh_to_rgb`, docs/rasterizer.md#spherical-harmonics), then
+:func:`cusgs_jax.splat.rasterize` composites them (docs/rasterizer.md#compositing; classic mode
 unless ``antialiased=True`` is passed, as the Inria PLYs are trained).
 
 Naming (:mod:`cusgs_jax.types`): G Gaussians, K SH coefficients, H×W image.

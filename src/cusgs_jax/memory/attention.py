@@ -8,7 +8,7 @@ bank [M, D] of entries ``m_s`` (see :mod:`cusgs_jax.memory.psc`)::
     f~  = sum_s a_s m_s                     [D], the bank's original vectors
     f   = adapter(f~)                       [D]
 
-Choices (DESIGN.md section 1, "Ambiguity"): the paper's ``q^T m_k / sqrt(d)`` mixes
+Choices (docs/method.md#choice-of-score): the paper's ``q^T m_k / sqrt(d)`` mixes
 dimensions (``q`` has c, ``m_k`` has D). Like M3 we project the bank into query space
 and score by cosine similarity with a temperature; unlike M3's fixed random
 projection, ``P`` is learnable (init N(0, 1/D)). Keys are computed once per step

@@ -1,4 +1,4 @@
-"""Baking a scaffold into plain 3D Gaussians: the standard 3DGS PLY's content (DESIGN.md §1, §7).
+"""Baking a scaffold into plain 3D Gaussians: the standard 3DGS PLY's content (docs/formats.md#baking-a-scaffold).
 
 A Scaffold-GS anchor's N Gaussians depend on the view: the decoder heads take the
 unit direction camera→anchor ``d`` (opacity, covariance, colour) and a

@@ -1,6 +1,6 @@
 """Anchor decoding: (latent, view direction, appearance) → N Gaussians per anchor.
 
-Scaffold-GS ``generate_neural_gaussians`` (DESIGN.md §1), in plain JAX.
+Scaffold-GS ``generate_neural_gaussians`` (docs/method.md#decoding), in plain JAX.
 Naming (:mod:`cusgs_jax.types`): A anchors, S visible slots, N offsets per
 anchor, F latent size, E appearance size, G = S·N Gaussians.
 

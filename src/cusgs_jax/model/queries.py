@@ -1,4 +1,4 @@
-"""Hierarchical feature queries (CUS-GS, DESIGN.md §1).
+"""Hierarchical feature queries (CUS-GS, docs/method.md#hierarchical-queries).
 
 Every anchor decodes a voxel query ``q_v = MLP_qv(z, d, e)`` and every Gaussian a
 query ``q_{v,n} = Linear([q_v, Δx_{v,n}])``; the splatter composites them as extra

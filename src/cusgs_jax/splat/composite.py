@@ -9,7 +9,7 @@ number, like GPU thread blocks): a lane composites one tile until the tile's
 list is exhausted or all its pixels have terminated, writes the tile out and
 takes the next unprocessed tile, longest first. So the work skipped after early
 termination is really skipped, and one long tile no longer holds every other
-tile in lockstep. Per pixel and Gaussian (DESIGN.md §2)::
+tile in lockstep. Per pixel and Gaussian (docs/rasterizer.md#compositing)::
 
     σ = ½(a dx² + c dy²) + b dx dy        skip if σ < 0
     α = min(0.999, o e^{−σ})               skip if α < 1/255

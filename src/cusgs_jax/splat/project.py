@@ -4,7 +4,7 @@ Shapes: G Gaussians. All functions are pure, differentiable with respect to the
 floating-point inputs, and safe on degenerate input: culled Gaussians get finite
 placeholder values and exactly zero gradient.
 
-Conventions (DESIGN.md §2):
+Conventions (docs/rasterizer.md#projection):
   * quaternions are ``wxyz`` and normalised here; covariance ``Σ = R S² Rᵀ``;
   * ``viewmat`` is world→camera with OpenCV axes (+z forward, +y down);
   * EWA Jacobian with ``x/z``, ``y/z`` clamped to the frustum widened by 30 %;

@@ -103,7 +103,7 @@ def rasterize(
     means2d_delta: jax.Array | None = None,
     lanes: int | None = None,
 ) -> RenderOutput:
-    """Render 3D Gaussians with gsplat 1.5.3's conventions (DESIGN.md §2).
+    """Render 3D Gaussians with gsplat 1.5.3's conventions (docs/rasterizer.md).
 
     Args:
       means: [G, 3] world centres.

@@ -1,4 +1,4 @@
-"""Real spherical harmonics → RGB, exactly as the standard 3DGS PLY means it (DESIGN.md §7).
+"""Real spherical harmonics → RGB, exactly as the standard 3DGS PLY means it (docs/rasterizer.md#spherical-harmonics).
 
 ``rgb = max(0, 0.5 + Σ_k c_k Y_k(dir))`` with graphdeco's ``utils/sh_utils.py``
 ``eval_sh`` constants and signs (the same as gsplat's ``eval_sh`` /

@@ -1,4 +1,4 @@
-"""Per-group Adam with Scaffold-GS learning rates and log-linear decay (DESIGN.md §1)."""
+"""Per-group Adam with Scaffold-GS learning rates and log-linear decay (docs/method.md#optimisation)."""
 
 from __future__ import annotations
 

@@ -2,8 +2,8 @@
 
 A step on B views (``train.batch_size``) shards its views over a 1-D device mesh with
 axis ``"views"``; the parameters, optimiser state and statistics are replicated, so the
-update is one update, the same on every device (DESIGN.md §4: data parallelism as
-gsplat's ``batch_size`` × ``world_size``). Each device renders B/D views, the
+update is one update, the same on every device (docs/scaling.md#sharding-over-devices: data
+parallelism as gsplat's ``batch_size`` × ``world_size``). Each device renders B/D views, the
 gradients are summed over the mesh (``lax.psum``) and averaged once.
 
 Several hosts: ``jax.devices()`` then lists every process's devices and the mesh spans
