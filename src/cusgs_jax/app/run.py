@@ -219,6 +219,9 @@ def _resume(session: Session) -> None:
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
     session.tallies.update({name: Tally.from_dict(record) for name, record in meta.get("densify", {}).items()})
+    if "densify" not in meta and "prune" in meta:  # written before the strategies kept tallies (issue 23)
+        log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
+                    "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
     session.recompilations = int(meta.get("recompilations", 0))
     session.replays = int(meta.get("replays", 0))
     _trim_jsonl(session.out / "metrics.jsonl", step)

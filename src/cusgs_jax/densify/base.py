@@ -1,4 +1,8 @@
-"""What a strategy sees of one rendered view, and the strategies a configuration asks for.
+"""The Strategy protocol: what a strategy sees of one rendered view (:class:`ViewRecord`), what
+its host-side update reports (:class:`UpdateInfo`), what the run records of it (:class:`Tally`),
+what its ``before_first_update`` hook may measure (:class:`Probe`), and the strategies a
+configuration asks for (:func:`make_strategies`). The run loop (:mod:`cusgs_jax.app.run`) only
+uses these; research code passes its own strategies as ``run(..., extra_strategies=...)``.
 
 Naming (:mod:`cusgs_jax.types`): A anchor capacity, S visible slots, N Gaussians
 per anchor, G = S·N, F latent size.
