@@ -358,7 +358,7 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
     cfg = Config()
     state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
     session = SimpleNamespace(cfg=cfg, state=state, banks=None, clock=SimpleNamespace(total=1.0),
-                              prune=dict(pruned=0), replays=0, recompilations=0, alarmed=set())
+                              strategies=(), tallies={}, replays=0, recompilations=0, alarmed=set())
     normal = dict(loss=0.5, loss_image=0.3, loss_l1=0.2, loss_feature=0.4, loss_feat_semantic_l2=0.05,
                   loss_feat_semantic_cos=0.35, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
                   dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)

@@ -386,7 +386,7 @@ def test_strategy_accumulates_views_and_prunes_by_mask():
     state = TrainState(anchors=_anchors(jnp.zeros((a, 3)), alive, latent), nets={}, opt_state=None,
                        densify={"feature_prune": stats, "scaffold": grow}, step=jnp.int32(0), skipped=jnp.int32(0))
     new, info = strategy.update(state, None, 200)
-    assert int(info["pruned"]) == 3 and int(info["alive"]) == 35
+    assert info.pruned == 3 and info.extra["alive"] == 35
     np.testing.assert_array_equal(new.anchors.alive, alive & ~expect)
     np.testing.assert_array_equal(new.anchors.params.latent, latent)  # a mask flip: nothing else moves
     for x in jax.tree_util.tree_leaves(new.densify["feature_prune"]):

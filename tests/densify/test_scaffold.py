@@ -11,7 +11,7 @@ import pytest
 
 from cusgs_jax.config import GrowConfig, OptimConfig
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import ViewRecord
+from cusgs_jax.densify.base import UpdateInfo, ViewRecord
 from cusgs_jax.densify.scaffold import GrowStats, ScaffoldStrategy, accumulate_stats, opacity_prune, plan_growth
 from cusgs_jax.model.anchors import AnchorParams, AnchorState
 from cusgs_jax.model.decode import VisibleSlots
@@ -111,14 +111,14 @@ def test_growing_fills_dead_slots_in_unoccupied_cells(always_keep):
     new_state, info = ScaffoldStrategy(cfg, 1.0, 2, 0).update(state, tx, 10)
     new_anchors, new_params, new_stats = new_state.anchors, new_state.anchors.params, new_state.densify["scaffold"]
     alive = np.asarray(new_anchors.alive)
-    assert info["grown"] == 1 and alive.sum() == 4
+    assert isinstance(info, UpdateInfo) and info.grown == 1 and alive.sum() == 4
     slot = 3
     np.testing.assert_allclose(new_anchors.centers[slot], [0, 0, 3])
     np.testing.assert_allclose(new_params.latent[slot], anchors.params.latent[0])  # max over its one parent
     np.testing.assert_allclose(new_params.offsets[slot], 0)
     np.testing.assert_allclose(new_params.log_scaling[slot], 0.0)  # log(cell = 1)
     assert float(jnp.sum(new_stats.grad_count[:3])) == 0.0  # participating Gaussians reset
-    assert info["capacity"] == 8 and info["capacity_grew"] is None and info["alive"] == 4
+    assert info.extra["capacity"] == 8 and not info.capacity_changed and info.extra["alive"] == 4
 
 
 def test_plan_growth_levels_and_occupied_cells():
@@ -152,7 +152,7 @@ def test_pruning_removes_seasoned_transparent_anchors(always_keep):
     new_state, info = ScaffoldStrategy(cfg, 1.0, 2, 0).update(state, tx, 100)
     new_anchors, new_stats = new_state.anchors, new_state.densify["scaffold"]
     np.testing.assert_array_equal(np.asarray(new_anchors.alive)[:3], [False, True, True])
-    assert info["pruned"] == 1
+    assert info.pruned == 1
     np.testing.assert_allclose(new_stats.visits[:3], [0, 0, 50])  # seasoned ones reset
     # the pure function agrees
     prune, direct = opacity_prune(np.asarray(anchors.alive), stats, cfg)
@@ -171,19 +171,19 @@ def test_capacity_grows_when_full(always_keep):
     state = state.replace(opt_state=ops.map_moments(tx, jnp.ones_like, state.opt_state))  # non-zero moments
     new_state, info = ScaffoldStrategy(cfg, 1.0, 2, 0).update(state, tx, 10)
     new_params, new_anchors, new_opt = new_state.anchors.params, new_state.anchors, new_state.opt_state
-    assert info["capacity_grew"] == 3 and info["capacity"] >= 6
-    assert new_params.latent.shape[0] == info["capacity"] == new_anchors.alive.shape[0]
+    assert info.capacity_changed and info.extra["capacity"] >= 6
+    assert new_params.latent.shape[0] == info.extra["capacity"] == new_anchors.alive.shape[0]
     assert int(np.sum(new_anchors.alive)) == 6
     moments = [(jax.tree_util.keystr(p), np.asarray(x)) for p, x in jax.tree_util.tree_leaves_with_path(new_opt)
                if "['anchor']" in jax.tree_util.keystr(p)]
     assert len(moments) == 6  # Adam's mu and nu of offsets, log_scaling, latent
     for name, mu in moments:
-        assert mu.shape[0] == info["capacity"], name
+        assert mu.shape[0] == info.extra["capacity"], name
         # the new slots' optimiser moments start at zero; the old anchors keep theirs
         assert float(np.sum(mu[3:])) == 0.0, name
         np.testing.assert_array_equal(mu[:3], 1.0, err_msg=name)
     for x in jax.tree_util.tree_leaves(new_state.densify):
-        assert x.shape[0] == info["capacity"]
+        assert x.shape[0] == info.extra["capacity"]
 
 
 def test_schedule():

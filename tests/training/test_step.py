@@ -79,9 +79,9 @@ def test_step_compiles_once_across_growing_and_pruning(setup):
         if (i + 1) % cfg.grow.interval == 0:
             assert scaffold.due(i + 1)
             state, info = scaffold.update(state, tx, i + 1)
-            assert info["capacity_grew"] is None
-            grown += info["grown"]
-            pruned += info["pruned"]
+            assert not info.capacity_changed
+            grown += info.grown
+            pruned += info.pruned
             adjustments += 1
         else:
             assert not scaffold.due(i + 1)
@@ -219,7 +219,7 @@ def test_prune_pass_honours_ratio_and_pruned_anchors_are_inert(prune_setup):
     state, info = prune.update(state, tx, int(state.step))
     alive_after = np.array(state.anchors.alive)
     removed = alive_before & ~alive_after
-    assert int(info["pruned"]) == removed.sum() == int(0.1 * alive_before.sum()) > 0
+    assert info.pruned == removed.sum() == int(0.1 * alive_before.sum()) > 0
     assert not np.any(alive_after & ~alive_before)
     assert float(jnp.sum(state.densify[prune.name].contrib)) == 0.0  # statistics restart after a pass
 
@@ -262,7 +262,7 @@ def test_prune_ratio_counts_exactly_and_repeated_passes_do_not_recompile(prune_s
         assert prune.due(done) == prune_due(done, cfg.prune)
         if prune_due(done, cfg.prune):
             state, info = prune.update(state, tx, done)
-            counts.append(int(info["alive"]))
+            counts.append(info.extra["alive"])
     assert len(counts) == 5  # passes at steps 3, 6, 9, 12
     for before, after in zip(counts, counts[1:]):
         assert after == before - before // 10
@@ -285,7 +285,7 @@ def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     state = state.replace(densify={**state.densify, prune.name: prune.init_state(state.anchors.capacity)})
     assert all(float(jnp.sum(x)) == 0.0 for x in jax.tree_util.tree_leaves(state.densify[prune.name]))
     state, info = prune.update(state, tx, 3)
-    assert int(info["pruned"]) == 0
+    assert info.pruned == 0
     np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)
 
 
@@ -397,8 +397,8 @@ def test_sharded_step_compiles_once_across_growing_and_pruning():
         state, metrics = step(state, _views([2 * i, 2 * i + 1])[0])
         if scaffold.due(i + 1):
             state, info = scaffold.update(state, tx, i + 1)
-            assert info["capacity_grew"] is None
-            grown, pruned = grown + info["grown"], pruned + info["pruned"]
+            assert not info.capacity_changed
+            grown, pruned = grown + info.grown, pruned + info.pruned
     assert grown > 0 and pruned > 0  # the masks really changed between steps
     assert step.jitted._cache_size() == 1
     assert int(state.step) == 10 and bool(metrics["finite"])

@@ -4,20 +4,25 @@
 
 * ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors``,
   ``dropped_gaussians`` and ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
-  capacities, :mod:`cusgs_jax.training.capacity`), … (a resumed run first drops the rows after the
-  restored step, so steps stay unique and increasing)
+  capacities, :mod:`cusgs_jax.training.capacity`), ``pruned`` (feature-aware pruning), ``densify``
+  ({strategy name: :class:`cusgs_jax.densify.base.Tally` as a dict}), … (a resumed run first drops the rows after
+  the restored step, so steps stay unique and increasing)
 * ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
 * ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
   ``lpips`` extra), model size (``model_bytes``: parameters and PSC banks, no optimiser state; and
-  ``checkpoint_bytes``), times, pruning summary, the scene's layout (``dataset_format``: colmap,
-  blender, nerfstudio), its held-out ``split`` (``every_8th``, ``transforms_test``, ``none``) and the
-  ``background`` rendered on
+  ``checkpoint_bytes``), times, pruning summary (``prune``, ``render_ms_before_prune``; ``densify``: every
+  strategy's tally), the scene's layout (``dataset_format``: colmap, blender, nerfstudio), its held-out
+  ``split`` (``every_8th``, ``transforms_test``, ``none``) and the ``background`` rendered on
 * ``renders/`` — held-out renders beside ground truth (PNG)
 * ``error_vs_time.png`` — held-out PSNR against training wall-clock time
 * ``checkpoints/`` — orbax checkpoints (periodic and final); their metadata records the training and
   held-out cameras
 * ``feature_banks.npz`` — the PSC banks of the feature models ({model: [M, D]}), for renderers that
   read the run folder without the scene (``cusgs-view``)
+
+The shell names no concrete strategy: it calls every strategy's hooks the same way
+(:class:`cusgs_jax.densify.base.Strategy`: ``due``, ``before_first_update``, ``update`` → ``UpdateInfo``,
+``log_values``, ``results``); research code adds its own through ``run(..., extra_strategies=...)``.
 
 The learning curve and the final evaluation use the same renderer: the model
 compacted to its alive anchors (:func:`cusgs_jax.model.anchors.compact`), every slot decoded.
@@ -47,8 +52,7 @@ from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_target
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import make_strategies
-from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
+from cusgs_jax.densify.base import Probe, Strategy, Tally, make_strategies, run_defaults
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
@@ -77,13 +81,13 @@ class Session:
     feature_sets: dict
     banks: dict | None
     targets: dict
-    strategies: tuple
+    strategies: tuple  # the densification strategies (densify.base.Strategy), run in this order
     tx: object
     state: object
     ckpt: Checkpointer
     clock: Clock
     curve: list
-    prune: dict  # {"passes", "pruned", "render_ms_before_prune"}
+    tallies: dict  # {strategy name: densify.base.Tally}: what each strategy's updates did (checkpointed)
     capacities: capacity.Capacities = None  # the step's work capacities: owned, grown and checkpointed here
     recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
     replays: int = 0  # steps replayed because a capacity was too small
@@ -100,8 +104,13 @@ class Session:
 # --- setup ----------------------------------------------------------------------------------
 
 
-def setup(cfg: Config, output_dir) -> Session:
-    """Scene, feature targets, fresh (or resumed) state, step and renderers."""
+def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) -> Session:
+    """Scene, feature targets, fresh (or resumed) state, step and renderers.
+
+    ``extra_strategies``: research code's own densification strategies
+    (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
+    (:func:`~cusgs_jax.densify.base.make_strategies`); a resume must pass the same ones.
+    """
     from cusgs_jax.training.distributed import require_single_process
     from cusgs_jax.training.parallel import resolve_devices
 
@@ -136,12 +145,15 @@ def setup(cfg: Config, output_dir) -> Session:
         feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed)
         targets = feature_targets(feature_sets, train_idx)
         banks = {name: jnp.asarray(b) for name, b in banks.items()}
-    strategies = make_strategies(cfg)
+    strategies = make_strategies(cfg) + tuple(extra_strategies)
+    names = [s.name for s in strategies]
+    if len(set(names)) != len(names):
+        raise ValueError(f"densification strategies need unique names (TrainState.densify is keyed by them): {names}")
     state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
     session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
                       state=state, ckpt=ckpt, clock=Clock(), curve=[],
-                      prune=dict(passes=0, pruned=0, render_ms_before_prune=None),
+                      tallies={name: Tally() for name in names},
                       capacities=capacity.Capacities.from_config(cfg))
     session.capacities = _fitted_capacities(session)
     if cfg.train.resume:
@@ -206,7 +218,10 @@ def _resume(session: Session) -> None:
     session.capacities = session.capacities.restored(meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
     session.curve = list(meta["curve"])
-    session.prune = dict(session.prune, **meta.get("prune", {}))
+    session.tallies.update({name: Tally.from_dict(record) for name, record in meta.get("densify", {}).items()})
+    if "densify" not in meta and "prune" in meta:  # written before the strategies kept tallies (issue 23)
+        log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
+                    "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
     session.recompilations = int(meta.get("recompilations", 0))
     session.replays = int(meta.get("replays", 0))
     _trim_jsonl(session.out / "metrics.jsonl", step)
@@ -317,21 +332,55 @@ def _batches(session: Session):
 
 
 def _densify(session: Session, step: int) -> None:
-    """Run every strategy due after ``step`` completed steps (host side, between steps)."""
+    """Run every strategy due after ``step`` completed steps (host side, between steps).
+
+    Before a strategy's first update its :meth:`~cusgs_jax.densify.base.Strategy.before_first_update`
+    hook sees a :class:`~cusgs_jax.densify.base.Probe`; each update's
+    :class:`~cusgs_jax.densify.base.UpdateInfo` is added to the strategy's tally.
+    """
     for strategy in session.strategies:
         if not strategy.due(step):
             continue
-        is_prune = strategy.name == FeaturePruneStrategy.name
-        if is_prune and session.prune["render_ms_before_prune"] is None:
-            with session.clock.paused():
-                session.prune["render_ms_before_prune"] = _evaluate(
-                    session, compact(session.state.anchors), time_renders=True)["render_ms_per_view"]
+        tally = session.tallies[strategy.name]
+        if tally.updates == 0:
+            tally = dataclasses.replace(tally, values=dict(strategy.before_first_update(_probe(session, step))))
         session.state, info = strategy.update(session.state, session.tx, step)
-        if info.get("capacity_grew"):
+        if info.capacity_changed:
             session.recompilations += 1  # new shapes: the jitted step retraces
-        if is_prune:
-            session.prune["passes"] += 1
-            session.prune["pruned"] += int(info["pruned"])
+        session.tallies[strategy.name] = tally.add(info)
+        log.debug("step %d: %s grew %d, pruned %d anchors%s %s", step, strategy.name, info.grown, info.pruned,
+                  " (capacity changed)" if info.capacity_changed else "", dict(info.extra))
+
+
+def _probe(session: Session, step: int) -> Probe:
+    """What a strategy's ``before_first_update`` hook may measure of the run after ``step`` steps."""
+    def render_ms_per_view() -> float:
+        with session.clock.paused():
+            return _evaluate(session, compact(session.state.anchors), time_renders=True)["render_ms_per_view"]
+
+    return Probe(step=step, render_ms_per_view=render_ms_per_view)
+
+
+def _strategy_log(session: Session) -> dict:
+    """The densification keys of a ``metrics.jsonl`` row: :func:`run_defaults`, each strategy's
+    ``log_values`` and ``densify`` ({strategy name: tally})."""
+    row = run_defaults(session.cfg)[0]
+    for strategy in session.strategies:
+        row.update(strategy.log_values(session.tallies[strategy.name]))
+    row["densify"] = {name: tally.as_dict() for name, tally in session.tallies.items()}
+    return row
+
+
+def _strategy_results(session: Session) -> dict:
+    """The densification keys of ``eval.json``: :func:`run_defaults`, each strategy's ``results``
+    (a dict value merged into the dict already there) and ``densify`` ({strategy name: tally})."""
+    result = run_defaults(session.cfg)[1]
+    for strategy in session.strategies:
+        for key, value in strategy.results(session.tallies[strategy.name]).items():
+            merge = isinstance(value, dict) and isinstance(result.get(key), dict)
+            result[key] = {**result[key], **value} if merge else value
+    result["densify"] = {name: tally.as_dict() for name, tally in session.tallies.items()}
+    return result
 
 
 def _devices(session: Session) -> int:
@@ -347,7 +396,7 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
-               pairs=int(metrics["pairs"]), pruned=session.prune["pruned"],
+               pairs=int(metrics["pairs"]), **_strategy_log(session),
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
                dropped_gaussians=int(metrics["dropped_gaussians"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
@@ -417,7 +466,8 @@ def _psnr_label(session: Session) -> str:
 
 def _save(session: Session, step: int) -> None:
     meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
-                prune=session.prune, recompilations=session.recompilations, replays=session.replays,
+                densify={name: tally.as_dict() for name, tally in session.tallies.items()},
+                recompilations=session.recompilations, replays=session.replays,
                 capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
                 # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
@@ -448,7 +498,6 @@ def finalise(session: Session) -> dict:
     lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
     anchors = compact(state.anchors)
     final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
-    prune_cfg = cfg.prune
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
@@ -457,9 +506,7 @@ def finalise(session: Session) -> dict:
         model_bytes=model_bytes(state.anchors, state.nets, session.banks),
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
-        render_ms_before_prune=session.prune["render_ms_before_prune"],
-        prune=dict(strategy=prune_cfg.strategy, ratio=prune_cfg.ratio, lambda_norm=prune_cfg.lambda_norm,
-                   lambda_grad=prune_cfg.lambda_grad, passes=session.prune["passes"], pruned=session.prune["pruned"]),
+        **_strategy_results(session),  # render_ms_before_prune, the prune block, densify
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
         replayed_steps=session.replays,
         recompilations=session.recompilations + session.render.growths
@@ -483,13 +530,14 @@ def finalise(session: Session) -> dict:
     return result
 
 
-def run(cfg: Config, output_dir, progress_label: str = "train") -> dict:
+def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = ()) -> dict:
     """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
 
-    ``progress_label`` names the progress bar (a sweep labels each job's bar). While it runs, the
+    ``progress_label`` names the progress bar (a sweep labels each job's bar); ``extra_strategies``
+    are research code's own densification strategies (see :func:`setup`). While it runs, the
     noise orbax repeats after a failed checkpoint save or read is dropped (:func:`quiet_orbax`).
     """
     with quiet_orbax():
-        session = setup(cfg, output_dir)
+        session = setup(cfg, output_dir, extra_strategies)
         train(session, progress_label)
         return finalise(session)

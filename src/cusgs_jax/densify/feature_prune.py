@@ -74,6 +74,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax.config import PruneConfig
+from cusgs_jax.densify.base import Probe, Strategy, Tally, UpdateInfo
 from cusgs_jax.model.anchors import AnchorState, PerAnchor
 
 # Denominator bound of the exact-fraction path in :func:`_floor_ratio`: with
@@ -342,12 +343,15 @@ def stats_window(step, cfg: PruneConfig = PruneConfig()):
     return bool(on) if isinstance(step, int) else on
 
 
-class FeaturePruneStrategy:
+class FeaturePruneStrategy(Strategy):
     """CUS-GS feature-aware pruning as a densification strategy (see :mod:`cusgs_jax.densify`).
 
     State: :class:`PruneStats`, accumulated inside the jitted step
     (:meth:`accumulate`); every due step :meth:`update` runs the jitted
-    :func:`prune_pass` (a mask: no shape changes, nothing recompiles).
+    :func:`prune_pass` (a mask: no shape changes, nothing recompiles). Before the first
+    pass it measures the render time of the unpruned model (:meth:`before_first_update`); it
+    reports ``pruned`` in every ``metrics.jsonl`` row and ``render_ms_before_prune`` and the
+    ``prune`` block's ``passes`` / ``pruned`` in ``eval.json``.
     """
 
     name = "feature_prune"
@@ -370,8 +374,29 @@ class FeaturePruneStrategy:
         """A pass after ``step`` completed steps."""
         return prune_due(step, self.cfg)
 
-    def update(self, state, tx, step: int):
-        """Host side, after step ``step``: one pruning pass. Returns (state, info with "pruned")."""
+    def before_first_update(self, probe: Probe) -> dict:
+        """The held-out render time per view of the model before any pass: ``render_ms_before_prune``."""
+        return dict(render_ms_before_prune=probe.render_ms_per_view())
+
+    def update(self, state, tx, step: int) -> tuple[object, UpdateInfo]:
+        """Host side, after step ``step``: one pruning pass.
+
+        Returns:
+          (state, :class:`~cusgs_jax.densify.base.UpdateInfo`) with ``pruned`` and ``extra``
+          ``alive`` (anchors after the pass) and ``candidates`` (alive anchors seen often enough).
+        """
         del tx, step  # a mask flip: shapes, moments and the other statistics are untouched
         anchors, stats, info = self._pass(state.anchors, state.densify[self.name])
-        return state.replace(anchors=anchors, densify={**state.densify, self.name: stats}), info
+        info = jax.device_get(info)
+        return (state.replace(anchors=anchors, densify={**state.densify, self.name: stats}),
+                UpdateInfo(pruned=int(info["pruned"]),
+                           extra=dict(alive=int(info["alive"]), candidates=int(info["candidates"]))))
+
+    def log_values(self, tally: Tally) -> dict:
+        """``pruned``: anchors removed by the passes so far."""
+        return dict(pruned=tally.pruned)
+
+    def results(self, tally: Tally) -> dict:
+        """``render_ms_before_prune`` and the ``prune`` block's ``passes`` and ``pruned``."""
+        return dict(render_ms_before_prune=tally.values.get("render_ms_before_prune"),
+                    prune=dict(passes=tally.updates, pruned=tally.pruned))

@@ -22,6 +22,7 @@ import numpy as np
 
 from cusgs_jax.config import GrowConfig
 from cusgs_jax.densify import ops
+from cusgs_jax.densify.base import Strategy, UpdateInfo
 from cusgs_jax.model.anchors import AnchorState, PerAnchor, place_anchors
 
 log = logging.getLogger("cusgs_jax")
@@ -185,7 +186,7 @@ def opacity_prune(alive: np.ndarray, stats: GrowStats, cfg: GrowConfig) -> tuple
     return prune, GrowStats(*(jnp.asarray(x) for x in (grad_accum, grad_count, opacity_accum, visits)))
 
 
-class ScaffoldStrategy:
+class ScaffoldStrategy(Strategy):
     """Scaffold-GS growing + opacity pruning (``adjust_anchor``) as a densification strategy.
 
     State: :class:`GrowStats`, accumulated in the jitted step (:meth:`accumulate`);
@@ -216,11 +217,13 @@ class ScaffoldStrategy:
         """The candidate-dropping draws of the adjustment after ``step`` steps (seeded: resumes replay it)."""
         return np.random.default_rng([self.seed, step - 1])
 
-    def update(self, state, tx, step: int):
+    def update(self, state, tx, step: int) -> tuple[object, UpdateInfo]:
         """Grow, then prune weak anchors (host side, after ``step`` completed steps).
 
         Returns:
-          (state, info) with info ``grown``, ``pruned``, ``capacity``, ``capacity_grew`` (old capacity or None).
+          (state, :class:`~cusgs_jax.densify.base.UpdateInfo`): ``grown`` new anchors, ``pruned`` by
+          opacity, ``capacity_changed`` when A grew; ``extra`` ``alive`` (anchors after the update)
+          and ``capacity`` (A after it).
         """
         stats = state.densify[self.name]
         centers, latents, log_cells, took_part = plan_growth(state.anchors, stats, self.cfg, self.voxel_size,
@@ -247,6 +250,5 @@ class ScaffoldStrategy:
         prune, stats = opacity_prune(np.asarray(state.anchors.alive), state.densify[self.name], self.cfg)
         anchors = state.anchors.replace(alive=jnp.asarray(np.asarray(state.anchors.alive) & ~prune))
         state = state.replace(anchors=anchors, densify={**state.densify, self.name: stats})
-        return state, dict(grown=len(centers), pruned=int(prune.sum()), capacity=capacity,
-                           capacity_grew=old_capacity if capacity != old_capacity else None,
-                           alive=int(np.sum(np.asarray(anchors.alive))))
+        return state, UpdateInfo(grown=len(centers), pruned=int(prune.sum()), capacity_changed=capacity != old_capacity,
+                                 extra=dict(alive=int(np.sum(np.asarray(anchors.alive))), capacity=capacity))
