@@ -34,7 +34,7 @@ import numpy as np
 
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 
-__all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points"]
+__all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points", "random_voxel_size"]
 
 DEFAULT_NUM_POINTS = 100_000
 GREY = 128
@@ -74,6 +74,23 @@ def random_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) ->
     if not (np.isfinite(half) and half > 0):
         half = float(extent)
     return np.asarray(center, np.float64), half
+
+
+def random_voxel_size(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> float:
+    """``model.voxel_size=auto`` for random points: half a pixel's footprint at the distance the cameras
+    look at, ``0.5 × median_i ‖x − C_i‖ / median_i f_i`` (``x`` the centre of :func:`random_box`, ``C_i`` the
+    camera centres, ``f_i = max(fx, fy)``), in the units of ``viewmats`` (module docstring).
+
+    Args:
+      viewmats: [V, 4, 4] world→camera (OpenCV axes); Ks: [V, 3, 3] at ``width`` × ``height``.
+    """
+    center, half = random_box(viewmats, Ks, width, height)
+    Ks = np.asarray(Ks, np.float64)
+    focal = np.maximum(Ks[:, 0, 0], Ks[:, 1, 1])
+    size = float(0.5 * np.median(np.linalg.norm(center - camera_centers(viewmats), axis=-1)) / np.median(focal))
+    if not (np.isfinite(size) and size > 0):  # the cameras sit at x: a 1/1000 of the cube
+        size = 1e-3 * 2 * half
+    return size
 
 
 def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, *,
