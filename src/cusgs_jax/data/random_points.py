@@ -19,13 +19,19 @@ origin assumed:
 3. **Points**: ``num`` (default 100 000) uniform in the cube ``x ± h``, from
    ``numpy.random.default_rng(seed)`` (deterministic); colours mid-grey (128, 128, 128) uint8.
 
-**Voxel size.** ``model.voxel_size=auto`` (the median nearest-neighbour distance of the points,
-:func:`cusgs_jax.model.anchors.auto_voxel_size`) stays sensible on these points with no change: for
-N uniform points in a cube of side 2h the median nearest-neighbour distance is
-``2h·(3 ln 2 / 4πN)^{1/3}`` (0.0237·h for N = 100 000), so a voxel holds 0.165 points on average and
-about 92 % of the points become anchors — about 92 000 anchors, independent of the scene's scale, as
-Scaffold-GS's 100 000 anchors on NeRF-synthetic (voxel_size 0.001 on the ±1.3 cube). Fewer
-``data.random_points`` give proportionally fewer, larger voxels.
+**Voxel size.** ``model.voxel_size=auto`` is *not* the median nearest-neighbour spacing of these points
+(:func:`cusgs_jax.model.anchors.auto_voxel_size`, the rule for SfM points): for N uniform points in a cube
+of side 2h that spacing is ``2h·(3 ln 2 / 4πN)^{1/3}`` — it says how many points were drawn, not how
+fine the scene is (0.0151 × the extent for 10 000 points on the demo objects of
+:mod:`cusgs_jax.data.demo_objects`, 6.6 × the 0.0023 that their SfM points give). Instead
+(:func:`random_voxel_size`, used when ``SceneData.random_points`` is set): **half a pixel's footprint at
+the distance the cameras look at**, ``0.5 × median_i ‖x − C_i‖ / median_i f_i`` (``x`` the centre above,
+``f_i = max(fx, fy)`` in pixels). On the demo objects (128 px, distance 4.5, FoV 0.69) it is 0.0127 m =
+0.0023 × the extent — the SfM points' spacing; on NeRF-synthetic at 800 px, 0.0018 (Scaffold-GS uses
+0.001 there). Nearly every random point then becomes an anchor (Scaffold-GS's one anchor per point); the
+anchors in empty space are pruned by the growing schedule within the first ~500 steps. Measured on the
+demo objects (``experiments/random_init_objects.py``, 1500 steps, one seed): 10 000 random points with
+the spacing rule 28.14 dB held-out, with this rule 28.98 dB; SfM points 31.32 dB.
 """
 
 from __future__ import annotations
