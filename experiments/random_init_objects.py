@@ -8,7 +8,8 @@ views) — then trains each with the same settings, one run at a time, and write
 
   python experiments/random_init_objects.py [OUT] [extra overrides for the Blender run ...]
 
-OUT defaults to experiments/results/random_init_objects; runs go to OUT/<name>/ (eval.json kept).
+OUT defaults to experiments/results/random_init_objects; runs go to OUT/<name><TAG>/ (eval.json kept).
+Environment: RUNS=colmap,blender (which runs), TAG (suffix of the run names), SEED (train.seed of both runs).
 """
 
 from __future__ import annotations
@@ -49,11 +50,13 @@ def main(argv: list[str]) -> None:
         generate_object_scenes(scenes)
     out.mkdir(parents=True, exist_ok=True)
     tag = os.environ.get("TAG", "")
+    seed = os.environ.get("SEED")  # train.seed for both runs (it also seeds the random points)
+    both = [f"train.seed={seed}"] if seed else []
     if "colmap" in which:
         run(out, f"colmap_sfm{tag}", [f"data.path={scenes / 'colmap'}", "data.holdout_every=7",
-                                      "splat.background=[1,1,1]"])
+                                      "splat.background=[1,1,1]", *both])
     if "blender" in which:
-        run(out, f"blender_random{tag}", [f"data.path={scenes / 'blender'}", *extra])
+        run(out, f"blender_random{tag}", [f"data.path={scenes / 'blender'}", *both, *extra])
 
 
 if __name__ == "__main__":
