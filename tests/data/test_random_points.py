@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from cusgs_jax.data.random_points import GREY, random_box, random_points
+from cusgs_jax.data.random_points import GREY, random_box, random_points, random_voxel_size
 from cusgs_jax.model.anchors import auto_voxel_size
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, orbit_eyes
 
@@ -84,3 +84,29 @@ def test_auto_voxel_size_is_the_uniform_spacing():
     assert voxel == pytest.approx(expected, rel=0.1)
     anchors = len(np.unique(np.floor(points / voxel), axis=0))
     assert 0.8 * num < anchors < 0.97 * num
+
+
+def test_random_voxel_size_is_half_a_pixel_footprint():
+    """voxel_size=auto for random points: 0.5 × camera distance / focal, whatever the number of points,
+    and it scales with the scene (a 10× larger copy of the cameras gives a 10× larger voxel)."""
+    views, Ks = _ring(), _K(20)
+    f = 0.5 * W / math.tan(0.5 * ANGLE)
+    assert random_voxel_size(views, Ks, W, H) == pytest.approx(0.5 * 4.0311 / f, rel=1e-6)
+    big = views.copy()
+    big[:, :3, 3] *= 10.0
+    assert random_voxel_size(big, Ks, W, H) == pytest.approx(10 * 0.5 * 4.0311 / f, rel=1e-6)
+    twice = _K(20, width=2 * W)  # twice the pixels across the same field of view: half the footprint
+    assert random_voxel_size(views, twice, 2 * W, 2 * H) == pytest.approx(0.25 * 4.0311 / f, rel=1e-6)
+
+
+def test_resolve_voxel_size_uses_the_camera_rule_for_random_points():
+    from cusgs_jax.config import Config
+    from cusgs_jax.training.state import resolve_voxel_size
+
+    views, Ks = _ring(), _K(20)
+    points, _ = random_points(views, Ks, W, H, num=5000)
+    cfg = Config().replace(model=dict(voxel_size="auto"))
+    assert resolve_voxel_size(cfg, points).model.voxel_size == pytest.approx(auto_voxel_size(points))
+    rule = resolve_voxel_size(cfg, points, (views, Ks, W, H)).model.voxel_size
+    assert rule == pytest.approx(random_voxel_size(views, Ks, W, H))
+    assert rule < 0.5 * auto_voxel_size(points)

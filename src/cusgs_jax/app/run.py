@@ -130,7 +130,8 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
     cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
-    cfg = resolve_voxel_size(cfg, scene.points)
+    cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats, scene.Ks, scene.width, scene.height)
+                             if scene.random_points else None)
     train_idx = scene.train_indices
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
     log.info("scene %s (%s): %d train / %d held-out views at %dx%d, %d points; extent %.4g in the scene's frame "

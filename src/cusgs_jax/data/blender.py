@@ -144,7 +144,8 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(out_w), height=int(out_h), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="blender",
-        split="transforms_test" if len(test_indices) else "none", background=tuple(background))
+        split="transforms_test" if len(test_indices) else "none", background=tuple(background),
+        random_points=True)
 
 
 def _K(width: int, height: int, angle_x: float, downscale: float) -> np.ndarray:

@@ -83,6 +83,9 @@ class SceneData:
       split: how the held-out views were chosen, e.g. "every_8th", "none" or
         "transforms_test" (Blender's test frames).
       background: RGB in [0, 1] that images with alpha were composited onto.
+      random_points: the points are :func:`cusgs_jax.data.random_points.random_points` (a layout without
+        points), not SfM points; ``model.voxel_size=auto`` then uses
+        :func:`cusgs_jax.data.random_points.random_voxel_size` instead of their spacing.
     """
 
     path: pathlib.Path
@@ -100,6 +103,7 @@ class SceneData:
     dataset_format: str = "colmap"
     split: str = "every_8th"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    random_points: bool = False
 
     @property
     def camera_centers(self) -> np.ndarray:

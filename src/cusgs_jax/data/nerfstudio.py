@@ -318,7 +318,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
-        split=split_name(holdout_every), background=tuple(background))
+        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None)
 
 
 def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,

@@ -27,12 +27,24 @@ MIN_ANCHORS = 4  # fewer cannot represent a scene: refused
 FEW_ANCHORS = 64  # fewer is allowed but warned about
 
 
-def resolve_voxel_size(cfg: Config, points: np.ndarray) -> Config:
-    """``cfg`` with ``model.voxel_size="auto"`` replaced by :func:`auto_voxel_size` of ``points`` [P, 3]."""
+def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | None = None) -> Config:
+    """``cfg`` with ``model.voxel_size="auto"`` replaced by :func:`auto_voxel_size` of ``points`` [P, 3] —
+    or, when ``random_cameras`` = (viewmats [V, 4, 4], Ks [V, 3, 3], width, height) is given (the points are
+    random, not SfM: a layout without points), by
+    :func:`cusgs_jax.data.random_points.random_voxel_size` of those cameras, since the spacing of
+    uniform random points says how many there are, not how fine the scene is."""
     if cfg.model.voxel_size != "auto":
         return cfg
-    size = auto_voxel_size(points)
-    log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of the %d initial points)", size, len(points))
+    if random_cameras is not None:
+        from cusgs_jax.data.random_points import random_voxel_size
+
+        size = random_voxel_size(*random_cameras)
+        log.info("model.voxel_size=auto: %.5g (half a pixel's footprint at the distance the cameras look at; "
+                 "the %d initial points are random)", size, len(points))
+    else:
+        size = auto_voxel_size(points)
+        log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of the %d initial points)", size,
+                 len(points))
     return cfg.replace(model=dict(voxel_size=size))
 
 
