@@ -192,6 +192,24 @@ def test_bad_files_raise_ply_error_naming_the_file(tmp_path, case, match):
     assert str(path) in str(e.value) and isinstance(e.value, UserError)
 
 
+def test_infinite_opacity_logits_read_as_opacity_one_or_zero(tmp_path):
+    """Converters (PlayCanvas splat-transform, SPZ → PLY) write ±inf logits for 8-bit alpha 255 / 0."""
+    from cusgs_jax.io.ply import OPACITY_LOGIT_LIMIT
+
+    path = tmp_path / "inf.ply"
+    vertex = _standard(tmp_path)
+    vertex["opacity"][0], vertex["opacity"][1] = np.inf, -np.inf
+    _write(path, vertex)
+    logits = read_ply(path).opacity_logits
+    assert logits[0] == OPACITY_LOGIT_LIMIT and logits[1] == -OPACITY_LOGIT_LIMIT
+    np.testing.assert_array_equal(logits[2:], vertex["opacity"][2:])
+    assert np.float32(1.0) / (1 + np.exp(-np.float32(logits[0]))) == 1.0  # opacity exactly 1 in float32
+    vertex["scale_0"][3] = np.inf  # elsewhere an infinity is still refused
+    _write(path, vertex)
+    with pytest.raises(PlyError, match="scale_0 has 1 non-finite"):
+        read_ply(path)
+
+
 def test_write_errors(tmp_path):
     m = _model(num=3, degree=1)
     with pytest.raises(PlyError, match="quats has shape"):

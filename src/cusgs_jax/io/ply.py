@@ -140,10 +140,12 @@ def read_ply(path: str | os.PathLike) -> SplatModel:
     inferred from the number of ``f_rest_*`` properties, which must be
     3·((d+1)² − 1) for some d ≥ 0 and numbered 0… without gaps.
 
+    An infinite ``opacity`` logit (opacity exactly 1 or 0) is read as ±:data:`OPACITY_LOGIT_LIMIT`.
+
     Raises:
       PlyError: the file is missing, not a PLY, has no ``vertex`` element or no
         vertices, lacks a property, has a wrong ``f_rest`` count, or holds
-        non-finite values — the message names the file and the problem.
+        NaN or (outside ``opacity``) infinite values — the message names the file and the problem.
     """
     path = pathlib.Path(path)
     if not path.is_file():
@@ -197,10 +199,18 @@ def _read_columns(ply, path: pathlib.Path) -> dict[str, np.ndarray]:
         if data.dtype == object:
             raise PlyError(f"{path}: vertex property {n} is a list, expected a scalar")
         columns[n] = np.array(data, dtype=np.float32)  # a copy in native order, never the file's memory map
+        if n == "opacity":  # ±inf logits: opacity exactly 1 or 0, as converters write 8-bit alpha 255 / 0
+            columns[n] = np.where(np.isinf(columns[n]), np.sign(columns[n]) * OPACITY_LOGIT_LIMIT, columns[n])
         bad = int(np.count_nonzero(~np.isfinite(columns[n])))
         if bad:
             raise PlyError(f"{path}: vertex property {n} has {bad} non-finite values (NaN or Inf)")
     return columns
+
+
+OPACITY_LOGIT_LIMIT = 30.0
+"""An infinite opacity logit read from a file becomes ±30: sigmoid(30) is 1 in float32 and
+sigmoid(−30) ≈ 1e−13 (PlayCanvas ``splat-transform`` writes ±inf for the 8-bit alpha 255 / 0 of
+an SPZ or compressed PLY it converts back; measured on a round trip of a refined export)."""
 
 
 def _sh_coeffs(num_rest: int, path: pathlib.Path) -> int:
