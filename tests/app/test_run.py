@@ -390,3 +390,26 @@ def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, 
     with pytest.raises(ConfigError, match=r"train.devices='8': only 2 device\(s\) are present"):
         run(_cfg(tiny_scene, "train.batch_size=8", "train.devices=8"), tmp_path / "refused")
     assert not (tmp_path / "refused").exists()  # refused before any work
+
+
+def test_a_run_pruned_to_a_few_anchors_shrinks_its_capacity_and_resumes_exactly(tiny_scene, tmp_path, caplog):
+    """Pruning 90 % of the anchors at step 10 leaves the capacity nearly empty: it shrinks (the step
+    recompiles and pays for what is alive), training goes on, and a run killed after step 20 resumes
+    from a checkpoint of the smaller capacity to the bit-identical final state."""
+    import logging
+
+    extra = ("prune.ratio=0.9", "prune.min_visits=0", "prune.stop=10")
+    straight_dir, interrupted = tmp_path / "straight", tmp_path / "interrupted"
+    with caplog.at_level(logging.INFO, logger="cusgs_jax"):
+        run(_cfg(tiny_scene, *extra), straight_dir)
+    assert any("capacity shrunk to" in r.getMessage() for r in caplog.records)
+    run(_cfg(tiny_scene, *extra), interrupted)
+    shutil.rmtree(interrupted / "checkpoints" / "30")
+    run(_cfg(tiny_scene, *extra, "train.resume=true"), interrupted)
+    step_a, leaves_a = _final_state_leaves(straight_dir)
+    step_b, leaves_b = _final_state_leaves(interrupted)
+    assert step_a == step_b == 30 and len(leaves_a) == len(leaves_b)
+    for a, b in zip(leaves_a, leaves_b):
+        np.testing.assert_array_equal(a, b)
+    result = json.loads((straight_dir / "eval.json").read_text())
+    assert result["psnr"] > 10.0 and np.isfinite(result["psnr"])

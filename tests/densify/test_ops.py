@@ -150,3 +150,81 @@ def test_restart_rows_zeroes_only_the_given_rows():
     for x, y in zip(jax.tree_util.tree_leaves((state.anchors, state.nets)),
                     jax.tree_util.tree_leaves((after.anchors, after.nets))):
         _assert_same(x, y, "anchors/nets")
+
+
+def test_resize_capacity_moves_the_alive_rows_of_every_per_anchor_array_to_the_front():
+    state, tx = _state("per_anchor")
+    old = state.anchors.capacity
+    alive = np.asarray(state.anchors.alive).copy()
+    alive[::3] = False  # a third of the slots dead, scattered
+    state = state.replace(anchors=state.anchors.replace(alive=jnp.asarray(alive)))
+    keep = np.flatnonzero(alive)
+    new = len(keep) + 5
+    moved = ops.resize_capacity(state, tx, new)
+    assert moved.anchors.capacity == new < old
+    for name, before, after in (("anchors", state.anchors, moved.anchors), ("densify", state.densify, moved.densify)):
+        for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(before), jax.tree_util.tree_leaves(after)):
+            what = name + jax.tree_util.keystr(path)
+            np.testing.assert_array_equal(np.asarray(y)[:len(keep)], np.asarray(x)[keep], err_msg=what)
+            assert not np.any(np.asarray(y)[len(keep):]), what
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(state.opt_state),
+                            jax.tree_util.tree_leaves(moved.opt_state)):
+        if _is_anchor_moment(path):
+            np.testing.assert_array_equal(np.asarray(y)[:len(keep)], np.asarray(x)[keep])
+        else:
+            _assert_same(x, y, "opt_state" + jax.tree_util.keystr(path))
+    for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(state.nets), jax.tree_util.tree_leaves(moved.nets)):
+        _assert_same(x, y, "nets" + jax.tree_util.keystr(path))
+    with pytest.raises(ValueError, match="cannot keep"):
+        ops.resize_capacity(state, tx, len(keep) - 1)
+
+
+def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_path):
+    """Dead slots contribute nothing: the step on the compacted capacity gives the alive anchors the
+    same loss and the same new parameters (float32 tolerance: the gathers' padding differs)."""
+    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.normalize import normalize_scene
+    from cusgs_jax.data.demo import generate_demo_scene
+    from cusgs_jax.training.capacity import Capacities
+    from cusgs_jax.training.state import resolve_voxel_size
+    from cusgs_jax.training.step import make_train_step
+    from cusgs_jax.types import Camera
+
+    scene, _ = normalize_scene(load_scene(generate_demo_scene(tmp_path / "demo", width=40, height=30, num_views=4,
+                                                              num_points=1500), holdout_every=0))
+    cfg = Config().replace(features=dict(models=()), model=dict(n_offsets=3, latent_dim=8, hidden=16))
+    cfg = resolve_voxel_size(cfg, scene.points)
+    strategies = make_strategies(cfg)
+    state, tx = init_train_state(cfg, scene.points, len(scene.images), scene.extent, strategies)
+    alive = np.asarray(state.anchors.alive).copy()
+    alive[np.flatnonzero(alive)[::2]] = False  # half the anchors pruned
+    state = state.replace(anchors=state.anchors.replace(alive=jnp.asarray(alive)))
+    keep = np.flatnonzero(alive)
+    shrunk = ops.resize_capacity(state, tx, int(np.ceil(len(keep) * 1.5)))
+    assert shrunk.anchors.capacity < state.anchors.capacity
+    caps = Capacities(visible_fraction=1.0, active_fraction=1.0, pairs_per_active=64.0)
+    batch = dict(image=jnp.asarray(scene.images[0].astype(np.float32) / 255.0), camera=Camera.of_scene(scene, 0),
+                 index=jnp.int32(0))
+    before = jax.device_get(state.anchors.params)
+    copy = lambda tree: jax.tree_util.tree_map(jnp.copy, tree)  # noqa: E731  (the step donates its state)
+    a, ma = make_train_step(cfg, tx, strategies, caps)(copy(state), batch)
+    b, mb = make_train_step(cfg, tx, strategies, caps)(copy(shrunk), batch)
+    assert int(ma["dropped_pairs"]) == int(mb["dropped_pairs"]) == 0 and bool(ma["finite"]) and int(a.step) == 1
+    np.testing.assert_allclose(float(mb["loss"]), float(ma["loss"]), rtol=1e-6)
+    changed = 0
+    for (path, x), y, x0 in zip(jax.tree_util.tree_leaves_with_path(a.anchors.params),
+                                jax.tree_util.tree_leaves(b.anchors.params),
+                                jax.tree_util.tree_leaves(before)):
+        np.testing.assert_allclose(np.asarray(y)[:len(keep)], np.asarray(x)[keep], rtol=1e-5, atol=1e-6,
+                                   err_msg=jax.tree_util.keystr(path))
+        changed += int(np.any(np.asarray(x)[keep] != np.asarray(x0)[keep]))
+    assert changed >= 2  # the step did move the alive anchors
+    for x, y in zip(jax.tree_util.tree_leaves(a.nets), jax.tree_util.tree_leaves(b.nets)):
+        np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-5, atol=1e-6)
+
+
+def test_shrunk_capacity_rule():
+    assert ops.shrunk_capacity(alive=5000, capacity=10000) is None  # half full: kept
+    assert ops.shrunk_capacity(alive=3200, capacity=200000) == 6400  # 2 × alive, a multiple of 256
+    assert ops.shrunk_capacity(alive=0, capacity=100000) == 256
+    assert ops.shrunk_capacity(alive=100, capacity=300) is None  # nothing smaller to move to

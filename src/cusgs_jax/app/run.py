@@ -211,7 +211,11 @@ def _resume(session: Session) -> None:
     """Restore the newest checkpoint that restores cleanly and trim the logs to its step."""
     def template(meta: dict):
         fresh, saved = session.state, int(meta["capacity"])
-        return fresh if saved == fresh.anchors.capacity else ops.grow_capacity(fresh, session.tx, saved)
+        if saved == fresh.anchors.capacity:
+            return fresh
+        if saved > fresh.anchors.capacity:
+            return ops.grow_capacity(fresh, session.tx, saved)
+        return ops.resize_capacity(fresh, session.tx, saved, keep=np.arange(saved))  # shapes only: restored over
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
@@ -351,6 +355,21 @@ def _densify(session: Session, step: int) -> None:
         session.tallies[strategy.name] = tally.add(info)
         log.debug("step %d: %s grew %d, pruned %d anchors%s %s", step, strategy.name, info.grown, info.pruned,
                   " (capacity changed)" if info.capacity_changed else "", dict(info.extra))
+        _shrink_if_empty(session, step)
+
+
+def _shrink_if_empty(session: Session, step: int) -> None:
+    """Move the anchors to a smaller capacity when pruning left most slots dead (:func:`ops.shrunk_capacity`),
+    and refit the work capacities to the smaller model, so a step pays for what is alive."""
+    alive, old = int(np.sum(np.asarray(session.state.anchors.alive))), session.state.anchors.capacity
+    new = ops.shrunk_capacity(alive, old)
+    if new is None:
+        return
+    session.state = ops.resize_capacity(session.state, session.tx, new)
+    session.capacities = _fitted_capacities(session)
+    session.step_fn, session.recompilations = None, session.recompilations + 1
+    log.info("step %d: %d of %d anchor slots alive: capacity shrunk to %d (the step recompiles once)",
+             step, alive, old, new)
 
 
 def _probe(session: Session, step: int) -> Probe:

@@ -1,7 +1,7 @@
 """Resizing the training state in one place: anchors, optimiser moments and statistics together.
 
 In the spirit of gsplat's ``strategy/ops.py``: whatever a strategy does to the
-anchor slots (grow the capacity, restart refilled slots) is done to every
+anchor slots (grow or shrink the capacity, restart refilled slots) is done to every
 per-anchor array at once — the :class:`~cusgs_jax.model.anchors.AnchorState`,
 the matching Adam moments (located with ``optax.tree_utils.tree_map_params``)
 and every strategy's statistics. Which arrays are per-anchor is declared by
@@ -14,9 +14,17 @@ Host side, between steps.
 
 from __future__ import annotations
 
+import numpy as np
 import optax
 
 from cusgs_jax.model.anchors import is_per_anchor, map_rows, pad_leaf, pad_rows, zero_leaf, zero_rows
+
+SHRINK_BELOW = 0.25
+"""The capacity shrinks when the alive anchors fill less than this fraction of it (:func:`shrunk_capacity`)."""
+SHRINK_HEADROOM = 2.0
+"""A shrunk capacity holds this many times the alive anchors (room to grow before it must grow again)."""
+CAPACITY_MULTIPLE = 256
+"""Shrunk capacities are multiples of this (few distinct shapes, few compiles)."""
 
 
 def map_moments(tx: optax.GradientTransformation, fn, opt_state):
@@ -30,6 +38,41 @@ def grow_capacity(state, tx, new_capacity: int):
     return state.replace(anchors=pad_rows(state.anchors, new_capacity),
                          densify=pad_rows(state.densify, new_capacity),
                          opt_state=map_moments(tx, lambda x: pad_leaf(x, new_capacity), state.opt_state))
+
+
+def resize_capacity(state, tx, new_capacity: int, keep=None):
+    """Move the rows ``keep`` (default: the alive slots, in slot order) of every per-anchor array of
+    ``state`` — anchors, Adam moments, statistics — to the front of a capacity of ``new_capacity``
+    slots; the rest are dead and zero. With the default ``keep`` the step on the result gives every
+    alive anchor the same loss, gradient and update as on ``state`` (dead slots contribute nothing).
+
+    Args:
+      keep: [K] int slot indices, K ≤ ``new_capacity``; None: the alive slots.
+    """
+    keep = np.flatnonzero(np.asarray(state.anchors.alive)) if keep is None else np.asarray(keep)
+    if len(keep) > new_capacity:
+        raise ValueError(f"cannot keep {len(keep)} anchor rows in a capacity of {new_capacity}")
+
+    def leaf(x):
+        return pad_leaf(x[keep], new_capacity)
+
+    return state.replace(anchors=map_rows(leaf, state.anchors), densify=map_rows(leaf, state.densify),
+                         opt_state=map_moments(tx, leaf, state.opt_state))
+
+
+def shrunk_capacity(alive: int, capacity: int) -> int | None:
+    """The smaller anchor capacity a state should move to, or None to keep ``capacity``.
+
+    Pruning can leave a capacity sized for the initial points nearly empty (100k random initial
+    points pruned to a few thousand anchors), and every step pays for the capacity's slots
+    (visible-slot, active and pair capacities are fractions of it; the statistics are [A]).
+    Shrink when fewer than :data:`SHRINK_BELOW` of the slots are alive, to
+    :data:`SHRINK_HEADROOM` × alive rounded up to :data:`CAPACITY_MULTIPLE`.
+    """
+    if alive >= SHRINK_BELOW * capacity:
+        return None
+    target = int(np.ceil(max(alive, 1) * SHRINK_HEADROOM / CAPACITY_MULTIPLE) * CAPACITY_MULTIPLE)
+    return target if target < capacity else None
 
 
 def restart_rows(state, tx, rows):
