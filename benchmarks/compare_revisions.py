@@ -51,7 +51,10 @@ def child(args) -> dict:
     from cusgs_jax.config import Config
     from cusgs_jax.data.colmap import load_scene
     from cusgs_jax.data.normalize import normalize_scene
-    from cusgs_jax.densify.base import make_strategies
+    try:
+        from cusgs_jax.densify.factory import make_strategies
+    except ImportError:  # revisions before densify/factory.py kept it in densify/base.py
+        from cusgs_jax.densify.base import make_strategies
     from cusgs_jax.model.anchors import compact
     from cusgs_jax.training import capacity
     from cusgs_jax.training.render import make_render_fn

@@ -31,7 +31,7 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     from cusgs_jax.config import Config
     from cusgs_jax.data.colmap import load_scene
     from cusgs_jax.data.normalize import normalize_scene
-    from cusgs_jax.densify.base import make_strategies
+    from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.model.active import compact_gaussians, select_active
     from cusgs_jax.model.decode import decode_view
     from cusgs_jax.splat.project import project_gaussians

@@ -29,7 +29,7 @@ def build(scene_path: str):
     from cusgs_jax.config import Config
     from cusgs_jax.data.colmap import load_scene
     from cusgs_jax.data.normalize import normalize_scene
-    from cusgs_jax.densify.base import make_strategies
+    from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.training import capacity
     from cusgs_jax.training.render import most_work
     from cusgs_jax.training.state import init_train_state, resolve_voxel_size

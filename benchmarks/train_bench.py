@@ -36,7 +36,7 @@ from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, demo_feature_models
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.normalize import normalize_scene
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.extract import extract
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step

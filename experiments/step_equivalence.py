@@ -34,7 +34,7 @@ def child(steps: int, sparse: str, out: str) -> None:
     import numpy as np
 
     from cusgs_jax.config import Config
-    from cusgs_jax.densify.base import make_strategies
+    from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.testing.scenes import sfm_points
     from cusgs_jax.training.state import init_train_state
     from cusgs_jax.training.step import make_train_step

@@ -12,7 +12,8 @@ import numpy as np
 from cusgs_jax.app import run as run_module
 from cusgs_jax.config import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
-from cusgs_jax.densify.base import Probe, Strategy, Tally, UpdateInfo, make_strategies
+from cusgs_jax.densify.base import Probe, Strategy, Tally, UpdateInfo
+from cusgs_jax.densify.factory import make_strategies
 
 
 class CountViews(Strategy):

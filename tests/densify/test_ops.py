@@ -17,7 +17,7 @@ import pytest
 
 from cusgs_jax.config import Config, FeatureConfig, FeatureModelConfig, ModelConfig
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import voxelize
 from cusgs_jax.training.state import init_train_state
 

@@ -12,7 +12,7 @@ import pytest
 
 from cusgs_jax import losses
 from cusgs_jax.config import Config
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.active import gather_active, scatter_back, select_active
 from cusgs_jax.model.decode import decode_rows, visible_slots
 from cusgs_jax.splat import rasterize

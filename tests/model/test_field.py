@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import FeatureConfig, FeatureModelConfig
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.memory.attention import attend, precompute_keys
 from cusgs_jax.model.field import feature_loss, init_memory_heads, retrieve, sampled_feature_loss
 from cusgs_jax.training.state import init_train_state

@@ -9,7 +9,7 @@ import pytest
 
 from cusgs_jax.config import FeatureConfig
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import AnchorParams, init_anchors, place_anchors, take_rows
 from cusgs_jax.model.queries import decode_queries, init_query_heads
 from cusgs_jax.training.state import init_train_state

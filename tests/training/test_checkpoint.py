@@ -20,7 +20,7 @@ import pytest
 
 from cusgs_jax.config import Config
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.errors import CheckpointError
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training.state import TrainState, init_train_state

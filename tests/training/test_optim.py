@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.config import Config, OptimConfig
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.training.optim import GROUP_OF_PATH, log_linear_schedule, make_optimizer, param_labels
 from cusgs_jax.training.state import init_train_state
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.config import Config
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
 from cusgs_jax.model.anchors import AnchorState, voxelize

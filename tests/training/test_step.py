@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.config import Config
-from cusgs_jax.densify.base import make_strategies
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, anchor_scores, prune_due
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.model.decode import decode_view, num_visible_slots

@@ -52,7 +52,8 @@ from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_target
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import Probe, Strategy, Tally, make_strategies, run_defaults
+from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
+from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
@@ -109,7 +110,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
 
     ``extra_strategies``: research code's own densification strategies
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
-    (:func:`~cusgs_jax.densify.base.make_strategies`); a resume must pass the same ones.
+    (:func:`~cusgs_jax.densify.factory.make_strategies`); a resume must pass the same ones.
     """
     from cusgs_jax.training.distributed import require_single_process
     from cusgs_jax.training.parallel import resolve_devices

@@ -17,6 +17,6 @@ The run loop calls these for every strategy alike and records each one's
 
 Strategies: :class:`~cusgs_jax.densify.scaffold.ScaffoldStrategy` (growing + opacity
 pruning) and :class:`~cusgs_jax.densify.feature_prune.FeaturePruneStrategy`
-(CUS-GS feature-aware pruning). :func:`cusgs_jax.densify.base.make_strategies` builds
+(CUS-GS feature-aware pruning). :func:`cusgs_jax.densify.factory.make_strategies` builds
 the ones a configuration asks for.
 """

@@ -185,15 +185,3 @@ def run_defaults(cfg: Config) -> tuple[dict, dict]:
             dict(render_ms_before_prune=None,
                  prune=dict(strategy=prune.strategy, ratio=prune.ratio, lambda_norm=prune.lambda_norm,
                             lambda_grad=prune.lambda_grad, passes=0, pruned=0)))
-
-
-def make_strategies(cfg: Config) -> tuple[Strategy, ...]:
-    """Scaffold growing always; feature-aware pruning when ``prune.strategy == "feature_aware"``."""
-    from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
-    from cusgs_jax.densify.scaffold import ScaffoldStrategy
-
-    strategies: list[Strategy] = [ScaffoldStrategy(cfg.grow, cfg.model.voxel_size, cfg.model.n_offsets,
-                                                   cfg.train.seed)]
-    if cfg.prune.strategy == "feature_aware":
-        strategies.append(FeaturePruneStrategy(cfg.prune))
-    return tuple(strategies)

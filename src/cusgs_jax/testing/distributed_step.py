@@ -18,7 +18,7 @@ def run_steps(steps: int = 2) -> dict:
     import numpy as np
 
     from cusgs_jax.config import Config
-    from cusgs_jax.densify.base import make_strategies
+    from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.testing.scenes import sfm_points
     from cusgs_jax.training.distributed import local_value
     from cusgs_jax.training.state import init_train_state

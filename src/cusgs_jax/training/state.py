@@ -120,7 +120,7 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     Args:
       points: [P, 3] SfM points (in the normalised frame of :mod:`cusgs_jax.data.normalize`).
       extent: scene extent (scales the offsets' learning rate; 1 in the normalised frame).
-      strategies: the densification strategies (:func:`cusgs_jax.densify.base.make_strategies`).
+      strategies: the densification strategies (:func:`cusgs_jax.densify.factory.make_strategies`).
       banks: {model: [M, D] PSC entries} when feature models are configured.
     Returns:
       (TrainState, optax transformation).
