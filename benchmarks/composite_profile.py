@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 
 def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
@@ -84,19 +83,6 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     return grid, inputs, info
 
 
-def _median_time(fn, *args, repeats: int) -> float:
-    import jax
-    import numpy as np
-
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
-
-
 def top_ops(fn, args, count: int = 25) -> dict:
     """Milliseconds per XLA op name (summed over all calls) of one ``fn(*args)``, costliest first."""
     import collections
@@ -124,6 +110,8 @@ def top_ops(fn, args, count: int = 25) -> dict:
 def main(argv=None):
     import jax
     import numpy as np
+
+    from timing import median_seconds
 
     from cusgs_jax.splat.composite import composite_tiles, default_lanes
 
@@ -153,8 +141,9 @@ def main(argv=None):
                 return (o.colors * ct_colors).sum() + (o.transmittance * ct_trans).sum()
 
             both = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))
-            f = _median_time(fwd, *inputs, repeats=args.repeats)
-            fb = _median_time(both, *inputs, repeats=args.repeats)
+            jax.block_until_ready((fwd(*inputs), both(*inputs)))  # compile both
+            f = median_seconds(fwd, inputs, args.repeats)
+            fb = median_seconds(both, inputs, args.repeats)
             row = dict(lanes=lanes, chunk=chunk, forward_ms=1e3 * f, forward_backward_ms=1e3 * fb,
                        backward_ms=1e3 * (fb - f), ns_per_pair_fwd_bwd=1e9 * fb / max(info["pairs"], 1))
             if args.trace:

@@ -29,19 +29,11 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from naive_splat import naive_rasterize  # noqa: E402
 from scenes import random_scene  # noqa: E402
+from timing import median_seconds  # noqa: E402
 
 from cusgs_jax.splat import rasterize  # noqa: E402
 
 KEYS = ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")
-
-
-def _median_time(fn, args, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
 
 
 def _peak_bytes(compiled):
@@ -66,7 +58,7 @@ def measure(render, scene, repeats):
         compiled = jax.jit(fn).lower(*args).compile()
         result[f"{name}_compile_s"] = time.perf_counter() - start
         jax.block_until_ready(compiled(*args))  # warm-up
-        result[f"{name}_median_s"] = _median_time(compiled, args, repeats)
+        result[f"{name}_median_s"] = median_seconds(compiled, args, repeats)
         result[f"{name}_peak_bytes"] = _peak_bytes(compiled)
     return result
 
