@@ -46,14 +46,13 @@ import warnings
 
 import numpy as np
 
-from cusgs_jax.data.demo_colmap import observe, sample_points, write_colmap
+from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import (
     ROOM,
     TABLE_CENTRE,
     build_scene,
     make_cameras,
     render_view,
-    surface_colour,
 )
 
 __all__ = ["FORMAT_VERSION", "demo_scene_path", "generate_demo_scene"]
@@ -97,12 +96,8 @@ def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120,
     names = [f"view_{v:03d}.png" for v in range(num_views)]
     depths, face_maps = _write_views(out, scene, poses, names, width, height, K)
 
-    xyz, face = sample_points(poses, K, depths, face_maps, num_points, seed)
-    visible, xy = observe(scene, xyz, face, poses, K, width, height, depths, face_maps)
-    keep = visible.sum(axis=0) >= 2
-    xyz, face, visible, xy = xyz[keep], face[keep], visible[:, keep], xy[:, keep]
-    colours = np.round(np.clip(surface_colour(scene, xyz, face), 0, 1) * 255).astype(np.uint8)
-    write_colmap(out / "sparse" / "0", poses, K, width, height, names, xyz, colours, visible, xy)
+    xyz, visible = write_sfm_model(out / "sparse" / "0", scene, poses, K, width, height, names, depths, face_maps,
+                                   num_points, seed)
 
     (out / "objects.json").write_text(json.dumps(scene.objects, indent=1) + "\n")
     track_len = visible.sum(axis=0)

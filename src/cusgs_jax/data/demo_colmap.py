@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from cusgs_jax.data.demo_render import cast_rays
+from cusgs_jax.data.demo_render import cast_rays, surface_colour
 
-__all__ = ["observe", "sample_points", "write_colmap"]
+__all__ = ["observe", "sample_points", "write_colmap", "write_sfm_model"]
 
 # An observation of a sampled point is kept only if the depth map (pixel-centre ray) at the pixel
 # it projects into agrees with the point's depth to this relative tolerance. Occlusion itself is
@@ -121,3 +121,19 @@ def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visib
     sparse_dir.mkdir(parents=True, exist_ok=True)
     rec.write(str(sparse_dir))
     return rec
+
+
+def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, face_maps, num_points, seed):
+    """Sample ``num_points`` surface points, keep those observed in ≥ 2 views, colour them and write
+    the COLMAP model into ``sparse_dir`` (the SfM stand-in of every demo scene).
+
+    Returns:
+      (xyz [P, 3] kept points, visible [V, P] bool observations).
+    """
+    xyz, face = sample_points(poses, K, depths, face_maps, num_points, seed)
+    visible, xy = observe(scene, xyz, face, poses, K, width, height, depths, face_maps)
+    keep = visible.sum(axis=0) >= 2
+    xyz, face, visible, xy = xyz[keep], face[keep], visible[:, keep], xy[:, keep]
+    colours = np.round(np.clip(surface_colour(scene, xyz, face), 0, 1) * 255).astype(np.uint8)
+    write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visible, xy)
+    return xyz, visible

@@ -41,7 +41,7 @@ import warnings
 
 import numpy as np
 
-from cusgs_jax.data.demo_colmap import observe, sample_points, write_colmap
+from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import _camera_rays, _look_at, build_scene, cast_rays, surface_colour
 
 __all__ = ["OBJECTS", "ANGLE_X", "build_objects_scene", "object_cameras", "render_rgba",
@@ -171,12 +171,8 @@ def generate_object_scenes(out_dir, *, num_views: int = 70, holdout_every: int =
             json.dumps({"camera_angle_x": ANGLE_X, "frames": fr}, indent=1) + "\n")
 
     names = [f"view_{k:03d}.png" for k in range(num_views)]
-    xyz, face = sample_points(poses, K, depths, face_maps, num_points, seed)
-    visible, xy = observe(scene, xyz, face, poses, K, width, height, depths, face_maps)
-    keep = visible.sum(axis=0) >= 2
-    xyz, face, visible, xy = xyz[keep], face[keep], visible[:, keep], xy[:, keep]
-    colours = np.round(np.clip(surface_colour(scene, xyz, face), 0, 1) * 255).astype(np.uint8)
-    write_colmap(colmap / "sparse" / "0", poses, K, width, height, names, xyz, colours, visible, xy)
+    xyz, visible = write_sfm_model(colmap / "sparse" / "0", scene, poses, K, width, height, names, depths, face_maps,
+                                   num_points, seed)
     info = {"generator": "cusgs_jax.data.demo_objects", "objects": list(OBJECTS), "num_views": num_views,
             "holdout_every": holdout_every, "width": width, "height": height, "radius": radius,
             "camera_angle_x": ANGLE_X, "seed": seed, "num_points": int(xyz.shape[0]),
