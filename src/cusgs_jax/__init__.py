@@ -33,7 +33,8 @@ _EXPORTS = {
     "AnchorParams": "model.anchors", "AnchorState": "model.anchors", "init_anchors": "model.anchors",
     "voxelize": "model.anchors",
     "Gaussians": "model.decode", "decode_gaussians": "model.decode", "frustum_mask": "model.decode",
-    "init_decoder": "model.decode", "decode_view": "model.decode",
+    "init_decoder": "model.decode", "decode_view": "model.decode", "ViewInputs": "model.decode",
+    "view_inputs": "model.decode", "decode_inputs": "model.decode",
     # splatting
     "RenderOutput": "splat", "check_inputs": "splat", "rasterize": "splat", "rasterize_batch": "splat",
     "sh_to_rgb": "splat", "sh_basis": "splat",

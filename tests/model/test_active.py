@@ -14,7 +14,7 @@ from cusgs_jax import losses
 from cusgs_jax.config import Config
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.active import gather_active, scatter_back, select_active
-from cusgs_jax.model.decode import decode_rows, visible_slots
+from cusgs_jax.model.decode import decode_inputs, view_inputs, visible_slots
 from cusgs_jax.splat import rasterize
 from cusgs_jax.testing.scenes import sfm_points
 from cusgs_jax.training.capacity import Capacities
@@ -102,7 +102,8 @@ def test_the_compacted_step_has_the_loss_and_gradients_of_rasterising_every_deco
     @jax.jit
     def reference(local, delta):  # no compaction: every decoded Gaussian is rasterised (masked ones culled)
         centers, decoded = anchors.centers[view.slots], anchors.alive[view.slots] & view.valid
-        g = decode_rows(local, local["anchor"], centers, decoded, camera, batch["index"], cfg.model)
+        inputs = view_inputs(local, local["anchor"], centers, decoded, camera, batch["index"], cfg.model)
+        g = decode_inputs(local["decoder"], inputs, cfg.model.decoder())
         out = rasterize(g.means, g.quats, g.scales, g.opacities, g.colors, camera.world_to_camera, camera.K, W, H,
                         tile_size=cfg.splat.tile_size, max_pairs=64 * decoded_count, means2d_delta=delta,
                         background=jnp.asarray(cfg.splat.background_color, jnp.float32))

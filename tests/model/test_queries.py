@@ -11,9 +11,16 @@ from cusgs_jax.config import FeatureConfig
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import AnchorParams, init_anchors, place_anchors, take_rows
+from cusgs_jax.model.decode import ViewInputs
 from cusgs_jax.model.queries import decode_queries, init_query_heads
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.step import make_train_step
+
+
+def _inputs(rows, direction, appearance=None) -> ViewInputs:
+    """A view's inputs with the given directions [S, 3] (the centres are not read by the query heads)."""
+    num = direction.shape[0]
+    return ViewInputs(rows, jnp.zeros((num, 3)), jnp.ones(num, bool), direction, appearance)
 
 
 def test_query_heads_shapes_and_granularity(feature_scene):
@@ -23,11 +30,11 @@ def test_query_heads_shapes_and_granularity(feature_scene):
     offsets = jnp.asarray(np.random.default_rng(0).normal(size=(5, 4, 3)), jnp.float32)
     anchor = AnchorParams(offsets=offsets, log_scaling=jnp.zeros((5, 6)), latent=latent)
     params = init_query_heads(key, cfg, 8, 0)
-    q = decode_queries(params, anchor, direction, None)
+    q = decode_queries(params, _inputs(anchor, direction))
     assert q.shape == (20, 37)
     # per-Gaussian queries differ through the offsets (hierarchy), equal offsets → equal queries
     flat = AnchorParams(offsets=jnp.zeros_like(offsets), log_scaling=anchor.log_scaling, latent=latent)
-    q2 = decode_queries(params, flat, direction, None)
+    q2 = decode_queries(params, _inputs(flat, direction))
     assert not np.allclose(q[:4], q[1:5]) and np.allclose(q2[0], q2[1])
     # per_gaussian: a [A, N, Q] table stored with the anchors, read through the gathered slots
     anchors = init_anchors(feature_scene.points(), 0.25, n_offsets=4, latent_dim=8, query_dim=cfg.query_dim,
@@ -35,7 +42,7 @@ def test_query_heads_shapes_and_granularity(feature_scene):
     table = anchors.params.query_table
     assert table.shape == (anchors.capacity, 4, 37) and anchors.capacity > 9
     slots = jnp.array([9, 0, 1, 2, 3])
-    qt = decode_queries(None, take_rows(anchors.params, slots), direction, None)
+    qt = decode_queries(None, _inputs(take_rows(anchors.params, slots), direction))
     np.testing.assert_array_equal(qt[:4], table[9])
     np.testing.assert_array_equal(qt.reshape(5, 4, 37), table[slots])
 
@@ -51,7 +58,7 @@ def test_query_heads_against_numpy(feature_scene):
     direction = rng.normal(size=(5, 3))
     direction /= np.linalg.norm(direction, axis=-1, keepdims=True)
     appearance = rng.normal(size=3)
-    q = decode_queries(heads, anchor, jnp.asarray(direction, jnp.float32), jnp.asarray(appearance, jnp.float32))
+    q = decode_queries(heads, _inputs(anchor, jnp.asarray(direction, jnp.float32), jnp.asarray(appearance, jnp.float32)))
     h = {k: {n: np.asarray(v, np.float64) for n, v in p.items()} for k, p in heads.items()}
     x = np.concatenate([np.asarray(anchor.latent), direction, np.tile(appearance, (5, 1))], -1)
     voxel = np.maximum(x @ h["voxel"]["w0"] + h["voxel"]["b0"], 0) @ h["voxel"]["w1"] + h["voxel"]["b1"]

@@ -12,12 +12,12 @@ import pytest
 from cusgs_jax.config import Config
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import compact
-from cusgs_jax.model.decode import decode_view, gather_visible
+from cusgs_jax.model.decode import decode_view, gather_visible, view_inputs
 from cusgs_jax.splat import rasterize
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.training.capacity import Capacities
-from cusgs_jax.training.render import (make_feature_render_fn, make_render_fn, render_gaussians, render_model,
-                                       view_queries, view_work)
+from cusgs_jax.training.render import (decode_view_inputs, make_feature_render_fn, make_render_fn,
+                                       render_gaussians, render_model, view_work)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import random_banks, sfm_points
@@ -98,14 +98,31 @@ def test_feature_render_matches_rgb_and_retrieves_every_model(granularity):
     assert features["a"].shape == (H, W, 3) and features["b"].shape == (H, W, 2)
     # the features are the memory read-out of the composited queries (eager vs jitted: float32 rounding)
     gaussians, view = decode_view(state.nets, anchors, CAMERA, jnp.int32(1), cfg.model, anchors.capacity)
-    rows, centers, _ = gather_visible(anchors, view)
-    queries = view_queries(state.nets, rows, centers, CAMERA, jnp.int32(1), cfg)
+    inputs = view_inputs(state.nets, *gather_visible(anchors, view), CAMERA, jnp.int32(1), cfg.model)
+    _, queries = decode_view_inputs(state.nets, inputs, cfg, queries=True)
     assert queries.shape == (gaussians.means.shape[0], 10)
     rendered = render_gaussians(gaussians, CAMERA, cfg.splat, extra_channels=queries)[0].image[..., 3:]
     expected = retrieve(state.nets["memory"], banks, rendered, cfg.features)
     for name in ("a", "b"):
         assert np.all(np.isfinite(np.asarray(features[name])))
         np.testing.assert_allclose(np.asarray(features[name]), np.asarray(expected[name]), atol=1e-5)
+
+
+def test_gaussian_and_query_heads_read_one_input_bundle():
+    """decode_view_inputs decodes the Gaussians decode_view decodes, and a change of the bundle's view
+    direction reaches the Gaussians' colours and the queries alike (one source, no second copy)."""
+    cfg = CFG.replace(features=FEATURES)
+    state = _state(cfg, _banks())
+    anchors = compact(state.anchors)
+    want, view = decode_view(state.nets, anchors, CAMERA, jnp.int32(1), cfg.model, anchors.capacity)
+    inputs = view_inputs(state.nets, *gather_visible(anchors, view), CAMERA, jnp.int32(1), cfg.model)
+    gaussians, queries = decode_view_inputs(state.nets, inputs, cfg, queries=True)
+    np.testing.assert_array_equal(np.asarray(gaussians.colors), np.asarray(want.colors))
+    turned = dataclasses.replace(inputs, direction=-inputs.direction)
+    gaussians2, queries2 = decode_view_inputs(state.nets, turned, cfg, queries=True)
+    assert np.abs(np.asarray(gaussians2.colors - gaussians.colors)).max() > 1e-3
+    assert np.abs(np.asarray(queries2 - queries)).max() > 1e-3
+    np.testing.assert_array_equal(np.asarray(gaussians2.means), np.asarray(gaussians.means))  # positions ignore d
 
 
 def test_a_render_that_would_drop_tile_pairs_grows_its_capacity_and_is_exact(monkeypatch):

@@ -125,37 +125,73 @@ def view_directions(centers: jax.Array, camera_center: jax.Array) -> jax.Array:
     return direction / jnp.maximum(jnp.linalg.norm(direction, axis=-1, keepdims=True), 1e-12)
 
 
-def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Array, decoded: jax.Array,
-                     camera_center: jax.Array, appearance: jax.Array | None, cfg: DecoderConfig) -> Gaussians:
-    """Decode the N Gaussians of every given anchor for one view.
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class ViewInputs:
+    """What every per-anchor head sees of one view, computed once (:func:`view_inputs`) and shared
+    by the Gaussian heads (:func:`decode_inputs`) and the feature-query heads
+    (:func:`cusgs_jax.model.queries.decode_queries`), so the two can never disagree.
+
+    Attributes:
+      rows: [S, …] learnable anchor arrays (:class:`AnchorParams`).
+      centers: [S, 3] anchor centres.
+      decoded: [S] bool, the anchor is alive and visible (others decode to opacity 0).
+      direction: [S, 3] unit camera→anchor direction d (Scaffold-GS's view input).
+      appearance: [E] the view's appearance embedding e, or None when disabled.
+    """
+
+    rows: AnchorParams
+    centers: jax.Array
+    decoded: jax.Array
+    direction: jax.Array
+    appearance: jax.Array | None
+
+
+def inputs_at(rows: AnchorParams, centers: jax.Array, decoded: jax.Array, camera_center: jax.Array,
+              appearance: jax.Array | None) -> ViewInputs:
+    """:class:`ViewInputs` of anchors [S] seen from ``camera_center`` [3] (appearance [E] or None)."""
+    return ViewInputs(rows, centers, decoded, view_directions(centers, camera_center), appearance)
+
+
+def view_inputs(nets: dict, rows: AnchorParams, centers: jax.Array, decoded: jax.Array, camera: Camera,
+                appearance_index: jax.Array, cfg) -> ViewInputs:
+    """:class:`ViewInputs` of gathered anchor rows (:func:`gather_visible`) at ``camera``.
+
+    Args:
+      nets: {"appearance"?: [V, E], …}; appearance_index: [] int32 training view;
+      cfg: :class:`cusgs_jax.config.ModelConfig` (static).
+    """
+    appearance = nets["appearance"][appearance_index] if cfg.appearance else None
+    return inputs_at(rows, centers, decoded, camera.center, appearance)
+
+
+def decode_inputs(params: dict, inputs: ViewInputs, cfg: DecoderConfig) -> Gaussians:
+    """Decode the N Gaussians of every anchor of ``inputs`` (S anchors → G = S·N Gaussians).
 
     Args:
       params: decoder params from :func:`init_decoder`.
-      anchor_params: [S, …] learnable anchor arrays (the query table is not used here).
-      centers: [S, 3] anchor centres.
-      decoded: [S] bool, the anchor is alive and visible; other anchors produce
-        Gaussians with opacity 0 (and no rasterisation work).
-      camera_center: [3] world position of the camera.
-      appearance: [E] embedding of the view's camera, or None when disabled.
+      inputs: the view's :class:`ViewInputs` (the query table of ``rows`` is not used here).
     Returns:
-      :class:`Gaussians` with G = S·N.
+      :class:`Gaussians` with G = S·N; anchors not ``decoded`` produce opacity 0 (and no
+      rasterisation work).
     """
+    rows, centers = inputs.rows, inputs.centers
     num, n = centers.shape[0], cfg.n_offsets
-    direction = view_directions(centers, camera_center)
-    base = jnp.concatenate([anchor_params.latent, direction], axis=-1)  # [S, F+3]
+    base = jnp.concatenate([rows.latent, inputs.direction], axis=-1)  # [S, F+3]
     opacity = jnp.tanh(apply_mlp(params["opacity"], base))  # [S, N]
     cov = apply_mlp(params["cov"], base).reshape(num, n, 7)
+    appearance = inputs.appearance
     if appearance is not None:
         color_in = jnp.concatenate([base, jnp.broadcast_to(appearance, (num, appearance.shape[-1]))], axis=-1)
     else:
         color_in = base
     colors = jax.nn.sigmoid(apply_mlp(params["color"], color_in)).reshape(num, n, 3)
 
-    scaling = jnp.exp(anchor_params.log_scaling)  # [S, 6]
+    scaling = jnp.exp(rows.log_scaling)  # [S, 6]
     scales = scaling[:, None, 3:] * jax.nn.sigmoid(cov[..., :3])
     quats = cov[..., 3:7]
-    means = centers[:, None, :] + anchor_params.offsets * scaling[:, None, :3]
-    keep = decoded[:, None] & (opacity > 0)
+    means = centers[:, None, :] + rows.offsets * scaling[:, None, :3]
+    keep = inputs.decoded[:, None] & (opacity > 0)
     return Gaussians(
         means=means.reshape(-1, 3),
         quats=quats.reshape(-1, 4),
@@ -167,26 +203,26 @@ def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Arr
     )
 
 
+def decode_gaussians(params: dict, anchor_params: AnchorParams, centers: jax.Array, decoded: jax.Array,
+                     camera_center: jax.Array, appearance: jax.Array | None, cfg: DecoderConfig) -> Gaussians:
+    """Decode the N Gaussians of every given anchor seen from ``camera_center``
+    (:func:`decode_inputs` of :func:`inputs_at`).
+
+    Args:
+      params: decoder params from :func:`init_decoder`.
+      anchor_params: [S, …] learnable anchor arrays; centers: [S, 3] anchor centres.
+      decoded: [S] bool, the anchor is alive and visible.
+      camera_center: [3] world position of the camera; appearance: [E] or None.
+    Returns:
+      :class:`Gaussians` with G = S·N.
+    """
+    return decode_inputs(params, inputs_at(anchor_params, centers, decoded, camera_center, appearance), cfg)
+
+
 def gather_visible(anchors: AnchorState, view: VisibleSlots) -> tuple[AnchorParams, jax.Array, jax.Array]:
     """(learnable rows [S, …], centres [S, 3], decoded [S] bool) of the visible slots."""
     rows = jax.tree_util.tree_map(lambda x: x[view.slots], anchors.params)
     return rows, anchors.centers[view.slots], anchors.alive[view.slots] & view.valid
-
-
-def decode_rows(nets: dict, rows: AnchorParams, centers: jax.Array, decoded: jax.Array, camera: Camera,
-                appearance_index: jax.Array, cfg) -> Gaussians:
-    """Decode gathered anchor rows (:func:`gather_visible`) at ``camera``.
-
-    The training step differentiates with respect to ``rows`` directly, so the anchors'
-    gradients have S rows, not A (the row-sparse update of :mod:`cusgs_jax.training.step`).
-
-    Args:
-      nets: {"decoder", "appearance"?: [V, E]}; cfg: :class:`cusgs_jax.config.ModelConfig` (static).
-    Returns:
-      Gaussians with G = S·N in slot order.
-    """
-    appearance = nets["appearance"][appearance_index] if cfg.appearance else None
-    return decode_gaussians(nets["decoder"], rows, centers, decoded, camera.center, appearance, cfg.decoder())
 
 
 def decode_view(nets: dict, anchors: AnchorState, camera: Camera, appearance_index: jax.Array,
@@ -202,5 +238,5 @@ def decode_view(nets: dict, anchors: AnchorState, camera: Camera, appearance_ind
       (Gaussians with G = S·N in slot order, VisibleSlots).
     """
     view = visible_slots(anchors, camera, num_slots=num_slots, margin=cfg.frustum_margin)
-    rows, centers, decoded = gather_visible(anchors, view)
-    return decode_rows(nets, rows, centers, decoded, camera, appearance_index, cfg), view
+    inputs = view_inputs(nets, *gather_visible(anchors, view), camera, appearance_index, cfg)
+    return decode_inputs(nets["decoder"], inputs, cfg.decoder()), view

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax.config import FeatureConfig
-from cusgs_jax.model.anchors import AnchorParams
+from cusgs_jax.model.decode import ViewInputs
 from cusgs_jax.nn import apply_mlp, init_mlp
 
 
@@ -27,25 +27,25 @@ def init_query_heads(key, cfg: FeatureConfig, latent_dim: int, appearance_dim: i
             "gaussian": init_mlp(k2, (q + 3, q))}
 
 
-def decode_queries(heads: dict | None, anchor_params: AnchorParams, direction: jax.Array,
-                   appearance: jax.Array | None) -> jax.Array:
-    """Per-Gaussian queries of the decoded anchors.
+def decode_queries(heads: dict | None, inputs: ViewInputs) -> jax.Array:
+    """Per-Gaussian queries of the view's anchors.
 
     Args:
       heads: from :func:`init_query_heads`, or None for the per-Gaussian table.
-      anchor_params: [S, …] gathered anchor arrays (latent, offsets; query_table
+      inputs: the view's :class:`~cusgs_jax.model.decode.ViewInputs` [S] — the same latents,
+        offsets, view directions d and appearance e the Gaussian heads decode (``rows.query_table``
         when ``heads`` is None).
-      direction: [S, 3] unit camera→anchor; appearance: [E] or None.
     Returns:
       [S·N, Q].
     """
-    num, n = anchor_params.offsets.shape[:2]
+    rows = inputs.rows
+    num, n = rows.offsets.shape[:2]
     if heads is None:
-        return anchor_params.query_table.reshape(num * n, -1)
-    inputs = [anchor_params.latent, direction]
-    if appearance is not None:
-        inputs.append(jnp.broadcast_to(appearance, (num, appearance.shape[-1])))
-    voxel = apply_mlp(heads["voxel"], jnp.concatenate(inputs, axis=-1))  # [S, Q]
+        return rows.query_table.reshape(num * n, -1)
+    parts = [rows.latent, inputs.direction]
+    if inputs.appearance is not None:
+        parts.append(jnp.broadcast_to(inputs.appearance, (num, inputs.appearance.shape[-1])))
+    voxel = apply_mlp(heads["voxel"], jnp.concatenate(parts, axis=-1))  # [S, Q]
     per_gaussian = jnp.concatenate([jnp.broadcast_to(voxel[:, None], (num, n, voxel.shape[-1])),
-                                    anchor_params.offsets], -1)
+                                    rows.offsets], -1)
     return apply_mlp(heads["gaussian"], per_gaussian).reshape(num * n, -1)

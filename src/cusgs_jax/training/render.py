@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from cusgs_jax.config import Config, SplatConfig
 from cusgs_jax.model.anchors import AnchorState
 from cusgs_jax.model.active import ActiveSet, compact_gaussians, gather_active, select_active
-from cusgs_jax.model.decode import (Gaussians, VisibleSlots, decode_rows, decode_view, gather_visible,
-                                    view_directions, visible_slots)
+from cusgs_jax.model.decode import (Gaussians, ViewInputs, VisibleSlots, decode_inputs, decode_view,
+                                    gather_visible, view_inputs, visible_slots)
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import RenderOutput, rasterize
@@ -58,10 +58,11 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
     return out, chosen
 
 
-def view_queries(nets: dict, rows, centers: jax.Array, camera: Camera, appearance_index, cfg: Config) -> jax.Array:
-    """[S·N, Q] per-Gaussian feature queries of the gathered anchor rows [S] (:func:`gather_visible`)."""
-    appearance = nets["appearance"][appearance_index] if cfg.model.appearance else None
-    return decode_queries(nets.get("queries"), rows, view_directions(centers, camera.center), appearance)
+def decode_view_inputs(nets: dict, inputs: ViewInputs, cfg: Config, *, queries: bool) -> tuple[Gaussians, jax.Array | None]:
+    """The view's Gaussians [G = S·N] and, when ``queries``, their feature queries [G, Q] — both
+    decoded from the one :class:`~cusgs_jax.model.decode.ViewInputs` bundle."""
+    gaussians = decode_inputs(nets["decoder"], inputs, cfg.model.decoder())
+    return gaussians, (decode_queries(nets.get("queries"), inputs) if queries else None)
 
 
 def work_metrics(view: VisibleSlots, chosen: ActiveSet, out: RenderOutput) -> dict:
@@ -83,9 +84,8 @@ def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_in
     model = cfg.model
     view = visible_slots(anchors, camera, num_slots=capacities.visible_slots(anchors.capacity),
                          margin=model.frustum_margin)
-    rows, centers, decoded = gather_visible(anchors, view)
-    gaussians = decode_rows(nets, rows, centers, decoded, camera, appearance_index, model)
-    queries = None if banks is None else view_queries(nets, rows, centers, camera, appearance_index, cfg)
+    inputs = view_inputs(nets, *gather_visible(anchors, view), camera, appearance_index, model)
+    gaussians, queries = decode_view_inputs(nets, inputs, cfg, queries=banks is not None)
     out, chosen = render_gaussians(gaussians, camera, cfg.splat,
                                    active_capacity=capacities.active_gaussians(anchors.capacity, model.n_offsets),
                                    pair_capacity=capacities.pairs(anchors.capacity, model.n_offsets),

@@ -28,10 +28,10 @@ from cusgs_jax.config import Config
 from cusgs_jax.densify.base import Strategy, ViewRecord
 from cusgs_jax.model.active import expand_render, scatter_back
 from cusgs_jax.model.anchors import is_per_anchor, map_rows
-from cusgs_jax.model.decode import decode_rows, gather_visible, to_slots, visible_slots
+from cusgs_jax.model.decode import gather_visible, to_slots, view_inputs, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
-from cusgs_jax.training.render import render_gaussians, view_queries, work_metrics
+from cusgs_jax.training.render import decode_view_inputs, render_gaussians, work_metrics
 from cusgs_jax.training.state import TrainState
 
 
@@ -50,10 +50,10 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
 
     def loss_fn(local, delta, centers, decoded, batch, key):
         camera = batch["camera"]
-        gaussians = decode_rows(local, local["anchor"], centers, decoded, camera, batch["index"], model)
-        queries = None
-        if features.enabled:  # static: a scene without feature models traces none of this
-            queries = view_queries(local, local["anchor"], centers, camera, batch["index"], cfg)
+        # differentiated with respect to the S gathered rows (local["anchor"]), not the [A] arrays;
+        # a scene without feature models (static) traces no query head
+        inputs = view_inputs(local, local["anchor"], centers, decoded, camera, batch["index"], model)
+        gaussians, queries = decode_view_inputs(local, inputs, cfg, queries=features.enabled)
         out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
                                        pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
