@@ -7,6 +7,7 @@ costliest ops are listed with theirs — the per-stage table of ``scale_bench.py
 stage, this says which op.
 
     python benchmarks/step_profile.py --scene demo
+    python benchmarks/step_profile.py --features demo        # the default demo run's step (RGB + features)
     python benchmarks/step_profile.py --scene ~/.cache/cusgs_jax/scale_bench/<scene> --top 40
 """
 
@@ -20,6 +21,19 @@ import os
 import re
 import tempfile
 import time
+
+
+def build_with_features(features: str):
+    """The demo's initial model as ``cusgs-train`` sets it up with feature models ``features``
+    (``demo``: daisy, semantic and vgg16 stand-ins), its fitted capacities and its step."""
+    from cusgs_jax.app import run
+    from cusgs_jax.config import Config
+    from cusgs_jax.training.step import make_train_step
+
+    cfg = Config().replace(train=dict(progress=False), features=dict(models=features))
+    session = run.setup(cfg, tempfile.mkdtemp())
+    step = make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
+    return session.state, step, run._batches(session)
 
 
 def build(scene_path: str):
@@ -83,9 +97,11 @@ def main(argv=None):
     parser.add_argument("--scene", default="demo")
     parser.add_argument("--warmup", type=int, default=3)
     parser.add_argument("--top", type=int, default=30)
+    parser.add_argument("--features", default=None,
+                        help="profile the demo scene's step with these feature models (e.g. demo) instead of RGB only")
     args = parser.parse_args(argv)
 
-    state, step, batch = build(args.scene)
+    state, step, batch = build_with_features(args.features) if args.features else build(args.scene)
     for k in range(args.warmup):
         state, metrics = step(state, batch(k))
     jax.block_until_ready(metrics)

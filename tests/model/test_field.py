@@ -5,11 +5,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from cusgs_jax.config import FeatureConfig, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.memory.attention import attend, precompute_keys
-from cusgs_jax.model.field import feature_loss, init_memory_heads, retrieve, sampled_feature_loss
+from cusgs_jax.model.field import (feature_loss, init_memory_heads, retrieve, sampled_feature_loss,
+                                   stratified_pixels)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.step import make_train_step
 
@@ -90,6 +92,23 @@ def test_sampled_feature_loss_reads_the_nearest_image_pixel(feature_scene):
     np.testing.assert_allclose(total, sum(float(loss) for loss, _ in want.values()), rtol=1e-5)
 
 
+@pytest.mark.parametrize("total, count", [(96, 10), (19200, 2000), (7, 7)])
+def test_stratified_pixels_draw_one_per_stratum_and_every_pixel_equally_often(total, count):
+    draws = np.asarray(jax.jit(jax.vmap(lambda k: stratified_pixels(k, total, count)))(
+        jax.random.split(jax.random.PRNGKey(3), 4000)))
+    assert draws.shape == (4000, count) and draws.min() >= 0 and draws.max() < total
+    # draw i lies in stratum i: pixels [floor(i·total/count), floor(((i+1)·total − 1)/count)]
+    i = np.arange(count)
+    assert np.all(draws >= (i * total) // count) and np.all(draws <= ((i + 1) * total - 1) // count)
+    assert np.mean(np.diff(draws, axis=1) > 0) > 0.9  # in order, and a repeat only at a shared boundary
+    # every pixel is drawn with probability count / total (a binomial count per pixel, 5 sigma)
+    hits = np.bincount(draws.ravel(), minlength=total) / 4000
+    p = count / total
+    assert np.all(np.abs(hits - p) < 5 * np.sqrt(p * (1 - p) / 4000) + 1e-9)
+    if count == total:
+        np.testing.assert_array_equal(draws, np.broadcast_to(i, draws.shape))
+
+
 def test_scene_without_features_traces_no_feature_work(feature_scene):
     for enabled in (False, True):
         cfg = feature_scene.cfg(features=enabled)
@@ -105,7 +124,9 @@ def test_scene_without_features_traces_no_feature_work(feature_scene):
 
 
 def test_feature_training_step_runs_and_learns(feature_scene):
-    cfg = feature_scene.cfg()
+    # every pixel in the loss (sample_pixels = 0), so the loss is a function of the parameters alone and the
+    # curve is not sampling noise
+    cfg = feature_scene.cfg().replace(features=dict(sample_pixels=0))
     strategies = make_strategies(cfg)
     state, tx = init_train_state(cfg, feature_scene.points(), 1, 2.0, strategies, banks=feature_scene.banks())
     step = make_train_step(cfg, tx, strategies)
@@ -115,8 +136,7 @@ def test_feature_training_step_runs_and_learns(feature_scene):
         state, metrics = step(state, batch)
         losses.append(float(metrics["loss_feature"]))
     assert bool(metrics["finite"]) and np.all(np.isfinite(losses))
-    # each step samples other pixels, so single losses are noisy (steps 4-15 move between 3.36 and 3.61): compare
-    # means. Measured: first 3 steps 3.881, last 5 steps 3.437, a ratio of 0.886
-    first, last = np.mean(losses[:3]), np.mean(losses[-5:])
-    assert last < 0.95 * first, losses
+    # measured: 3.770 -> 3.382 (0.897×), falling at 13 of 14 steps
+    assert losses[-1] < 0.93 * losses[0], losses
+    assert np.mean(np.diff(losses) < 0) > 0.8, losses  # falling at (almost) every step
     assert step._cache_size() == 1

@@ -59,6 +59,21 @@ def feature_loss(predicted: jax.Array, target: jax.Array, valid: jax.Array) -> t
     return l2 + cos_loss, {"l2": l2, "cos": cos_loss}
 
 
+def stratified_pixels(key: jax.Array, total: int, count: int) -> jax.Array:
+    """[count] int32 pixel indices in [0, ``total``): one drawn uniformly in each of ``count`` equal
+    consecutive strata of the raster order (stratified sampling, O(count); ``jax.random.choice``
+    without replacement would permute all ``total`` pixels, a sort of H·W keys per step).
+
+    Exact in integers: stratum i is the range [i·total, (i+1)·total) of ``total·count`` sub-pixel
+    units, a unit ``x`` lies in pixel ``x // count``, so every pixel is drawn with probability
+    ``count / total`` exactly. Strata overlap only at a pixel their boundary cuts, so a pixel is
+    drawn twice only in that rare case.
+    """
+    offset = jax.random.randint(key, (count,), 0, total, dtype=jnp.int32)
+    units = jnp.arange(count, dtype=jnp.int32) * total + offset
+    return units // count
+
+
 def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: dict, key: jax.Array,
                          cfg: FeatureConfig) -> tuple[jax.Array, dict]:
     """Σ over models of :func:`feature_loss` on ``cfg.sample_pixels`` pixels drawn per model.
@@ -80,7 +95,7 @@ def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: 
         fh, fw = target.shape[:2]
         count = fh * fw if cfg.sample_pixels <= 0 else min(cfg.sample_pixels, fh * fw)
         if count < fh * fw:
-            pick = jax.random.choice(jax.random.fold_in(key, model_index), fh * fw, (count,), replace=False)
+            pick = stratified_pixels(jax.random.fold_in(key, model_index), fh * fw, count)
         else:
             pick = jnp.arange(fh * fw)
         row, col = pick // fw, pick % fw
