@@ -6,7 +6,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.model.anchors import (AnchorParams, AnchorState, PerAnchor, compact, init_anchors, map_rows,
+from cusgs_jax.model.anchors import (AnchorParams, AnchorState, PerAnchor, compact, compacted_capacity,
+                                    init_anchors, map_rows,
                                      nearest_neighbour_sq_dist, pad_rows, parameter_counts, place_anchors,
                                      take_rows, voxelize, zero_rows)
 
@@ -142,6 +143,17 @@ def test_compact_keeps_alive_rows_in_order_and_drops_dead_ones():
         dead_latents = before["latent"][~alive]
         assert not any(np.any(np.all(after["latent"][:len(keep)] == z, axis=-1)) for z in dead_latents)
         assert parameter_counts(compacted) == parameter_counts(anchors)
+
+
+def test_compacted_capacities_come_in_quarter_octave_buckets():
+    caps = [compacted_capacity(n) for n in range(1, 40_000)]
+    assert all(c >= n and c % 64 == 0 for n, c in zip(range(1, 40_000), caps))
+    # at most 25 % padding once the quarter octave exceeds the multiple of 64
+    assert all(c <= 1.25 * n for n, c in zip(range(1, 40_000), caps) if n >= 256)
+    # a model growing from 5k to 13k anchors (the default demo run) sees 7 shapes, not one per 64 anchors (125)
+    assert len({compacted_capacity(n) for n in range(5_000, 13_001)}) == 7
+    assert [compacted_capacity(n) for n in (6, 64, 65, 5202, 8252, 9790, 13044)] == [
+        64, 64, 128, 6144, 10240, 10240, 14336]
 
 
 def test_parameter_counts_only_alive_anchors():

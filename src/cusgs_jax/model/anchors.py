@@ -256,19 +256,28 @@ def place_anchors(anchors: AnchorState, slots: np.ndarray, centers: np.ndarray, 
                        jnp.asarray(anchors.alive).at[slots].set(True), params)
 
 
+def compacted_capacity(alive: int, multiple: int = 64) -> int:
+    """The capacity :func:`compact` gives ``alive`` anchors: ``alive`` rounded up to a multiple of
+    ``max(multiple, 2^(⌊log₂ alive⌋ − 2))`` — quarter-octave buckets (at most 25 % padding, four
+    shapes per doubling), so a growing model's evaluation renders recompile a few times, not at
+    every evaluation."""
+    step = max(int(multiple), 2 ** max(int(alive).bit_length() - 3, 0))
+    return max(int(multiple), -(-int(alive) // step) * step)
+
+
 def compact(anchors: AnchorState, multiple: int = 64) -> AnchorState:
     """Drop dead slots so rendering pays only for alive anchors (host side, outside jit).
 
-    Gathers the alive slots (in slot order) of every per-anchor array into a
-    capacity of ``alive`` rounded up to ``multiple`` (few distinct shapes, few
-    compiles); the padding slots are dead. Decode the result with every slot
-    visible (``visible_fraction = 1``), so no anchor is dropped.
+    Gathers the alive slots (in slot order) of every per-anchor array into a capacity of
+    :func:`compacted_capacity` (``alive`` rounded up to a quarter-octave bucket, a multiple of
+    ``multiple``: few distinct shapes, few compiles); the padding slots are dead. Decode the
+    result with every slot visible (``visible_fraction = 1``), so no anchor is dropped.
 
     Returns:
-      :class:`AnchorState` with capacity ``A' = max(multiple, ceil(alive / multiple) · multiple)``.
+      :class:`AnchorState` with capacity ``compacted_capacity(alive, multiple)``.
     """
     keep = np.flatnonzero(np.asarray(anchors.alive))
-    new_capacity = max(multiple, -(-len(keep) // multiple) * multiple)
+    new_capacity = compacted_capacity(len(keep), multiple)
     index = np.concatenate([keep, np.full(new_capacity - len(keep), keep[0] if len(keep) else 0)])
     compacted = take_rows(anchors, index)
     return compacted.replace(alive=jnp.asarray(np.arange(new_capacity) < len(keep)))
