@@ -13,10 +13,11 @@ import pytest
 
 from cusgs_jax.app.inputs import load_data, view_order
 from cusgs_jax.app.run import finalise, run, setup, train
-from cusgs_jax.config import compose_config, demo_feature_models
+from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
+from cusgs_jax.extract.optional import available_models
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.types import Camera
 
@@ -201,7 +202,7 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
     feats = result["features"]
-    models = {m.name for m in demo_feature_models()}  # daisy, semantic (+ vgg16 with the lpips extra)
+    models = {m.name for m in available_models(DEMO_FEATURE_MODELS)}  # daisy, semantic (+ vgg16 with lpips)
     assert set(feats["models"]) == models
     for row in feats["models"].values():
         assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
