@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config
+from cusgs_jax.config import Config, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
@@ -19,7 +19,7 @@ from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 CFG = Config().replace(train=dict(iterations=50),
                        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
-FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
+FEATURES = dict(models=(FeatureModelConfig("a", query_dim=4), FeatureModelConfig("b", query_dim=6)), hidden=8)
 
 
 def _banks():
