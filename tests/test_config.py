@@ -265,7 +265,8 @@ def test_feature_models_spellings_and_refusals():
     for override, match in (("features.models=xyz", r"features\.models='xyz': must be 'auto', 'demo' or a list"),
                             ("features.models=[daisy]", r"each model must be a mapping of \['name'"),
                             ("features.models=[{name: a, foo: 1}]", r"unknown key\(s\) \['foo'\]"),
-                            ("features.models=[{name: a, required: maybe}]", r"\[a\]\.required='maybe': must be true")):
+                            ("features.models=[{name: a, required: maybe}]",
+                             r"\[a\]\.required='maybe': must be true")):
         with pytest.raises(ConfigError, match=match):
             compose_config([override])
     for python in ("demo", "auto", [{"name": "daisy"}]):
