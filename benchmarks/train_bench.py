@@ -3,7 +3,7 @@
 For each resolution: compile time of the jitted step and the median step time
 over ``--steps`` steps (after compilation), with the anchor count used; with
 ``--features`` also the same step with the demo feature field
-(``config.demo_feature_models()``: daisy + semantic + vgg16); with
+(``config.DEMO_FEATURE_MODELS``: daisy + semantic + vgg16, less vgg16 without the lpips extra); with
 ``--feature-sets daisy,semantic daisy,semantic,vgg16`` the step with each listed
 set of the demo's feature models instead (their settings from
 ``config.DEMO_FEATURE_MODELS``). All variants of one resolution live in one
@@ -32,12 +32,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.app.inputs import load_feature_targets
-from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, demo_feature_models
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.extract import extract
+from cusgs_jax.extract.optional import available_models
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
@@ -122,7 +123,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--views", type=int, default=12)
-    parser.add_argument("--voxel-size", type=lambda v: v if v == "auto" else float(v), default="auto",
+    parser.add_argument("--voxel-size", type=lambda v: None if v == "auto" else float(v), default=None,
                         help="in units of the scene extent, or auto")
     parser.add_argument("--features", action="store_true", help="also time the step with the demo feature field")
     parser.add_argument("--feature-sets", nargs="+", default=None, metavar="MODELS",
@@ -134,7 +135,7 @@ def main(argv=None):
     if args.feature_sets:
         variants = [feature_set(spec) for spec in args.feature_sets]
     else:
-        variants = [()] + ([demo_feature_models()] if args.features else [])
+        variants = [()] + ([available_models(DEMO_FEATURE_MODELS)] if args.features else [])
     rows = []
     for factor in args.pixel_factors:
         scale = math.sqrt(factor)

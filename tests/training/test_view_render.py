@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config
+from cusgs_jax.config import Config, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.model.decode import decode_view, gather_visible, view_inputs
@@ -26,7 +26,7 @@ W, H = 32, 24
 CAMERA = Camera(jnp.array([[30.0, 0, 16], [0, 30, 12], [0, 0, 1]]), jnp.eye(4), W, H)
 CFG = Config().replace(train=dict(iterations=10),
                        model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8))
-FEATURES = dict(models=({"name": "a", "query_dim": 4}, {"name": "b", "query_dim": 6}), hidden=8)
+FEATURES = dict(models=(FeatureModelConfig("a", query_dim=4), FeatureModelConfig("b", query_dim=6)), hidden=8)
 
 
 def _banks():

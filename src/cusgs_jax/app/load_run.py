@@ -156,7 +156,7 @@ def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
 
     cfg = _config(run, cfg_file, meta, shape)
     voxel = (evaluation or {}).get("voxel_size", meta.get("voxel_size"))
-    if cfg.model.voxel_size == "auto" and voxel is not None:
+    if cfg.model.voxel_size is None and voxel is not None:  # auto: the size the run resolved
         cfg = cfg.replace(model=dict(voxel_size=float(voxel)))
     world = (evaluation or {}).get("world_transform") or meta.get("world_transform")
     world = None if world is None else WorldTransform.from_dict(world)

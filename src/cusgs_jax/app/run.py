@@ -55,6 +55,7 @@ from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
+from cusgs_jax.extract.optional import usable_features
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -128,7 +129,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     _require_not_past(cfg, latest, ckpt.directory)
-    cfg = dataclasses.replace(cfg, features=cfg.features.resolve(demo_scene=not cfg.data.path))
+    cfg = dataclasses.replace(cfg, features=usable_features(cfg.features.resolve(demo_scene=not cfg.data.path)))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
     cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats, scene.Ks, scene.width, scene.height)

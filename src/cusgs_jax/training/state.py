@@ -28,12 +28,12 @@ FEW_ANCHORS = 64  # fewer is allowed but warned about
 
 
 def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | None = None) -> Config:
-    """``cfg`` with ``model.voxel_size="auto"`` replaced by :func:`auto_voxel_size` of ``points`` [P, 3] —
+    """``cfg`` with ``model.voxel_size=None`` (auto) replaced by :func:`auto_voxel_size` of ``points`` [P, 3] —
     or, when ``random_cameras`` = (viewmats [V, 4, 4], Ks [V, 3, 3], width, height) is given (the points are
     random, not SfM: a layout without points), by
     :func:`cusgs_jax.data.random_points.random_voxel_size` of those cameras, since the spacing of
-    uniform random points says how many there are, not how fine the scene is."""
-    if cfg.model.voxel_size != "auto":
+    uniform random points says how many there are, not how fine the scene is. A set size is kept."""
+    if cfg.model.voxel_size is not None:
         return cfg
     if random_cameras is not None:
         from cusgs_jax.data.random_points import random_voxel_size
@@ -126,7 +126,7 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
       (TrainState, optax transformation).
     """
     model, key = cfg.model, jax.random.PRNGKey(cfg.train.seed)
-    require(model.voxel_size != "auto", "model.voxel_size", model.voxel_size,
+    require(model.voxel_size is not None, "model.voxel_size", "auto",
             "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
     anchors = init_anchors(points, model.voxel_size, n_offsets=model.n_offsets, latent_dim=model.latent_dim,

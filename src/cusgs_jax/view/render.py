@@ -20,6 +20,8 @@ import dataclasses
 
 import numpy as np
 
+from cusgs_jax.extract.optional import usable_features
+
 __all__ = ["ViewModel", "ViewRenderer", "from_trained", "from_session", "mean_appearance_nets"]
 
 
@@ -88,8 +90,8 @@ def from_trained(model) -> ViewModel:
     Cameras: the training views, then the held-out views, as the checkpoint records them.
     """
     cfg = model.cfg
-    if cfg.features.models == "auto" and model.banks:  # a cusgs-train run's .hydra config: resolve as it did
-        cfg = cfg.replace(features=cfg.features.resolve(demo_scene=not cfg.data.path))
+    if model.banks:  # a cusgs-train run's .hydra config: resolve its feature models as setup did
+        cfg = cfg.replace(features=usable_features(cfg.features.resolve(demo_scene=not cfg.data.path)))
     banks = model.banks if cfg.features.enabled else None
     cameras = _camera_list("train", model.cameras) + _camera_list("held-out", model.held_out_cameras)
     return _view_model(cfg, model.anchors, model.nets, banks, cameras)
