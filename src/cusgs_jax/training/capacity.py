@@ -37,6 +37,10 @@ log = logging.getLogger("cusgs_jax")
 PAIR_SLACK = 4096  # pairs added to ``max_pairs_per_gaussian · G`` (covers tiny scenes)
 FRACTION_BUCKET = 8  # visible_fraction grows in steps of 1/8
 ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
+# Headroom over the need after an overflow: a growing model overflows again soon, and every growth
+# recompiles the whole step (~30 s for the demo's feature step on 2 CPU cores) while 25 % more slots
+# cost a few per cent of a step; the first fit (Capacities.fitted) uses the tighter 1.1 / 1.15.
+GROWTH_HEADROOM = 1.25
 
 
 def max_pairs(pairs_per_gaussian: float, num_gaussians: int) -> int:
@@ -50,21 +54,22 @@ def grown_pairs_per_gaussian(current: float, needed_pairs: int, num_gaussians: i
     return math.ceil(want * 2.0) / 2.0
 
 
-def grown_visible_fraction(current: float, needed_slots: int, capacity: int) -> float:
-    """A visible fraction of the A = ``capacity`` slots that holds ``needed_slots`` with 10 % headroom.
+def grown_visible_fraction(current: float, needed_slots: int, capacity: int,
+                           headroom: float = GROWTH_HEADROOM) -> float:
+    """A visible fraction of the A = ``capacity`` slots that holds ``headroom`` × ``needed_slots``.
 
     Grows by at least one bucket of 1/8 and never beyond 1 (every slot decoded).
     """
-    want = max(current + 1.0 / FRACTION_BUCKET, 1.1 * needed_slots / max(capacity, 1))
+    want = max(current + 1.0 / FRACTION_BUCKET, headroom * needed_slots / max(capacity, 1))
     return min(1.0, math.ceil(want * FRACTION_BUCKET) / FRACTION_BUCKET)
 
 
-def grown_active_fraction(current: float, needed: int, decoded: int) -> float:
-    """An active fraction of the ``decoded`` = S·N Gaussians that holds ``needed`` with 15 % headroom.
+def grown_active_fraction(current: float, needed: int, decoded: int, headroom: float = GROWTH_HEADROOM) -> float:
+    """An active fraction of the ``decoded`` = S·N Gaussians that holds ``headroom`` × ``needed``.
 
     Grows by at least one bucket of 1/16 and never beyond 1 (every decoded Gaussian).
     """
-    want = max(current + 1.0 / ACTIVE_BUCKET, 1.15 * needed / max(decoded, 1))
+    want = max(current + 1.0 / ACTIVE_BUCKET, headroom * needed / max(decoded, 1))
     return min(1.0, math.ceil(want * ACTIVE_BUCKET) / ACTIVE_BUCKET)
 
 
@@ -150,9 +155,9 @@ class Capacities:
           ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
           per active Gaussian).
         """
-        visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity)
+        visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity, headroom=1.1)
         decoded = num_visible_slots(anchor_capacity, visible) * n_offsets
-        active = grown_active_fraction(0.0, int(needs["active_gaussians"]), decoded)
+        active = grown_active_fraction(0.0, int(needs["active_gaussians"]), decoded, headroom=1.15)
         num_active = cls(visible, active, 1.0).active_gaussians(anchor_capacity, n_offsets)
         per = max(1.25 * (int(needs["pairs"]) - PAIR_SLACK) / max(num_active, 1), 0.5)
         return cls(visible, active, math.ceil(per * 2.0) / 2.0)
