@@ -131,8 +131,8 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         camera = pycolmap.Camera(model=model, width=width, height=height, params=params, camera_id=1)
     except Exception as e:  # pycolmap raises ValueError / RuntimeError for bad models
         raise ValueError(f"camera model {model!r} with params {params}: {e}") from e
-    if len(camera.params) != len(params) or not np.allclose(camera.params, params):
-        raise ValueError(f"camera model {model} takes {len(camera.params)} params, got {len(params)}")
+    if not camera.verify_params():
+        raise ValueError(f"camera model {model} takes the params {camera.params_info}, got {params}")
     out = pathlib.Path(out_dir)
     _clear_outputs(out, overwrite)
 
