@@ -20,7 +20,7 @@ pycolmap = pytest.importorskip("pycolmap")
 from cusgs_jax.data.colmap import load_scene  # noqa: E402
 from cusgs_jax.data.demo import generate_demo_scene  # noqa: E402
 from cusgs_jax.data.demo_lens import (LENSES, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
-                                      write_lens_demo)
+                                      render_lens_view, write_lens_demo)
 from cusgs_jax.data.demo_render import build_scene, render_view  # noqa: E402
 
 TINY = dict(num_views=3, width=64, height=48, num_points=800)
@@ -88,16 +88,17 @@ def test_undistorted_lens_images_are_the_pinhole_renders(tmp_path, lens, room):
     assert np.abs(pin.astype(float) - raw).mean() > 3.0
 
 
-def test_keypoints_see_their_points(tmp_path):
-    """Every keypoint of the lens model lies (through the lens) on its point: the lens depth map at
-    the keypoint's pixel agrees with the point's depth wherever the keypoint is inside the image."""
+def test_keypoints_see_their_points(tmp_path, room):
+    """Every keypoint of the lens model lies (through the lens) on its point: the lens's pixel-centre
+    depth at the keypoint's pixel agrees with the point's depth wherever the keypoint is inside."""
     root = write_lens_demo(tmp_path / "s", *lens_camera("opencv", 64, 48), **TINY)
     rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
-    assert next(iter(rec.cameras.values())).model.name == "OPENCV"
+    camera = next(iter(rec.cameras.values()))
+    assert camera.model.name == "OPENCV"
     good = total = 0
     for image in rec.images.values():
         pose = image.cam_from_world()
-        depth = np.load(root / "depth" / f"{image.name[:-4]}.npy")
+        _, depth, _, _ = render_lens_view(room, pose.rotation.matrix(), pose.translation, camera)
         for p2 in image.points2D:
             if not p2.has_point3D():
                 continue
@@ -107,6 +108,18 @@ def test_keypoints_see_their_points(tmp_path):
                 total += 1
                 good += abs(depth[int(v), int(u)] - z) < 0.03 * z
     assert total > 100 and good / total > 0.9, (good, total)
+
+
+def test_maps_line_up_with_the_loaded_images(tmp_path, room):
+    """depth/ and object_ids/ are the ray casts of the undistorted camera the loader gives."""
+    root = write_lens_demo(tmp_path / "s", *lens_camera("simple_radial", 64, 48), **TINY)
+    scene = load_scene(root, holdout_every=0)
+    K = scene.Ks[1].astype(np.float64)
+    _, depth, ids, _ = render_view(room, scene.viewmats[1][:3, :3], scene.viewmats[1][:3, 3], scene.width,
+                                   scene.height, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), supersample=False)
+    assert np.load(root / "object_ids" / "view_001.npy").shape == (scene.height, scene.width)
+    np.testing.assert_allclose(np.load(root / "depth" / "view_001.npy"), depth, rtol=1e-4)
+    assert np.mean(np.load(root / "object_ids" / "view_001.npy") == ids) > 0.99
 
 
 def test_same_points_as_the_demo(tmp_path):

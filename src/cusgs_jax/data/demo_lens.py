@@ -4,8 +4,11 @@
 same room, from the same poses, through any COLMAP camera model: the colour of pixel ``(i, j)`` is
 the mean over 2×2 sub-pixel samples ``(j + 0.25 | 0.75, i + 0.25 | 0.75)`` of the surface hit by
 the ray ``cam_from_img`` of that sample (pycolmap's unprojection of the lens, so the images are
-exactly what that lens sees — no image is warped); depth and object ids are those of the ray
-through the pixel centre ``(j + 0.5, i + 0.5)``. The SfM points and their tracks are the pinhole
+exactly what that lens sees — no image is warped). The depth and object-id maps are per-pixel
+annotations of the images *as loaded*, so they are ray cast (pixel centres) through the PINHOLE
+camera the loader undistorts the images to (:func:`cusgs_jax.data.undistort.undistorted_cameras`,
+e.g. 149×112 for ``opencv`` at 160×120): the ``semantic`` feature model and the retrieval metrics
+then line up with the undistorted images. The SfM points and their tracks are the pinhole
 demo's (same seed → the same points), with every keypoint the lens's projection of its point
 (:func:`cusgs_jax.data.demo_colmap.write_sfm_model`). The folder is the demo's layout
 (:mod:`cusgs_jax.data.demo`) with ``sparse/0/cameras.bin`` holding the lens's model, so the COLMAP
@@ -43,12 +46,13 @@ from cusgs_jax.data.demo import (
 )
 from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, render_view, surface_colour
+from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras
 
 __all__ = ["LENSES", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
            "write_lens_demo"]
 
 LENSES = ("pinhole", "opencv", "simple_radial")
-LENS_FORMAT_VERSION = 1
+LENS_FORMAT_VERSION = 2  # 2: depth and object ids in the undistorted frame
 _SUBSAMPLES = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
 
 
@@ -109,9 +113,9 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
     """Write the demo room seen through the lens ``model``/``params`` into ``out_dir``.
 
     Same layout, poses and SfM points as :func:`cusgs_jax.data.demo.generate_demo_scene` with the
-    same ``seed``, ``num_views``, ``width``, ``height`` and ``num_points``; the images, depth and
-    object-id maps are ray cast through the lens (module docstring) and ``sparse/0/cameras.bin``
-    holds one camera of that model.
+    same ``seed``, ``num_views``, ``width``, ``height`` and ``num_points``; the images are ray cast
+    through the lens, the depth [H', W'] and object-id maps through the undistorted PINHOLE camera
+    (W'×H', module docstring), and ``sparse/0/cameras.bin`` holds one camera of the lens's model.
 
     Args:
       model: a COLMAP camera model name (e.g. ``"OPENCV"``); params: its parameters for a
@@ -133,6 +137,9 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         raise ValueError(f"camera model {model!r} with params {params}: {e}") from e
     if not camera.verify_params():
         raise ValueError(f"camera model {model} takes the params {camera.params_info}, got {params}")
+    # the camera the loader undistorts to: the frame of the depth and object-id maps
+    loaded = undistorted_cameras({1: camera})[1] if needs_undistortion(camera) else camera
+    K_loaded = (loaded.focal_length_x, loaded.focal_length_y, loaded.principal_point_x, loaded.principal_point_y)
     out = pathlib.Path(out_dir)
     _clear_outputs(out, overwrite)
 
@@ -145,7 +152,9 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         (out / sub).mkdir(parents=True, exist_ok=True)
     pin_depths, pin_faces = [], []
     for v, (R, t) in enumerate(poses):
-        image, depth, obj, _ = render_lens_view(scene, R, t, camera)
+        image, *_ = render_lens_view(scene, R, t, camera)
+        _, depth, obj, _ = render_view(scene, R, t, int(loaded.width), int(loaded.height), K_loaded,
+                                       supersample=False)
         stem = names[v][:-4]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -169,6 +178,9 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         "camera_model": model, "camera_params": params,
         "intrinsics": {"fx": float(camera.focal_length_x), "fy": float(camera.focal_length_y),
                        "cx": float(camera.principal_point_x), "cy": float(camera.principal_point_y)},
+        "maps_camera": {"model": "PINHOLE", "width": int(loaded.width), "height": int(loaded.height),
+                        "params": [float(k) for k in K_loaded],
+                        "note": "depth/ and object_ids/ are in the frame of the undistorted images"},
         "images": names, "generation_seconds": round(time.perf_counter() - t0, 3),
     }
     (out / "scene.json").write_text(json.dumps(info, indent=1) + "\n")
