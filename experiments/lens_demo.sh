@@ -17,3 +17,8 @@ run() {  # lens, seed
 for spec in "pinhole 0" "opencv 0" "simple_radial 0" "pinhole 1"; do
   run $spec
 done
+# the control: sharp pinhole images at the OPENCV scene's undistorted camera (same size, poses, points)
+PYTHONPATH=src $PY experiments/lens_demo_control.py "$OUT/control"
+PYTHONPATH=src $PY -c "from cusgs_jax.app.train import main; main()" data.path="$OUT/control/sharp_opencv" train.seed=0 \
+  train.iterations=1500 features=none train.progress=false eval.save_renders=false hydra.run.dir="$OUT/sharp_opencv" \
+  > "$OUT/sharp_opencv.log" 2>&1

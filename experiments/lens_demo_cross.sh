@@ -14,7 +14,7 @@ declare -A SCENE=([pinhole]=$CACHE/demo3-s0-v30-160x120 [opencv]=$CACHE/demo-len
 mkdir -p "$OUT/ply"
 echo "{" > "$OUT/cross_eval.json.tmp"
 sep=""
-for run in pinhole_s0 opencv_s0 simple_radial_s0; do
+for run in pinhole_s0 opencv_s0 simple_radial_s0 sharp_opencv; do
   PYTHONPATH=src $PY -c "from cusgs_jax.app.export import main; raise SystemExit(main())" "$OUT/$run" \
     "$OUT/ply/$run.ply" --refine 0 --quiet > /dev/null
   for scene in pinhole opencv sharp_opencv simple_radial sharp_simple_radial; do
