@@ -339,3 +339,10 @@ def test_data_align_validation():
     assert compose_config(["data.align=principal"]).data.align == "principal"
     with pytest.raises(ConfigError, match="data.align='pca': must be none .* or principal"):
         compose_config(["data.align=pca"])
+
+
+def test_data_demo_lens_validation():
+    assert compose_config([]).data.demo.lens == "pinhole"
+    assert compose_config(["data.demo.lens=opencv"]).data.demo.lens == "opencv"
+    with pytest.raises(ConfigError, match="data.demo.lens='fisheye': must be pinhole, opencv or simple_radial"):
+        compose_config(["data.demo.lens=fisheye"])

@@ -33,3 +33,16 @@ def test_cli(tmp_path, capsys):
     assert main([str(out), "--views", "4", "--width", "32", "--height", "24", "--seed", "1",
                  "--overwrite"]) == 0
     assert json.loads((out / "scene.json").read_text())["seed"] == 1
+
+
+def test_cli_lens(tmp_path, capsys):
+    out = tmp_path / "lens"
+    assert main([str(out), "--views", "2", "--width", "32", "--height", "24", "--points", "300",
+                 "--lens", "opencv"]) == 0
+    assert "2 views 32x24 (OPENCV" in capsys.readouterr().out
+    cam = next(iter(_read(out).cameras.values()))
+    assert cam.model.name == "OPENCV" and (cam.width, cam.height) == (32, 24)
+    assert json.loads((out / "scene.json").read_text())["lens"] == "opencv"
+    with pytest.raises(SystemExit) as e:  # an unknown lens is a usage error
+        main([str(tmp_path / "x"), "--lens", "fisheye"])
+    assert e.value.code == 2

@@ -299,3 +299,19 @@ def test_export_refine_options_are_checked(trained, tmp_path, capsys):
         assert not (tmp_path / "x.ply").exists()
     with pytest.raises(UserError, match="--refine -2"):
         export_run(run_dir, tmp_path / "x.ply", refine=-2, progress=False)
+
+
+def test_run_scene_of_a_lens_demo_run(tmp_path, monkeypatch):
+    """A run on the demo through a lens (data.demo.lens) refines against that scene, found in the cache."""
+    from types import SimpleNamespace
+
+    from cusgs_jax.app.export import _run_scene
+    from cusgs_jax.data.demo_lens import lens_demo_path
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
+    cfg = compose_config(["data.demo.lens=simple_radial", "data.demo.views=2", "data.demo.width=32",
+                          "data.demo.height=24"])
+    path, why = _run_scene(SimpleNamespace(cfg=cfg))
+    assert path is None and "demo-lens" in why  # not generated: nothing is generated here
+    made = lens_demo_path(lens="simple_radial", num_views=2, width=32, height=24)
+    assert _run_scene(SimpleNamespace(cfg=cfg)) == (made, "the built-in demo scene")

@@ -73,3 +73,12 @@ def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at
         assert "norms 1 to 1e+06 (median 1); 1 of " in caplog.text and files[2].name in caplog.text
     else:
         assert "norms 1e+05 to 1e+05" in caplog.text
+
+
+def test_demo_lens_scene_is_generated_and_undistorted(tmp_path, monkeypatch):
+    """data.demo.lens=opencv: the demo through the lens, generated into the cache and undistorted on load."""
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
+    cfg = compose_config(["data.demo.lens=opencv", "data.demo.views=3", "data.demo.width=48", "data.demo.height=36"])
+    scene, _ = load_data(cfg)
+    assert (tmp_path / "demo-lens2-opencv-s0-v3-48x36" / "scene.json").is_file()
+    assert (tmp_path / "undistorted").is_dir() and scene.width < 48 and scene.height < 36

@@ -231,12 +231,42 @@ def test_unwritable_cache(tmp_path, monkeypatch):
         load_scene(tmp_path / "s")
 
 
-def test_alpha_images_warned(tmp_path, caplog):
+def _rgba(seed):
+    """[H, W, 4] uint8: a smooth colour ramp with a transparent disc and a half-transparent band."""
+    ii, jj = np.mgrid[0:H, 0:W]
+    rng = np.random.default_rng(seed)
+    rgb = np.stack([40 + 3 * jj, 30 + 4 * ii, np.full((H, W), rng.integers(50, 200))], -1)
+    alpha = np.full((H, W), 255)
+    alpha[(ii - 20) ** 2 + (jj - 30) ** 2 < 90] = 0
+    alpha[:, 45:52] = 128
+    return np.concatenate([rgb, alpha[..., None]], -1).clip(0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("background", [(0.0, 0.0, 0.0), (1.0, 1.0, 1.0)])
+def test_alpha_kept_and_composited(tmp_path, background, caplog):
+    """An RGBA image of a distorted scene keeps its alpha: loaded, it equals the image composited
+    onto the background first and then undistorted by COLMAP (to 8-bit rounding)."""
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
-    iio.imwrite(tmp_path / "s" / "images" / "v01.png", np.full((H, W, 4), 200, np.uint8))
+    rgba = _rgba(1)
+    iio.imwrite(tmp_path / "s" / "images" / "v01.png", rgba)
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        load_scene(tmp_path / "s")
-    assert "1 images of" in caplog.text and "'v01.png'" in caplog.text and "drops it" in caplog.text
+        scene = load_scene(tmp_path / "s", holdout_every=0, background=background)
+    assert "drops it" not in caplog.text and "1 of 8 images" in caplog.text  # the loader's own warning
+    cam = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H, params=list(CAMERAS["OPENCV"]))
+    a = rgba[..., 3:] / 255.0
+    composited = np.round(rgba[..., :3] * a + 255.0 * np.asarray(background) * (1 - a)).astype(np.uint8)
+    ref, ref_cam = pycolmap.undistort_image(pycolmap.UndistortCameraOptions(),
+                                            pycolmap.Bitmap.from_array(composited), cam)
+    ref = np.asarray(ref.to_array()).astype(int)
+    got = scene.images[scene.names.index("v01.png")].astype(int)
+    assert got.shape == ref.shape == (scene.height, scene.width, 3)
+    assert np.abs(got - ref).max() <= 2
+    # the transparent disc shows the background (its centre, 20 rows down and 30 across in the source)
+    u, v = cam.cam_from_img(np.array([[30.5, 20.5]]))[0]
+    j, i = int(ref_cam.focal_length_x * u + ref_cam.principal_point_x), int(ref_cam.focal_length_y * v + ref_cam.principal_point_y)
+    assert np.array_equal(got[i, j], np.round(255 * np.asarray(background)))
+    cached = next((tmp_path / "cache" / "undistorted").iterdir()) / "images"
+    assert iio.imread(cached / "v01.png").shape[-1] == 4 and iio.imread(cached / "v00.png").shape[-1] == 3
 
 
 def test_cache_key_changes_with_camera(tmp_path):

@@ -179,10 +179,10 @@ def _run_scene(model) -> tuple[pathlib.Path | None, str]:
         if path.is_dir():
             return path, "data.path"
         return None, f"the run's scene data.path={data.path} is not a folder here"
-    from cusgs_jax.data.demo import demo_scene_folder
+    from cusgs_jax.data.demo_lens import lens_demo_folder
 
-    path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
-                             height=data.demo.height)  # where cusgs-train cached it; nothing is generated here
+    path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
+                            width=data.demo.width, height=data.demo.height)  # cusgs-train cached it there; nothing is generated
     if (path / "scene.json").is_file():
         return path, "the built-in demo scene"
     return None, f"the run's scene, the built-in demo scene, is not in its cache folder {path}"

@@ -29,11 +29,13 @@ def load_data(cfg: Config):
     data = cfg.data
     path = data.path
     if not path:
-        from cusgs_jax.data.demo import demo_scene_path
+        from cusgs_jax.data.demo_lens import lens_demo_path
 
         demo = data.demo
-        path = demo_scene_path(seed=demo.seed, num_views=demo.views, width=demo.width, height=demo.height)
-        log.info("using the built-in demo scene at %s", path)
+        path = lens_demo_path(lens=demo.lens, seed=demo.seed, num_views=demo.views, width=demo.width,
+                              height=demo.height)
+        log.info("using the built-in demo scene%s at %s",
+                 "" if demo.lens == "pinhole" else f" through the {demo.lens} lens", path)
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=cfg.splat.background, num_random_points=data.random_points,
                            seed=cfg.train.seed)

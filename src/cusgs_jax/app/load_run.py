@@ -278,10 +278,10 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
     if data.path:
         path = pathlib.Path(str(data.path)).expanduser()
     else:
-        from cusgs_jax.data.demo import demo_scene_folder
+        from cusgs_jax.data.demo_lens import lens_demo_folder
 
-        path = demo_scene_folder(seed=data.demo.seed, num_views=data.demo.views, width=data.demo.width,
-                                 height=data.demo.height)
+        path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
+                                width=data.demo.width, height=data.demo.height)
     if not path.is_dir():
         return None, None
     try:

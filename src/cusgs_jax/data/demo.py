@@ -31,7 +31,8 @@ Modules: this one (generation, cache folder), :mod:`.demo_render` (room geometry
 casting, cameras), :mod:`.demo_colmap` (SfM-like points, observations, COLMAP writing); the
 ``cusgs-demo-scene`` command is :mod:`cusgs_jax.app.demo_scene`. :mod:`.demo_objects` renders the
 furniture without the room, with alpha, from the upper hemisphere, in Blender and COLMAP layouts
-(an object-centric scene for random initialisation, issue 21).
+(an object-centric scene for random initialisation, issue 21); :mod:`.demo_lens` renders the room
+through a distorting COLMAP lens (``data.demo.lens``, issue 21).
 """
 
 from __future__ import annotations
@@ -55,7 +56,7 @@ from cusgs_jax.data.demo_render import (
     render_view,
 )
 
-__all__ = ["FORMAT_VERSION", "demo_scene_path", "generate_demo_scene"]
+__all__ = ["FORMAT_VERSION", "cached_scene", "demo_scene_path", "generate_demo_scene"]
 
 FORMAT_VERSION = 3  # 2: SfM points sampled from observed pixels; 3: cameras never see the ceiling
 FOCAL_FACTOR = 0.8  # fx = fy = FOCAL_FACTOR * width (horizontal FOV ~64 deg)
@@ -173,9 +174,45 @@ def demo_scene_path(cache_dir=None, *, seed=0, num_views=30, width=160, height=1
     scene behind; an existing complete folder is reused as is.
     """
     final = demo_scene_folder(cache_dir, seed=seed, num_views=num_views, width=width, height=height)
+    return cached_scene(final, lambda tmp: generate_demo_scene(
+        tmp, seed=seed, num_views=num_views, width=width, height=height, overwrite=True))
+
+
+def cached_scene(final, generate) -> pathlib.Path:
+    """``final`` (a Path) once it holds a complete generated scene (``scene.json``), calling
+    ``generate(tmp)`` first when it does not.
+
+    ``generate`` writes the scene into the empty temporary sibling folder ``tmp``, which is then
+    renamed to ``final``, so an interrupted generation never leaves a partial scene behind; an
+    existing complete folder is reused as is.
+    """
+    final = pathlib.Path(final)
     root, name = final.parent, final.name
     if (final / "scene.json").is_file():
         return final
+    root.mkdir(parents=True, exist_ok=True)
+    prefix = f".{name}.tmp-"
+    # Clear temporary folders left behind by interrupted runs (old enough not to be in progress).
+    for stale in root.glob(prefix + "*"):
+        try:
+            if time.time() - stale.stat().st_mtime > 3600:
+                shutil.rmtree(stale, ignore_errors=True)
+        except OSError:
+            pass
+    if final.exists() and not (final / "scene.json").is_file():
+        shutil.rmtree(final)  # an incomplete folder not made by us (e.g. a partial copy)
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=prefix, dir=root))
+    try:
+        generate(tmp)
+        try:
+            os.replace(tmp, final)
+        except OSError:
+            if not (final / "scene.json").is_file():  # lost a race only if the winner finished
+                raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return final
     root.mkdir(parents=True, exist_ok=True)
     prefix = f".{name}.tmp-"
     # Clear temporary folders left behind by interrupted runs (old enough not to be in progress).

@@ -88,10 +88,11 @@ def observe(scene, xyz, face, poses, K, width, height, depths, face_maps):
     return visible, xy
 
 
-def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visible, xy):
+def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visible, xy, lens=None):
     """Write the demo views and points as a COLMAP binary model into ``sparse_dir``.
 
-    One PINHOLE camera (``K``), image v (id v + 1, named ``names[v]``) with pose ``poses[v]``
+    One camera: PINHOLE ``K``, or ``lens = (COLMAP model name, params)`` (e.g. ``("OPENCV",
+    [fx, fy, cx, cy, k1, k2, p1, p2])``) when given; image v (id v + 1, named ``names[v]``) with pose ``poses[v]``
     and as keypoints ``xy[v]`` of the points it sees (in point order), and every point p with
     ``xyz[p]`` [P, 3], ``colours[p]`` uint8 [P, 3] and the track of views where ``visible``
     [V, P] bool. Returns the pycolmap Reconstruction.
@@ -99,8 +100,9 @@ def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visib
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    cam = pycolmap.Camera(model="PINHOLE", width=width, height=height,
-                          params=[float(k) for k in K], camera_id=1)
+    model, params = lens if lens is not None else ("PINHOLE", K)
+    cam = pycolmap.Camera(model=model, width=width, height=height,
+                          params=[float(k) for k in params], camera_id=1)
     rec.add_camera_with_trivial_rig(cam)
     # point2D index of point p in view v (points are listed in increasing point order).
     obs_idx = np.cumsum(visible, axis=1) - 1
@@ -123,9 +125,16 @@ def write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visib
     return rec
 
 
-def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, face_maps, num_points, seed):
+def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, face_maps, num_points, seed,
+                    lens=None):
     """Sample ``num_points`` surface points, keep those observed in ≥ 2 views, colour them and write
     the COLMAP model into ``sparse_dir`` (the SfM stand-in of every demo scene).
+
+    Points and observations come from the pinhole camera ``K`` and its ``depths`` / ``face_maps``
+    [V][H, W]. With ``lens = (COLMAP model name, params)`` the model's camera is that lens instead
+    and every keypoint is the lens's projection of its point (``img_from_cam``; it may then lie
+    just outside the image, where the lens sees less than the pinhole): the same points and
+    tracks, seen through another camera (:mod:`cusgs_jax.data.demo_lens`).
 
     Returns:
       (xyz [P, 3] kept points, visible [V, P] bool observations).
@@ -135,5 +144,20 @@ def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, f
     keep = visible.sum(axis=0) >= 2
     xyz, face, visible, xy = xyz[keep], face[keep], visible[:, keep], xy[:, keep]
     colours = np.round(np.clip(surface_colour(scene, xyz, face), 0, 1) * 255).astype(np.uint8)
-    write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visible, xy)
+    if lens is not None:
+        xy = _lens_keypoints(lens, width, height, poses, xyz, visible, xy)
+    write_colmap(sparse_dir, poses, K, width, height, names, xyz, colours, visible, xy, lens)
     return xyz, visible
+
+
+def _lens_keypoints(lens, width, height, poses, xyz, visible, xy):
+    """``xy`` [V, P, 2] with the observed entries (``visible`` [V, P]) replaced by the projections of
+    ``xyz`` [P, 3] through the lens ``(model, params)`` (pycolmap ``img_from_cam``)."""
+    import pycolmap
+
+    cam = pycolmap.Camera(model=lens[0], width=width, height=height, params=[float(k) for k in lens[1]])
+    xy = xy.copy()
+    for v, (R, t) in enumerate(poses):
+        if visible[v].any():
+            xy[v, visible[v]] = cam.img_from_cam(xyz[visible[v]] @ R.T + t)
+    return xy

@@ -48,9 +48,16 @@ temporary sibling and renamed into place, so an interrupted run leaves nothing h
 two jobs racing on one scene both end up using one complete copy. Old folders are not removed
 automatically; the ``undistorted/`` folder can be deleted at any time.
 
-Limitations: COLMAP reads images as 8-bit RGB, so an alpha channel is dropped (a warning says so;
-pinhole scenes composite it onto the background instead); JPEG images are re-encoded by COLMAP
-and, when cropped to the common size, once more at quality 100.
+**Alpha.** COLMAP reads images as 8-bit RGB and drops an alpha channel, so an image with one
+(RGBA, grey+alpha, palette with transparency) is undistorted here instead, with COLMAP's own warp
+(``pycolmap.undistort_image``, the same bilinear resampling to the same camera): the colour
+premultiplied by alpha and the alpha separately, then un-premultiplied and written as an RGBA PNG.
+Loading composites it onto the background as for an undistorted scene (:mod:`.images`), and since
+the warp is linear, ``rgb·a + bg·(1−a)`` of the undistorted pixels is the undistortion of the
+image composited first (up to 8-bit rounding).
+
+Limitations: JPEG images are re-encoded by COLMAP and, when cropped to the common size, once more
+at quality 100; images with alpha are read as 8-bit.
 """
 
 from __future__ import annotations
@@ -80,7 +87,7 @@ log = logging.getLogger("cusgs_jax")
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
-CACHE_VERSION = 1
+CACHE_VERSION = 2  # 2: images with alpha keep it (RGBA)
 _MARKER = "undistort.json"
 _STALE_TMP_SECONDS = 3600
 
@@ -115,6 +122,7 @@ class _Plan:
     size) and the centre crop ``(x0, y0)`` to the common size that gives ``camera``."""
 
     source_model: str  # the source camera's COLMAP model, e.g. "OPENCV"
+    source: Any  # the source pycolmap.Camera
     full: Any  # pycolmap.Camera, PINHOLE
     x0: int
     y0: int
@@ -136,7 +144,7 @@ def _plan(cameras: dict[int, Any], options) -> dict[int, _Plan]:
         cx, cy = cam.principal_point_x - x0, cam.principal_point_y - y0
         out = pycolmap.Camera(camera_id=cid, model="PINHOLE", width=width, height=height,
                               params=[fx, fy, cx, cy])
-        plans[cid] = _Plan(source_model=camera_model_name(cameras[cid]), full=cam, x0=x0, y0=y0,
+        plans[cid] = _Plan(source_model=camera_model_name(cameras[cid]), source=cameras[cid], full=cam, x0=x0, y0=y0,
                            camera=out)
     return plans
 
@@ -176,7 +184,8 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
       options: ``pycolmap.UndistortCameraOptions`` (default: COLMAP's, blank_pixels=0).
     Returns:
       The folder; ``<folder>/images/<name>`` is [H, W, 3] uint8 RGB at the common size (W, H)
-      of the undistorted cameras.
+      of the undistorted cameras, or [H, W, 4] RGBA (a PNG under the source's name) when the
+      source image has an alpha channel (module docstring).
     Raises:
       SceneError: ``images/`` or an image is missing or unreadable, or the cache cannot be
         written.
@@ -192,7 +201,6 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
         info = json.loads((final / _MARKER).read_text())
         log.info("using cached undistorted images of %s (%d images %s → PINHOLE %d×%d) in %s",
                  scene, len(views), info["source_models"], info["width"], info["height"], final)
-        _warn_alpha(scene, info.get("alpha_images", []))
         return final
     plans = _plan(cameras, options)
     _build(final, model_dir, scene, views, sources, plans, options)
@@ -202,7 +210,6 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
     log.info("undistorted %d images %s → PINHOLE %d×%d%s, cached in %s", len(views),
              info["source_models"], info["width"], info["height"],
              f" (cropped by up to {crop} px to one common size)" if crop else "", final)
-    _warn_alpha(scene, info.get("alpha_images", []))
     return final
 
 
@@ -312,8 +319,12 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
     for entry in tmp.iterdir():  # sparse/ (stale poses/points if kept), stereo/, scripts
         if entry.name != "images":
             shutil.rmtree(entry) if entry.is_dir() else entry.unlink()
+    alpha_images = []
     for (name, cid), source in zip(views, sources):
         _check_and_crop(tmp / "images" / name, source, plans[cid])
+        if _has_alpha(source):
+            _undistort_with_alpha(tmp / "images" / name, source, plans[cid], options)
+            alpha_images.append(name)
     first = next(iter(plans.values())).camera
     info = dict(
         version=CACHE_VERSION, scene=str(scene.resolve()), num_images=len(views),
@@ -323,7 +334,7 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
                                 height=int(p.camera.height),
                                 params=[float(v) for v in p.camera.params], crop=[p.x0, p.y0])
                  for cid, p in plans.items()},
-        alpha_images=[name for (name, _), src in zip(views, sources) if _has_alpha(src)],
+        alpha_images=alpha_images,
     )
     (tmp / _MARKER).write_text(json.dumps(info, indent=1) + "\n")
 
@@ -367,11 +378,29 @@ def _has_alpha(path: pathlib.Path) -> bool:
         return False
 
 
-def _warn_alpha(scene: pathlib.Path, names: list[str]) -> None:
-    if names:
-        example = ", ".join(repr(n) for n in names[:3]) + (", ..." if len(names) > 3 else "")
-        log.warning(
-            "%d images of %s have an alpha channel (%s): COLMAP's undistorter drops it, so their "
-            "transparent pixels are trained on as they are stored instead of being composited onto "
-            "splat.background; undistort them yourself keeping the alpha, or remove it",
-            len(names), scene, example)
+def _undistort_with_alpha(path: pathlib.Path, source: pathlib.Path, plan: _Plan, options) -> None:
+    """Replace COLMAP's undistorted RGB image at ``path`` (alpha dropped) by the RGBA undistortion
+    of ``source``: premultiplied colour [H, W, 3] and alpha [H, W] warped with
+    ``pycolmap.undistort_image`` to ``plan.full``, centre-cropped like the others, colour
+    un-premultiplied (0 where alpha is 0); written as a PNG whatever the name's extension."""
+    import pycolmap
+    from PIL import Image
+
+    with Image.open(source) as im:
+        rgba = np.asarray(im.convert("RGBA"))
+    alpha = rgba[..., 3]
+    premultiplied = np.round(rgba[..., :3] * (alpha[..., None] / 255.0)).astype(np.uint8)
+
+    def warp(img: np.ndarray) -> np.ndarray:
+        out, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(img)),
+                                          plan.source)
+        out = np.asarray(out.to_array())
+        if out.shape[:2] != (int(plan.full.height), int(plan.full.width)):  # a bug, not the user's
+            raise RuntimeError(f"COLMAP undistorted {source} to {out.shape[1]}x{out.shape[0]}, expected "
+                               f"{int(plan.full.width)}x{int(plan.full.height)}")
+        return out[plan.y0:plan.y0 + int(plan.camera.height), plan.x0:plan.x0 + int(plan.camera.width)]
+
+    colour, a = warp(premultiplied).astype(np.float64), warp(alpha)
+    straight = np.where(a[..., None] > 0, colour * 255.0 / np.maximum(a[..., None], 1), 0.0)
+    out = np.concatenate([np.clip(np.round(straight), 0, 255).astype(np.uint8), a[..., None]], axis=-1)
+    Image.fromarray(np.ascontiguousarray(out)).save(path, format="PNG")  # [H, W, 4] uint8: RGBA
