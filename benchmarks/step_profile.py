@@ -27,10 +27,10 @@ def build_with_features(features: str):
     """The demo's initial model as ``cusgs-train`` sets it up with feature models ``features``
     (``demo``: daisy, semantic and vgg16 stand-ins), its fitted capacities and its step."""
     from cusgs_jax.app import run
-    from cusgs_jax.config import Config
+    from cusgs_jax.config import from_dict
     from cusgs_jax.training.step import make_train_step
 
-    cfg = Config().replace(train=dict(progress=False), features=dict(models=features))
+    cfg = from_dict(dict(train=dict(progress=False), features=dict(models=features)))  # the YAML spellings
     session = run.setup(cfg, tempfile.mkdtemp())
     step = make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
     return session.state, step, run._batches(session)
