@@ -24,10 +24,11 @@ Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))
 from __future__ import annotations
 
 import dataclasses
-import math
 import typing
 from typing import Any, Optional
 
+from cusgs_jax.checks import at_least as _at_least, finite_number as _number, lists_to_tuples as _tuples
+from cusgs_jax.checks import require  # noqa: F401  (re-exported: training modules import it from here)
 from cusgs_jax.errors import ConfigError
 
 # M3's split of its 160 query channels when all six models are present (docs/method.md#hierarchical-queries).
@@ -35,31 +36,6 @@ M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 3
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
-
-
-def require(ok: bool, option: str, value, requirement: str, fix: str = "") -> None:
-    """Raise :class:`ConfigError` ``"option=value: requirement; fix"`` unless ``ok``."""
-    if not ok:
-        raise ConfigError(f"{option}={value!r}: {requirement}" + (f"; {fix}" if fix else ""))
-
-
-def _number(value) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _at_least(obj, prefix: str, minimum, *names: str) -> None:
-    """Every named field of ``obj`` is a finite number ≥ ``minimum``."""
-    for name in names:
-        value = getattr(obj, name)
-        require(_number(value) and value >= minimum, f"{prefix}.{name}", value, f"must be a number >= {minimum}")
-
-
-def _tuples(obj) -> None:
-    """Lists handed in by OmegaConf become tuples (frozen configs stay hashable)."""
-    for field in dataclasses.fields(obj):
-        value = getattr(obj, field.name)
-        if isinstance(value, list):
-            object.__setattr__(obj, field.name, tuple(value))
 
 
 @dataclasses.dataclass(frozen=True)
