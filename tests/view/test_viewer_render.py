@@ -8,7 +8,7 @@ import pytest
 
 @pytest.fixture(scope="module")
 def trained(feature_run):
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
 
     return load_trained(feature_run)
 

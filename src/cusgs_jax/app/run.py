@@ -47,14 +47,14 @@ import numpy as np
 from tqdm import tqdm
 
 from cusgs_jax.app.clock import Clock
-from cusgs_jax.app.load_run import BANKS_FILE
-from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.run_inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
+from cusgs_jax.io.load_run import BANKS_FILE
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -490,7 +490,7 @@ def _save(session: Session, step: int) -> None:
                 densify={name: tally.as_dict() for name, tally in session.tallies.items()},
                 recompilations=session.recompilations, replays=session.replays,
                 capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
-                # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
+                # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
                 train_cameras=_cameras(session, session.train_idx),
                 held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list

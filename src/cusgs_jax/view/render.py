@@ -4,7 +4,7 @@
 anchors, networks (the appearance embedding replaced by the training views' mean, as the
 exporter does for a view that is none of the training views), the PSC banks of the feature
 models, and the list of cameras to jump to. It comes from a run folder
-(:func:`from_trained`, through :func:`cusgs_jax.app.load_run.load_trained`) or from a live
+(:func:`from_trained`, through :func:`cusgs_jax.io.load_run.load_trained`) or from a live
 training session (:func:`from_session`).
 
 :class:`ViewRenderer` renders it with our splatter (:func:`cusgs_jax.training.render.render_gaussians`,
@@ -83,7 +83,7 @@ def _view_model(cfg, anchors, nets, banks, cameras: list) -> ViewModel:
 
 
 def from_trained(model) -> ViewModel:
-    """The :class:`ViewModel` of a :class:`~cusgs_jax.app.load_run.TrainedModel` (its run folder only).
+    """The :class:`ViewModel` of a :class:`~cusgs_jax.io.load_run.TrainedModel` (its run folder only).
 
     Cameras: the training views, then the held-out views, as the checkpoint records them.
     """
