@@ -102,5 +102,7 @@ def test_a_training_run_shows_view_models_of_its_steps_and_stops_its_server(tmp_
     assert all(m.cameras is first.cameras for m in shown)  # the camera list is built once per run
     assert (first.cameras[0][3], first.cameras[0][4]) == (24, 18) and first.banks is None
     assert first.anchors.capacity % 64 == 0 and first.nets["appearance"].shape == (1, 4)  # compacted; mean embedding
+    # Each snapshot owns its arrays (the step donates the state's: shared ones would be deleted by the next
+    # step) and is the model as it was at its step, not the latest one.
     first_w, last_w = (np.asarray(m.nets["decoder"]["opacity"]["w0"]) for m in (shown[0], shown[-1]))
-    assert not np.array_equal(first_w, last_w)  # each frame is the model as it is at its step, not the first one
+    assert not np.array_equal(first_w, last_w)

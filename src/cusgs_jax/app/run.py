@@ -302,8 +302,13 @@ def train(session: Session, progress_label: str = "train") -> None:
 
 
 def _snapshot(session: Session, cameras: list[ViewCamera]) -> ViewModel:
-    """What the live viewer shows of the model as it is now (anchors compacted now)."""
-    return view_model(session.cfg, compact(session.state.anchors), session.state.nets, session.banks, cameras)
+    """What the live viewer shows of the model as it is now (anchors compacted now).
+
+    The snapshot owns its arrays: the step donates the state's buffers, so the networks are copied
+    (small MLPs) rather than shared, and the snapshot stays valid after the next step.
+    """
+    nets = jax.tree_util.tree_map(jnp.copy, session.state.nets)
+    return view_model(session.cfg, compact(session.state.anchors), nets, session.banks, cameras)
 
 
 def _exact_step(session: Session, batch: dict) -> dict:
