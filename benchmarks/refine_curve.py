@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from cusgs_jax.app.export import _run_scene, export_run
-from cusgs_jax.app.load_run import load_trained
+from cusgs_jax.io.load_run import load_trained
 from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.io import heldout_psnr, read_ply, refine_splats
 

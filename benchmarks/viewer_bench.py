@@ -48,7 +48,7 @@ def _train(root: pathlib.Path, iterations: int, *extra: str) -> tuple[pathlib.Pa
 
 
 def frame_times(run_dir, frames: int) -> dict:
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.view.camera import from_viser, to_viser
     from cusgs_jax.view.modes import colourise, feature_of_mode, mode_names
     from cusgs_jax.view.render import ViewRenderer, from_trained

@@ -58,6 +58,23 @@ def feature_run(tmp_path_factory):
     return root / "run"
 
 
+@pytest.fixture(scope="session")
+def small_run(tmp_path_factory):
+    """(scene folder, run folder) of a 30-step RGB run on a 6-view 40×30 demo scene (about 30 s on 2 cores;
+    the exporter's and load_trained's tests)."""
+    from cusgs_jax.app.run import run
+    from cusgs_jax.config import compose_config
+    from cusgs_jax.data.demo import generate_demo_scene
+
+    root = tmp_path_factory.mktemp("export")
+    scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)
+    cfg = compose_config([f"data.path={scene}", "train.iterations=30", "train.progress=false", "eval.every=0",
+                          "train.checkpoint_every=0", "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16",
+                          "model.appearance_dim=8", "features=none"])
+    run(cfg, root / "run")
+    return scene, root / "run"
+
+
 TINY_SWEEP = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
               "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2", "prune.start=2",
               "prune.interval=2", "eval.save_renders=false", "model.n_offsets=4", "model.latent_dim=8",

@@ -40,7 +40,7 @@ _EXPORTS = {
     "sh_to_rgb": "splat", "sh_basis": "splat",
     # models that leave the project (standard 3DGS PLY)
     "SplatModel": "io", "PlyError": "io", "read_ply": "io", "write_ply": "io", "render_splats": "io",
-    "bake_splats": "model.bake", "load_trained": "app.load_run", "TrainedModel": "app.load_run",
+    "bake_splats": "model.bake", "load_trained": "io.load_run", "TrainedModel": "io.load_run",
     # densification
     "GrowStats": "densify.scaffold", "accumulate_stats": "densify.scaffold",
     "ScaffoldStrategy": "densify.scaffold",

@@ -209,7 +209,7 @@ class SplatConfig:
     antialiased: bool = False
     # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
     # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the
-    # colour it used (app/inputs.py::resolve_background). Renderers read ``background_color``.
+    # colour it used (data/run_inputs.py::resolve_background). Renderers read ``background_color``.
     background: Optional[tuple[float, float, float]] = None
 
     def __post_init__(self):

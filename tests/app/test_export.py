@@ -1,4 +1,5 @@
-"""cusgs-export and load_trained on a tiny trained run: JSON, PLY, frames, PSNR against the run, errors, --help."""
+"""cusgs-export on a tiny trained run: JSON, PLY, frames, PSNR against the run, errors, --help (load_trained
+itself: tests/io/test_load_run.py)."""
 
 from __future__ import annotations
 
@@ -15,13 +16,12 @@ import pytest
 
 import cusgs_jax
 from cusgs_jax.app.export import export_run, main
-from cusgs_jax.app.load_run import load_trained
 from cusgs_jax.app.render_ply import evaluate_ply
 from cusgs_jax.app.run import run
 from cusgs_jax.config import compose_config
-from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import UserError
 from cusgs_jax.io import read_ply
+from cusgs_jax.io.load_run import load_trained
 
 # Baking loses some PSNR: one opacity and one covariance for every view (averaged over the training cameras),
 # colours fitted by degree-3 SH, the mean appearance embedding instead of the nearest training camera's.
@@ -31,41 +31,9 @@ PSNR_TOLERANCE_DB = 1.5
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """(scene folder, run folder) of a 30-step run on a 6-view 40×30 demo scene (about 30 s on 2 cores)."""
-    root = tmp_path_factory.mktemp("export")
-    scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)
-    cfg = compose_config([f"data.path={scene}", "train.iterations=30", "train.progress=false", "eval.every=0",
-                          "train.checkpoint_every=0", "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16",
-                          "model.appearance_dim=8", "features=none"])
-    run(cfg, root / "run")
-    return scene, root / "run"
-
-
-def test_load_trained_reads_the_model_without_the_scene(trained):
-    _, run_dir = trained
-    ev = json.loads((run_dir / "eval.json").read_text())
-    model = load_trained(run_dir)
-    assert model.step == 30 and model.run_dir == run_dir.absolute() and model.evaluation["psnr"] == ev["psnr"]
-    m = model.cfg.model
-    assert (m.n_offsets, m.latent_dim, m.hidden, m.appearance_dim) == (4, 8, 16, 8)
-    assert m.voxel_size == pytest.approx(ev["voxel_size"])
-    assert model.num_anchors == ev["alive_anchors"] and model.anchors.capacity % 64 == 0
-    assert model.anchors.params.offsets.shape == (model.anchors.capacity, 4, 3)
-    assert model.world.as_dict() == ev["world_transform"]
-    assert model.nets["appearance"].shape[1] == 8 and model.mean_appearance().shape == (8,)
-    assert model.checkpoint_bytes == ev["checkpoint_bytes"]
-    assert not (run_dir / "checkpoints" / "30.damaged").exists()
-
-
-def test_load_trained_without_eval_json_uses_the_checkpoint_metadata(trained, tmp_path):
-    _, run_dir = trained
-    copy = tmp_path / "run"
-    shutil.copytree(run_dir / "checkpoints", copy / "checkpoints")  # no eval.json, no .hydra
-    model = load_trained(copy)
-    full = load_trained(run_dir)
-    assert model.evaluation is None and model.world == full.world and model.cfg == full.cfg
-    np.testing.assert_array_equal(np.asarray(model.anchors.centers), np.asarray(full.anchors.centers))
+def trained(small_run):
+    """(scene folder, run folder) of the 30-step run of ``small_run`` (tests/conftest.py)."""
+    return small_run
 
 
 def test_an_older_run_without_recorded_config_or_transform(trained, tmp_path, caplog, capsys):
@@ -94,35 +62,6 @@ def test_an_older_run_without_recorded_config_or_transform(trained, tmp_path, ca
     # refinement (on by default) is skipped: the scene's cameras cannot be placed without the transform
     assert json.loads(out.out)["refine"]["steps"] == 0 and "refinement skipped" in out.err
     assert logging.getLogger("cusgs_jax").propagate and not logging.getLogger("cusgs_jax").handlers  # restored
-
-
-def test_cameras_come_from_the_scene_when_the_checkpoint_has_none(trained, tmp_path):
-    scene, run_dir = trained
-    copy = tmp_path / "run"
-    shutil.copytree(run_dir / "checkpoints", copy / "checkpoints")
-    shutil.copy(run_dir / "eval.json", copy / "eval.json")
-    meta_file = copy / "checkpoints" / "30" / "meta" / "metadata"
-    meta = json.loads(meta_file.read_text())
-    recorded = load_trained(run_dir).cameras
-    del meta["train_cameras"]
-    meta_file.write_text(json.dumps(meta))
-    model = load_trained(copy)
-    assert model.cameras_from == str(scene) and (model.cameras.width, model.cameras.height) == (40, 30)
-    np.testing.assert_allclose(np.asarray(model.cameras.world_to_camera), np.asarray(recorded.world_to_camera),
-                               atol=1e-6)
-    np.testing.assert_allclose(np.asarray(model.cameras.K), np.asarray(recorded.K))
-
-
-def test_load_trained_errors_name_the_folder(tmp_path):
-    with pytest.raises(UserError, match=str(tmp_path / "missing")):
-        load_trained(tmp_path / "missing")
-    (tmp_path / "empty").mkdir()
-    with pytest.raises(UserError, match=f"{tmp_path / 'empty'}.*no checkpoints/"):
-        load_trained(tmp_path / "empty")
-    (tmp_path / "none" / "checkpoints").mkdir(parents=True)
-    with pytest.raises(UserError, match=f"no checkpoint in {tmp_path / 'none' / 'checkpoints'}"):
-        load_trained(tmp_path / "none")
-    assert not list((tmp_path / "none" / "checkpoints").iterdir())  # read-only: nothing written
 
 
 def test_export_end_to_end_psnr_close_to_the_run(trained, tmp_path, capsys):

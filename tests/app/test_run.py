@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.app.inputs import load_data, view_order
+from cusgs_jax.data.run_inputs import load_data
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
@@ -70,13 +70,6 @@ def _strictly_increasing(values):
     return all(a < b for a, b in zip(values, values[1:]))
 
 
-def test_view_order_is_a_permutation_per_epoch():
-    seq = [view_order(3, 7, s) for s in range(14)]
-    assert sorted(seq[:7]) == list(range(7)) and sorted(seq[7:]) == list(range(7))
-    assert seq == [view_order(3, 7, s) for s in range(14)]
-    assert seq[:7] != seq[7:]  # a fresh permutation per epoch
-
-
 def _psnr(image, target):
     return -10 * np.log10(np.mean((np.asarray(image, np.float64) - target) ** 2))
 
@@ -115,7 +108,7 @@ def test_run_writes_all_outputs(straight, tiny_scene):
 
 
 def test_eval_json_model_bytes_is_the_models_arrays_without_optimiser_state(straight):
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
 
     run_dir, result = straight
     model = load_trained(run_dir)  # the final checkpoint's anchors (compacted to the alive ones) and networks

@@ -76,7 +76,7 @@ def test_a_clip_model_without_a_clip_feature_field_says_so(feature_run):
 
 def test_a_text_query_becomes_the_query_of_its_feature_model(feature_run):
     _need_open_clip()
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.extract.pretrained import clip_text_encoder
     from cusgs_jax.view.render import from_trained
     from cusgs_jax.view.server import Viewer

@@ -8,7 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config, DataConfig, SplatConfig, compose_config
+from cusgs_jax.config import DataConfig, SplatConfig, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.layouts import default_background, detect_format, load_any_scene
@@ -143,23 +143,3 @@ def test_background_not_set_is_none_and_renders_black():
     assert SplatConfig(background=(1, 1, 1)).background_color == (1.0, 1.0, 1.0)
     assert compose_config([]).splat.background is None
     assert compose_config(["splat.background=[1,1,1]"]).splat.background == (1.0, 1.0, 1.0)
-
-
-def test_app_loads_blender_on_white_and_resolves_the_background(tmp_path, colmap):
-    from cusgs_jax.app.inputs import load_data, resolve_background
-
-    write_blender_scene(tmp_path / "b")
-    cfg = Config(data=DataConfig(path=str(tmp_path / "b"), random_points=300))
-    scene, world = load_data(cfg)
-    assert scene.dataset_format == "blender" and scene.extent == 1.0 and len(scene.points) == 300
-    assert np.all(scene.images[:, 0, 0] == 255)
-    assert resolve_background(cfg, scene).splat.background == (1.0, 1.0, 1.0)
-    black = cfg.replace(splat=dict(background=(0.0, 0.0, 0.0)))  # set explicitly: kept
-    scene_black, _ = load_data(black)
-    assert np.all(scene_black.images[:, 0, 0] == 0)
-    assert resolve_background(black, scene_black).splat.background == (0.0, 0.0, 0.0)
-    colmap_cfg = Config(data=DataConfig(path=str(colmap)))
-    scene_c, _ = load_data(colmap_cfg)
-    assert resolve_background(colmap_cfg, scene_c).splat.background == (0.0, 0.0, 0.0)
-    with pytest.raises(SceneError, match="transforms.json does not exist"):
-        load_data(Config(data=DataConfig(path=str(colmap), format="nerfstudio")))

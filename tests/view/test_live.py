@@ -1,7 +1,9 @@
-"""The live view's time budget (a fake viewer and clock) and a train.viewer=true run that stops its server."""
+"""The live view's time budget (a fake viewer and clock; snapshots taken only for frames rendered) and a
+train.viewer=true run that hands the viewer frozen ViewModels of its model and stops its server."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from cusgs_jax.view.live import LiveView
@@ -25,7 +27,7 @@ class _FakeViewer:
         return self.clients
 
     def set_model(self, model):
-        pass
+        self.model = model
 
     def render_pending(self):
         self.clock.t += self.frame_s
@@ -35,35 +37,54 @@ class _FakeViewer:
         self.stopped = True
 
 
-def test_rendering_stays_within_the_budget(monkeypatch):
-    monkeypatch.setattr("cusgs_jax.view.render.from_session", lambda session, cameras=None: type("M", (), {"cameras": []}))
-    clock = _Clock()
+class _Snapshots:
+    """A snapshot function counting its calls; each call returns a new stand-in model."""
+
+    def __init__(self):
+        self.calls = 0
+
+    def __call__(self):
+        self.calls += 1
+        return ("model", self.calls)
+
+
+def test_rendering_stays_within_the_budget():
+    clock, snapshot = _Clock(), _Snapshots()
     viewer = _FakeViewer(clock, frame_s=0.05)
-    live = LiveView(viewer, budget=0.1, clock=clock)
+    live = LiveView(viewer, budget=0.1, snapshot=snapshot, clock=clock)
     for _ in range(1000):  # 1000 training steps of 10 ms
         clock.t += 0.01
-        live.after_step(session=None)
+        live.after_step()
     assert live.share <= 0.1 + 0.05 / clock.t  # one frame of overshoot at most
     assert live.share > 0.08 and viewer.rendered == live.frames > 10
+    assert snapshot.calls == live.frames and viewer.model == ("model", live.frames)  # one fresh snapshot a frame
     live.close()
     assert viewer.stopped
 
 
 def test_nothing_is_rendered_without_a_browser(monkeypatch):
-    clock = _Clock()
+    clock, snapshot = _Clock(), _Snapshots()
     viewer = _FakeViewer(clock, frame_s=0.05, clients=0)
-    live = LiveView(viewer, budget=1.0, clock=clock)
+    live = LiveView(viewer, budget=1.0, snapshot=snapshot, clock=clock)
     clock.t += 1.0
-    live.after_step(session=None)
-    assert viewer.rendered == 0 and live.spent_s == 0
+    live.after_step()
+    assert viewer.rendered == 0 and live.spent_s == 0 and snapshot.calls == 0  # nothing compacted for nobody
 
 
-def test_a_training_run_with_the_live_viewer_stops_its_server(tmp_path, caplog):
+def test_a_training_run_shows_view_models_of_its_steps_and_stops_its_server(tmp_path, caplog, monkeypatch):
     pytest.importorskip("viser", reason="the viewer extra is not installed")
     from cusgs_jax.app.run import run
     from cusgs_jax.config import compose_config
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.errors import ConfigError
+    from cusgs_jax.view.render import ViewModel
+    from cusgs_jax.view.server import Viewer
+
+    shown, stopped = [], []
+    monkeypatch.setattr(LiveView, "due", lambda self: True)  # as if a browser were there, with budget to spare
+    monkeypatch.setattr(Viewer, "set_model", lambda self, model: shown.append(model))
+    stop = Viewer.stop
+    monkeypatch.setattr(Viewer, "stop", lambda self: (stopped.append(self), stop(self)))
 
     with pytest.raises(ConfigError, match="train.viewer_budget"):
         compose_config(["train.viewer_budget=0"])
@@ -74,4 +95,14 @@ def test_a_training_run_with_the_live_viewer_stops_its_server(tmp_path, caplog):
                           "train.viewer=true", "train.viewer_port=0"])
     with caplog.at_level("INFO", logger="cusgs_jax"):
         run(cfg, tmp_path / "run")
-    assert "live viewer at http://" in caplog.text and "live viewer: 0 frames" in caplog.text
+    assert "live viewer at http://" in caplog.text and "live viewer: 3 frames" in caplog.text and len(stopped) == 1
+    assert len(shown) == 3 and all(isinstance(m, ViewModel) for m in shown)  # one snapshot after each step
+    first = shown[0]
+    assert [c[0] for c in first.cameras] == ["train 0", "train 1", "train 2", "held-out 0"]
+    assert all(m.cameras is first.cameras for m in shown)  # the camera list is built once per run
+    assert (first.cameras[0][3], first.cameras[0][4]) == (24, 18) and first.banks is None
+    assert first.anchors.capacity % 64 == 0 and first.nets["appearance"].shape == (1, 4)  # compacted; mean embedding
+    # Each snapshot owns its arrays (the step donates the state's: shared ones would be deleted by the next
+    # step) and is the model as it was at its step, not the latest one.
+    first_w, last_w = (np.asarray(m.nets["decoder"]["opacity"]["w0"]) for m in (shown[0], shown[-1]))
+    assert not np.array_equal(first_w, last_w)

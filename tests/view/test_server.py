@@ -37,7 +37,7 @@ def run_dir(feature_run):
 
 @pytest.fixture(scope="module")
 def viewer(run_dir):
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.view.render import from_trained
     from cusgs_jax.view.server import Viewer
 
@@ -103,7 +103,7 @@ def _shown(viewer, page, mode: str):
 def test_the_page_shows_the_splatters_render_of_the_browsers_camera(viewer, page, run_dir):
     import jax.numpy as jnp
 
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.training.render import make_render_fn
     from cusgs_jax.view.render import mean_appearance_nets
 

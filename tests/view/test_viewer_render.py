@@ -1,4 +1,5 @@
-"""The viewer's render without a browser: a trained run's frame equals the library render at the same camera."""
+"""The viewer's model and render without a browser: a trained run's frame equals the library render at the same
+camera; view_model centres on the alive anchors with the mean appearance; the scene's camera list."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import pytest
 
 @pytest.fixture(scope="module")
 def trained(feature_run):
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
 
     return load_trained(feature_run)
 
@@ -47,3 +48,40 @@ def test_rgb_only_frame_has_no_features(trained):
 
     frame = ViewRenderer(model.cfg).render(model, Camera(jnp.asarray(K), jnp.asarray(viewmat), width, height))
     assert frame.features == {} and np.isfinite(frame.rgb).all() and np.isfinite(frame.depth).all()
+
+
+def test_view_model_centres_on_the_alive_anchors_and_averages_the_appearance(trained):
+    import dataclasses
+
+    import jax
+
+    from cusgs_jax.view.render import view_model
+
+    anchors = trained.anchors
+    alive = np.asarray(anchors.alive)
+    assert not alive.all()  # compacted to a multiple of 64: dead padding slots that must not move the centre
+    model = view_model(trained.cfg, anchors, trained.nets, trained.banks, [])
+    np.testing.assert_allclose(model.center, np.asarray(anchors.centers)[alive].mean(axis=0), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(model.nets["appearance"]),
+                               np.asarray(trained.nets["appearance"]).mean(axis=0, keepdims=True), rtol=1e-6)
+    assert model.nets["decoder"] is trained.nets["decoder"] and model.anchors is anchors
+    assert set(model.banks) == {"semantic"} and isinstance(model.banks["semantic"], jax.Array)
+    assert model.cameras == [] and model.up.tolist() == [0.0, -1.0, 0.0]  # no camera: the OpenCV default up
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        model.banks = None
+
+
+def test_scene_cameras_list_the_training_views_then_the_held_out_ones(demo):
+    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.view.render import scene_cameras
+
+    scene = load_scene(demo, holdout_every=2)  # views 0 and 2 held out: the lists interleave in the scene
+    train, held_out = scene.train_indices, scene.test_indices
+    assert len(train) and len(held_out)
+    cameras = scene_cameras(scene, train)
+    assert [c[0] for c in cameras] == ([f"train {i}" for i in range(len(train))]
+                                       + [f"held-out {i}" for i in range(len(held_out))])
+    for (_, K, viewmat, width, height), view in zip(cameras, [*train, *held_out]):
+        np.testing.assert_array_equal(K, scene.Ks[view])
+        np.testing.assert_array_equal(viewmat, scene.viewmats[view])
+        assert (width, height) == (scene.width, scene.height)

@@ -2,7 +2,7 @@
 
 ``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
 [--views auto|cameras|sphere] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH]``
-loads the newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
+loads the newest checkpoint of a run folder (:func:`cusgs_jax.io.load_run.load_trained`;
 the bake needs no scene images, the refinement does), decodes every anchor from ``--directions`` sphere
 directions (SH colours) and from the training cameras that see it (one opacity
 and one covariance; the sphere when no camera is known or with ``--views
@@ -109,7 +109,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     import numpy as np
     from tqdm import tqdm
 
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.io import write_ply
     from cusgs_jax.model.bake import bake_splats, to_colmap_frame
     from cusgs_jax.splat.sh import num_sh_coeffs

@@ -76,7 +76,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     import numpy as np
     from tqdm import tqdm
 
-    from cusgs_jax.app.inputs import require_ssim_size
+    from cusgs_jax.data.run_inputs import require_ssim_size
     from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact

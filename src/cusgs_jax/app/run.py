@@ -35,35 +35,42 @@ configuration are in units of the scene extent.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import logging
 import math
 import pathlib
 import time
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 from tqdm import tqdm
 
 from cusgs_jax.app.clock import Clock
-from cusgs_jax.app.load_run import BANKS_FILE
-from cusgs_jax.app.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.config import Config, require
+from cusgs_jax.data.colmap import SceneData
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.features import FeatureSet
+from cusgs_jax.data.normalize import WorldTransform
+from cusgs_jax.data.run_inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import usable_features
+from cusgs_jax.io.load_run import BANKS_FILE
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
-from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 from cusgs_jax.view.live import live_view
+from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_model
 
 log = logging.getLogger("cusgs_jax")
 LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
@@ -76,27 +83,27 @@ class Session:
 
     cfg: Config  # the user's settings; the grown work capacities live in ``capacities``
     out: pathlib.Path
-    scene: object
-    world: object  # data.normalize.WorldTransform: COLMAP frame → the normalised training frame
-    train_idx: np.ndarray
+    scene: SceneData  # in the normalised training frame (extent 1)
+    world: WorldTransform  # the scene's frame (COLMAP's) → the normalised training frame
+    train_idx: np.ndarray  # [V] the training views (indices into the scene's views)
     test_idx: np.ndarray  # the evaluated views: held-out ones, or training views when there are none
-    feature_sets: dict
-    banks: dict | None
-    targets: dict
-    strategies: tuple  # the densification strategies (densify.base.Strategy), run in this order
-    tx: object
-    state: object
+    feature_sets: dict[str, FeatureSet]  # {feature model: its maps of every view}
+    banks: dict[str, jax.Array] | None  # {feature model: [M, D] PSC entries}; None without feature models
+    targets: dict[str, jax.Array]  # {feature model: [V, h, w, D] training targets (float16 unless too large)}
+    strategies: tuple[Strategy, ...]  # the densification strategies, run in this order
+    tx: optax.GradientTransformation
+    state: TrainState
     ckpt: Checkpointer
     clock: Clock
-    curve: list
-    tallies: dict  # {strategy name: densify.base.Tally}: what each strategy's updates did (checkpointed)
-    capacities: capacity.Capacities = None  # the step's work capacities: owned, grown and checkpointed here
+    curve: list[dict]  # the learning curve's points (eval_curve.jsonl rows)
+    tallies: dict[str, Tally]  # {strategy name: what its updates did} (checkpointed)
+    capacities: capacity.Capacities  # the step's work capacities: owned, grown and checkpointed here
     recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
     replays: int = 0  # steps replayed because a capacity was too small
-    alarmed: set = dataclasses.field(default_factory=set)  # loss terms already warned about (_loss_alarms)
-    step_fn: object = None
-    render: object = None
-    feature_render: object = None
+    alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (_loss_alarms)
+    step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
+    render: capacity.ExactRender | None = None  # the evaluation's RGB render (set by setup)
+    feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
 
     @property
     def evaluated_on(self) -> str:
@@ -262,17 +269,19 @@ def train(session: Session, progress_label: str = "train") -> None:
     cfg = session.cfg
     iterations, start = cfg.train.iterations, int(session.state.step)
     batches = _batches(session)
+    cameras = scene_cameras(session.scene, session.train_idx) if cfg.train.viewer else []  # fixed during a run
+    snapshot = functools.partial(_snapshot, session, cameras)  # the live viewer's model as it is when called
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
     with open(session.out / "metrics.jsonl", "a") as metrics_file, \
-            open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(session) as live:
+            open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.clock:
                 metrics = _exact_step(session, batches(step))
                 _densify(session, step + 1)
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
-                live.after_step(session)
+                live.after_step()
             done = step + 1
             if done % cfg.train.log_every == 0 or done == iterations:
                 row = _log_row(session, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)
@@ -291,6 +300,16 @@ def train(session: Session, progress_label: str = "train") -> None:
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
         _save(session, iterations)
+
+
+def _snapshot(session: Session, cameras: list[ViewCamera]) -> ViewModel:
+    """What the live viewer shows of the model as it is now (anchors compacted now).
+
+    The snapshot owns its arrays: the step donates the state's buffers, so the networks are copied
+    (small MLPs) rather than shared, and the snapshot stays valid after the next step.
+    """
+    nets = jax.tree_util.tree_map(jnp.copy, session.state.nets)
+    return view_model(session.cfg, compact(session.state.anchors), nets, session.banks, cameras)
 
 
 def _exact_step(session: Session, batch: dict) -> dict:
@@ -491,7 +510,7 @@ def _save(session: Session, step: int) -> None:
                 densify={name: tally.as_dict() for name, tally in session.tallies.items()},
                 recompilations=session.recompilations, replays=session.replays,
                 capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
-                # what cusgs-export needs from an unfinished run or one trained without Hydra (app/load_run.py)
+                # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
                 train_cameras=_cameras(session, session.train_idx),
                 held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list

@@ -1,6 +1,6 @@
 """``cusgs-view``: an interactive web viewer of a run folder (viser; :mod:`cusgs_jax.view`).
 
-Reads the run folder the other tools read (checkpoint + config, :func:`cusgs_jax.app.load_run.load_trained`;
+Reads the run folder the other tools read (checkpoint + config, :func:`cusgs_jax.io.load_run.load_trained`;
 the feature models' PSC banks from ``feature_banks.npz``); the camera list comes from the checkpoint
 (training and held-out views), and for runs older than that record from the scene's COLMAP model if it
 is still there. Nothing else of the training data is read. Open the printed address in a browser;
@@ -58,7 +58,7 @@ def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int
         raise UserError("the viewer needs viser: pip install -e '.[viewer]'")
     if jpeg_quality is not None and not 1 <= jpeg_quality <= 100:
         raise UserError(f"--jpeg-quality {jpeg_quality}: must be 1-100")
-    from cusgs_jax.app.load_run import load_trained
+    from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.view.render import from_trained
     from cusgs_jax.view.server import NO_CLIP_REASON, Viewer
 

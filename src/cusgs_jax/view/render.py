@@ -3,26 +3,42 @@
 :class:`ViewModel` is everything the viewer needs of a model: the configuration, compacted
 anchors, networks (the appearance embedding replaced by the training views' mean, as the
 exporter does for a view that is none of the training views), the PSC banks of the feature
-models, and the list of cameras to jump to. It comes from a run folder
-(:func:`from_trained`, through :func:`cusgs_jax.app.load_run.load_trained`) or from a live
-training session (:func:`from_session`).
+models, and the list of cameras to jump to. It is frozen, and the viewer reads nothing else:
+it comes from a run folder (:func:`from_trained`, through :func:`cusgs_jax.io.load_run.load_trained`)
+or, for the live view of a training run, from the run's arrays as they are at a step
+(:func:`view_model`, with the cameras of :func:`scene_cameras`; the training loop builds it).
 
 :class:`ViewRenderer` renders it with our splatter (:func:`cusgs_jax.training.render.render_gaussians`,
 every slot decoded, never a truncated image): RGB, alpha, alpha-weighted depth, and when asked the
 rendered features of every feature model ([H, W, D] each, through the memory heads).
 
-Naming: A anchor capacity, E appearance size, M PSC entries, D feature dimension, H×W image.
+Naming: A anchor capacity, E appearance size, M PSC entries, D feature dimension, V views, H×W image.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cusgs_jax.extract.optional import usable_features
+from cusgs_jax.config import Config
 
-__all__ = ["ViewModel", "ViewRenderer", "from_trained", "from_session", "mean_appearance_nets"]
+if TYPE_CHECKING:  # annotations only: these import JAX, which this module leaves to its functions
+    import jax
+
+    from cusgs_jax.data.colmap import SceneData
+    from cusgs_jax.io.load_run import TrainedModel
+    from cusgs_jax.model.anchors import AnchorState
+    from cusgs_jax.types import Camera
+    from cusgs_jax.view.modes import Frame
+
+__all__ = ["ViewCamera", "ViewModel", "ViewRenderer", "from_trained", "mean_appearance_nets", "scene_cameras",
+           "view_model"]
+
+ViewCamera = tuple[str, np.ndarray, np.ndarray, int, int]
+"""A camera to jump to: (label, K [3, 3], world→camera [4, 4], width W, height H)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -34,15 +50,15 @@ class ViewModel:
       anchors: compacted :class:`~cusgs_jax.model.anchors.AnchorState`.
       nets: networks with ``appearance`` [1, E] (the mean embedding; index 0) when the model has one.
       banks: {model: [M, D]} jax arrays, or None (no feature model rendered).
-      cameras: [(label, K [3, 3], world→camera [4, 4], W, H)] to jump to, training views first.
+      cameras: :data:`ViewCamera` s to jump to, training views first.
       center: [3] the middle of the alive anchors (orbit centre); up: [3] world up of the cameras.
     """
 
-    cfg: object
-    anchors: object
-    nets: dict
-    banks: dict | None
-    cameras: list
+    cfg: Config
+    anchors: AnchorState
+    nets: dict[str, Any]
+    banks: dict[str, jax.Array] | None
+    cameras: list[ViewCamera]
     center: np.ndarray
     up: np.ndarray
 
@@ -54,7 +70,7 @@ class ViewModel:
         return [m.name for m in self.cfg.features.model_list if m.name in self.banks]
 
 
-def mean_appearance_nets(nets: dict) -> dict:
+def mean_appearance_nets(nets: dict[str, Any]) -> dict[str, Any]:
     """``nets`` with the appearance table [V, E] replaced by its mean [1, E] (render with index 0)."""
     if "appearance" not in nets:
         return nets
@@ -63,14 +79,31 @@ def mean_appearance_nets(nets: dict) -> dict:
     return {**nets, "appearance": jnp.mean(nets["appearance"], axis=0, keepdims=True)}
 
 
-def _camera_list(prefix: str, cameras) -> list:
+def _camera_list(prefix: str, cameras: Camera | None) -> list[ViewCamera]:
+    """``cameras`` (batched: K [V, 3, 3], world_to_camera [V, 4, 4]) as labelled :data:`ViewCamera` s."""
     if cameras is None:
         return []
     Ks, viewmats = np.asarray(cameras.K), np.asarray(cameras.world_to_camera)
     return [(f"{prefix} {i}", Ks[i], viewmats[i], int(cameras.width), int(cameras.height)) for i in range(len(Ks))]
 
 
-def _view_model(cfg, anchors, nets, banks, cameras: list) -> ViewModel:
+def scene_cameras(scene: SceneData, train_idx: np.ndarray) -> list[ViewCamera]:
+    """The cameras of a loaded scene to jump to: the training views ``train_idx`` [V] ("train i"), then the
+    scene's held-out views ("held-out i"), in the frame the scene is in."""
+    cameras = []
+    for prefix, idx in (("train", train_idx), ("held-out", scene.test_indices)):
+        if len(idx):
+            Ks, viewmats = np.asarray(scene.Ks)[idx], np.asarray(scene.viewmats)[idx]
+            cameras += [(f"{prefix} {i}", Ks[i], viewmats[i], int(scene.width), int(scene.height))
+                        for i in range(len(idx))]
+    return cameras
+
+
+def view_model(cfg: Config, anchors: AnchorState, nets: dict[str, Any], banks: dict[str, Any] | None,
+               cameras: list[ViewCamera]) -> ViewModel:
+    """The :class:`ViewModel` of a model's arrays: ``anchors`` compacted
+    (:func:`~cusgs_jax.model.anchors.compact`), ``nets`` with the per-view appearance table [V, E] (replaced
+    here by its mean), ``banks`` {model: [M, D]} (NumPy or jax) or None, ``cameras`` to jump to."""
     import jax.numpy as jnp
 
     from cusgs_jax.view.camera import scene_up
@@ -84,8 +117,8 @@ def _view_model(cfg, anchors, nets, banks, cameras: list) -> ViewModel:
                      center=center, up=up)
 
 
-def from_trained(model) -> ViewModel:
-    """The :class:`ViewModel` of a :class:`~cusgs_jax.app.load_run.TrainedModel` (its run folder only).
+def from_trained(model: TrainedModel) -> ViewModel:
+    """The :class:`ViewModel` of a :class:`~cusgs_jax.io.load_run.TrainedModel` (its run folder only).
 
     Cameras: the training views, then the held-out views, as the checkpoint records them.
     """
@@ -94,31 +127,13 @@ def from_trained(model) -> ViewModel:
         cfg = cfg.replace(features=usable_features(cfg.features.resolve(demo_scene=not cfg.data.path)))
     banks = model.banks if cfg.features.enabled else None
     cameras = _camera_list("train", model.cameras) + _camera_list("held-out", model.held_out_cameras)
-    return _view_model(cfg, model.anchors, model.nets, banks, cameras)
-
-
-def from_session(session, cameras: list | None = None) -> ViewModel:
-    """The :class:`ViewModel` of a training session as it is now (:mod:`cusgs_jax.app.run`).
-
-    ``cameras``: the camera list of an earlier call (it does not change during a run), or None.
-    """
-    from cusgs_jax.model.anchors import compact
-    from cusgs_jax.types import Camera
-
-    scene = session.scene
-    if cameras is None:
-        cameras = []
-        for prefix, idx in (("train", session.train_idx), ("held-out", scene.test_indices)):
-            if len(idx):
-                batch = Camera(np.asarray(scene.Ks)[idx], np.asarray(scene.viewmats)[idx], scene.width, scene.height)
-                cameras += _camera_list(prefix, batch)
-    return _view_model(session.cfg, compact(session.state.anchors), session.state.nets, session.banks, cameras)
+    return view_model(cfg, model.anchors, model.nets, banks, cameras)
 
 
 class ViewRenderer:
     """Renders a :class:`ViewModel` at a camera (jitted once per image size; pair capacity grown as needed)."""
 
-    def __init__(self, cfg):
+    def __init__(self, cfg: Config):
         from cusgs_jax.training.capacity import ExactRender
 
         from cusgs_jax.training.render import view_work_probe
@@ -128,7 +143,7 @@ class ViewRenderer:
         self._render = ExactRender(lambda capacities: _build(cfg, capacities), None, cfg.model.n_offsets,
                                    fit=lambda anchors, nets, camera, banks: probe(anchors, nets, camera, 0))
 
-    def render(self, model: ViewModel, camera, *, features: bool = False):
+    def render(self, model: ViewModel, camera: Camera, *, features: bool = False) -> Frame:
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
         from cusgs_jax.view.modes import Frame
 
@@ -138,7 +153,7 @@ class ViewRenderer:
                      features={name: np.asarray(f) for name, f in feats.items()})
 
 
-def _build(cfg, capacities):
+def _build(cfg: Config, capacities):
     """``build(capacities)`` for :class:`~cusgs_jax.training.capacity.ExactRender`: ``render(anchors, nets, camera,
     banks or None) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, work metrics)`` with the
     mean appearance embedding (index 0 of :func:`mean_appearance_nets`)."""

@@ -1,17 +1,33 @@
-"""What a run reads: the scene, the feature maps and their PSC banks, the view order."""
+"""What a training run reads: the scene of its configuration (in the normalised frame), the feature maps and
+their PSC banks, the training targets, the view order.
+
+Naming (:mod:`cusgs_jax.types`): V views, h×w feature map, D feature dimension, M PSC entries.
+"""
 
 from __future__ import annotations
 
 import logging
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import Config, FeatureConfig
+from cusgs_jax.data.colmap import SceneData
+from cusgs_jax.data.demo_lens import lens_demo_path
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.features import FeatureSet, feature_dir, feature_file, load_features
+from cusgs_jax.data.images import scaled_size
+from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.normalize import WorldTransform, normalize_scene
+from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
+from cusgs_jax.losses import gaussian_window
+from cusgs_jax.memory import psc
 
 log = logging.getLogger("cusgs_jax")
 
 
-def load_data(cfg: Config):
+def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
     """The scene of ``data.path`` (or the built-in demo scene when it is None) in the normalised frame.
 
     ``data.path`` is read in its layout (``data.format``: COLMAP, Blender or nerfstudio, ``auto`` =
@@ -23,14 +39,9 @@ def load_data(cfg: Config):
       when it is not set (None) on the layout's default (white for Blender, black otherwise), which
       ``scene.background`` records (:func:`resolve_background`).
     """
-    from cusgs_jax.data.layouts import load_any_scene
-    from cusgs_jax.data.normalize import normalize_scene
-
     data = cfg.data
     path = data.path
     if not path:
-        from cusgs_jax.data.demo_lens import lens_demo_path
-
         demo = data.demo
         path = lens_demo_path(lens=demo.lens, seed=demo.seed, num_views=demo.views, width=demo.width,
                               height=demo.height)
@@ -43,22 +54,17 @@ def load_data(cfg: Config):
     return normalize_scene(scene, align=data.align)
 
 
-def require_ssim_size(scene, downscale: int, option: str) -> None:
+def require_ssim_size(scene: SceneData, downscale: int, option: str) -> None:
     """SceneError unless ``scene``'s images are at least as large as the SSIM window (11×11 pixels).
 
     The training loss and every evaluation take the SSIM of whole images, which cannot be computed
     on images smaller than its window; ``option`` names the downscale setting in the message
     (``data.downscale`` for ``cusgs-train``, ``--downscale`` for ``cusgs-render-ply``).
     """
-    from cusgs_jax.data.errors import SceneError
-    from cusgs_jax.losses import gaussian_window
-
     k = len(gaussian_window())
     if scene.width >= k and scene.height >= k:
         return
     if downscale > 1:
-        from cusgs_jax.data.images import scaled_size
-
         smallest = (min(scene.width, scene.height) - 0.5) * downscale  # the full-size side is at least this
         fits = [d for d in range(1, downscale) if scaled_size(int(smallest), d) >= k]
         fix = (f"use a smaller {option} (e.g. {option}={max(fits)})" if fits
@@ -69,7 +75,7 @@ def require_ssim_size(scene, downscale: int, option: str) -> None:
                      f"smaller than the {k}x{k} pixels of the SSIM window that training and evaluation need; {fix}")
 
 
-def resolve_background(cfg: Config, scene) -> Config:
+def resolve_background(cfg: Config, scene: SceneData) -> Config:
     """``cfg`` with ``splat.background`` = the colour ``scene``'s images were composited on when it was
     not set (None): the layout's default (white for Blender, black otherwise). A set colour is kept."""
     if cfg.splat.background is not None:
@@ -81,7 +87,8 @@ def resolve_background(cfg: Config, scene) -> Config:
     return cfg.replace(splat=dict(background=color))
 
 
-def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
+def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
+                         ) -> tuple[dict[str, FeatureSet], dict[str, np.ndarray]]:
     """Feature maps of every configured model and their PSC banks.
 
     Missing built-in features are extracted first when ``fcfg.auto_extract``
@@ -92,10 +99,6 @@ def load_feature_targets(fcfg: FeatureConfig, scene, seed: int):
     Returns:
       (maps {model: FeatureSet}, banks {model: [M, D] float32 numpy}).
     """
-    from cusgs_jax.data.features import load_features
-    from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
-    from cusgs_jax.memory import psc
-
     maps, banks = {}, {}
     for index, model in enumerate(fcfg.model_list):
         # locked: the jobs of a parallel sweep share the demo scene's cache
@@ -128,8 +131,6 @@ def _warn_on_target_norms(scene_path, name: str, maps: np.ndarray, names) -> Non
     """Warn when the non-zero target vectors of ``maps`` [N, h, w, D] (feature model ``name``, views
     ``names``) have norms far above what the extractors produce (:data:`TARGET_NORM_MAX`): a scaled or
     corrupted feature folder. The message gives their range and the file holding the largest."""
-    from cusgs_jax.data.features import feature_dir, feature_file
-
     per_view = np.linalg.norm(maps.reshape(len(maps), -1, maps.shape[-1]).astype(np.float64), axis=-1)
     norms = per_view[per_view != 0]  # all-zero vectors: no target
     if not len(norms):
@@ -146,14 +147,12 @@ def _warn_on_target_norms(scene_path, name: str, maps: np.ndarray, names) -> Non
                     feature_dir(scene_path, name), low, high, median, count, len(norms), TARGET_NORM_MAX, worst)
 
 
-def feature_targets(feature_sets: dict, views: np.ndarray) -> dict:
+def feature_targets(feature_sets: dict[str, FeatureSet], views: np.ndarray) -> dict[str, jax.Array]:
     """{model: [V, h, w, D] device array} of the training views' feature maps.
 
     Stored as float16 (half the memory) unless a map holds values beyond
     float16's range (±65504), which would become inf: that model stays float32.
     """
-    import jax.numpy as jnp
-
     targets = {}
     for name, fs in feature_sets.items():
         maps = fs.maps[views]

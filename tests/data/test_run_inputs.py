@@ -1,14 +1,17 @@
-"""What a run reads (app/inputs.py): feature targets keep every value float16 cannot hold; images smaller
-than the SSIM window are refused at load; feature targets far larger than the extractors' are warned about."""
+"""What a run reads (data/run_inputs.py): any layout loads in the normalised frame with the background resolved;
+feature targets keep every value float16 cannot hold; images smaller than the SSIM window are refused at load;
+feature targets far larger than the extractors' are warned about; the view order is a permutation per epoch."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from cusgs_jax.app.inputs import FLOAT16_MAX, feature_targets, load_data
-from cusgs_jax.config import compose_config
+from cusgs_jax.config import Config, DataConfig, compose_config
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.run_inputs import (FLOAT16_MAX, feature_targets, load_data, load_feature_targets,
+                                       resolve_background, view_order)
+from cusgs_jax.testing.transforms_scenes import write_blender_scene
 
 
 class _Maps:
@@ -46,7 +49,6 @@ def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at
                                                                                        damage):
     import shutil
 
-    from cusgs_jax.app.inputs import load_feature_targets
     from cusgs_jax.data.features import feature_dir
     from cusgs_jax.extract import ensure_extracted
 
@@ -82,3 +84,28 @@ def test_demo_lens_scene_is_generated_and_undistorted(tmp_path, monkeypatch):
     scene, _ = load_data(cfg)
     assert (tmp_path / "demo-lens2-opencv-s0-v3-48x36" / "scene.json").is_file()
     assert (tmp_path / "undistorted").is_dir() and scene.width < 48 and scene.height < 36
+
+
+def test_a_blender_scene_loads_on_white_and_the_background_resolves_to_it(tmp_path, demo):
+    write_blender_scene(tmp_path / "b")
+    cfg = Config(data=DataConfig(path=str(tmp_path / "b"), random_points=300))
+    scene, world = load_data(cfg)
+    assert scene.dataset_format == "blender" and scene.extent == 1.0 and len(scene.points) == 300
+    assert np.all(scene.images[:, 0, 0] == 255)
+    assert resolve_background(cfg, scene).splat.background == (1.0, 1.0, 1.0)
+    black = cfg.replace(splat=dict(background=(0.0, 0.0, 0.0)))  # set explicitly: kept
+    scene_black, _ = load_data(black)
+    assert np.all(scene_black.images[:, 0, 0] == 0)
+    assert resolve_background(black, scene_black).splat.background == (0.0, 0.0, 0.0)
+    demo_cfg = Config(data=DataConfig(path=str(demo)))
+    scene_c, _ = load_data(demo_cfg)
+    assert resolve_background(demo_cfg, scene_c).splat.background == (0.0, 0.0, 0.0)
+    with pytest.raises(SceneError, match="transforms.json does not exist"):
+        load_data(Config(data=DataConfig(path=str(demo), format="nerfstudio")))
+
+
+def test_view_order_is_a_permutation_per_epoch():
+    seq = [view_order(3, 7, s) for s in range(14)]
+    assert sorted(seq[:7]) == list(range(7)) and sorted(seq[7:]) == list(range(7))
+    assert seq == [view_order(3, 7, s) for s in range(14)]
+    assert seq[:7] != seq[7:]  # a fresh permutation per epoch

@@ -33,13 +33,23 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import pathlib
+from typing import Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
-from cusgs_jax.config import Config, from_dict
+from cusgs_jax.config import Config, from_dict, from_omegaconf
+from cusgs_jax.data.colmap import load_cameras
+from cusgs_jax.data.demo_lens import lens_demo_folder
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
+from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
+from cusgs_jax.training.checkpoint import read_arrays
+from cusgs_jax.types import Camera
 
 __all__ = ["TrainedModel", "load_trained", "BANKS_FILE"]
 
@@ -79,25 +89,25 @@ class TrainedModel:
     """
 
     cfg: Config
-    anchors: object
-    nets: dict
+    anchors: AnchorState
+    nets: dict[str, Any]
     world: WorldTransform | None
     step: int
     run_dir: pathlib.Path
     checkpoint_dir: pathlib.Path
     checkpoint_bytes: int
     evaluation: dict | None
-    cameras: object = None
+    cameras: Camera | None = None
     cameras_from: str | None = None
-    held_out_cameras: object = None
-    banks: dict | None = None
+    held_out_cameras: Camera | None = None
+    banks: dict[str, np.ndarray] | None = None
 
     @property
     def num_anchors(self) -> int:
         """Alive anchors."""
         return int(np.sum(np.asarray(self.anchors.alive)))
 
-    def mean_appearance(self):
+    def mean_appearance(self) -> jax.Array | None:
         """[E] mean of the training views' appearance embeddings, or None without the embedding.
 
         The decoder's colour head takes a per-training-camera embedding; a view
@@ -106,12 +116,10 @@ class TrainedModel:
         """
         if "appearance" not in self.nets:
             return None
-        import jax.numpy as jnp
-
         return jnp.mean(self.nets["appearance"], axis=0)
 
 
-def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
+def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> TrainedModel:
     """Load the newest checkpoint (or ``step``) of a run folder as a :class:`TrainedModel`.
 
     Args:
@@ -122,12 +130,6 @@ def load_trained(run_dir, *, step: int | None = None) -> TrainedModel:
         not a folder, no checkpoint, damaged checkpoints, a config or eval.json that
         cannot be read, or stored arrays that are not a cusgs-jax model — the folder named.
     """
-    import jax
-    import jax.numpy as jnp
-
-    from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
-    from cusgs_jax.training.checkpoint import read_arrays
-
     run = pathlib.Path(run_dir).expanduser().absolute()
     if not run.is_dir():
         raise UserError(f"{run} is not a folder: pass the output folder of a cusgs-train run "
@@ -184,20 +186,18 @@ def _read_json(path: pathlib.Path) -> dict | None:
     return value
 
 
-def _hydra_config(run: pathlib.Path):
+def _hydra_config(run: pathlib.Path) -> DictConfig | None:
     """The OmegaConf of ``.hydra/config.yaml``, or None."""
     path = run / ".hydra" / "config.yaml"
     if not path.is_file():
         return None
-    from omegaconf import OmegaConf
-
     try:
         return OmegaConf.load(path)
     except Exception as e:
         raise UserError(f"{path} cannot be read ({type(e).__name__}: {e})") from e
 
 
-def _checkpoint_dir(run: pathlib.Path, cfg_file) -> pathlib.Path:
+def _checkpoint_dir(run: pathlib.Path, cfg_file: DictConfig | None) -> pathlib.Path:
     """``<run>/checkpoints``, or the run's ``train.checkpoint_dir`` when it named another folder."""
     default = run / "checkpoints"
     if default.is_dir() or cfg_file is None:
@@ -215,7 +215,7 @@ def _checkpoint_dir(run: pathlib.Path, cfg_file) -> pathlib.Path:
                           "not the output folder of a cusgs-train run with saved checkpoints")
 
 
-def _decoder_shape(anchors, nets: dict) -> dict:
+def _decoder_shape(anchors: AnchorState, nets: dict[str, Any]) -> dict[str, Any]:
     """ModelConfig fields that fix the decoder's array shapes, read off the stored arrays."""
     decoder = nets["decoder"]
     n_offsets, latent_dim = int(anchors.params.offsets.shape[1]), int(anchors.params.latent.shape[1])
@@ -231,10 +231,8 @@ def _decoder_shape(anchors, nets: dict) -> dict:
     return shape
 
 
-def _config(run: pathlib.Path, cfg_file, meta: dict, shape: dict) -> Config:
+def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: dict, shape: dict[str, Any]) -> Config:
     """The run's Config (Hydra's file, else the checkpoint's record, else defaults) with the stored decoder shape."""
-    from cusgs_jax.config import from_omegaconf
-
     source = None
     try:
         if cfg_file is not None:
@@ -258,12 +256,8 @@ def _config(run: pathlib.Path, cfg_file, meta: dict, shape: dict) -> Config:
     return cfg.replace(model=shape) if differs else cfg
 
 
-def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
+def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tuple[Camera | None, str | None]:
     """(batched Camera of the training views in the normalised frame, where from) or (None, None)."""
-    import jax.numpy as jnp
-
-    from cusgs_jax.types import Camera
-
     stored = meta.get("train_cameras")
     if isinstance(stored, dict):
         cameras = _stored_cameras(stored)
@@ -272,14 +266,10 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
         log.warning("the checkpoint's train_cameras cannot be read; looking for the scene instead")
     if world is None:
         return None, None
-    from cusgs_jax.data.colmap import load_cameras
-
     data = cfg.data
     if data.path:
         path = pathlib.Path(str(data.path)).expanduser()
     else:
-        from cusgs_jax.data.demo_lens import lens_demo_folder
-
         path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
                                 width=data.demo.width, height=data.demo.height)
     if not path.is_dir():
@@ -294,12 +284,8 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None):
     return Camera(jnp.asarray(Ks[train]), jnp.asarray(viewmats), int(width), int(height)), str(path)
 
 
-def _stored_cameras(stored):
+def _stored_cameras(stored: Any) -> Camera | None:
     """A batched Camera from the checkpoint metadata's {"viewmats", "Ks", "width", "height"}, or None."""
-    import jax.numpy as jnp
-
-    from cusgs_jax.types import Camera
-
     if not isinstance(stored, dict):
         return None
     try:
@@ -311,7 +297,7 @@ def _stored_cameras(stored):
     return None
 
 
-def _banks(run: pathlib.Path) -> dict | None:
+def _banks(run: pathlib.Path) -> dict[str, np.ndarray] | None:
     """{model: [M, D] float32} from the run's ``feature_banks.npz``, or None when it has none."""
     path = run / BANKS_FILE
     if not path.is_file():
