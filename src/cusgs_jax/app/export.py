@@ -1,6 +1,6 @@
 """``cusgs-export``: bake a trained run into a standard 3DGS PLY that every viewer reads.
 
-``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
+``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format ply|spz] [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
 [--views auto|cameras|sphere] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH]``
 loads the newest checkpoint of a run folder (:func:`cusgs_jax.app.load_run.load_trained`;
 the bake needs no scene images, the refinement does), decodes every anchor from ``--directions`` sphere
@@ -12,8 +12,9 @@ COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
 ``cusgs-render-ply --colmap`` expects), then refines it as plain 3DGS against the
 scene's training views (``--refine K`` steps, :func:`cusgs_jax.io.refine_splats`; on by
 default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
-the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it
-(:func:`cusgs_jax.io.write_ply`). A JSON summary goes to stdout, with the held-out
+the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it: a standard PLY
+(:func:`cusgs_jax.io.write_ply`), or Niantic's SPZ for an ``.spz`` name or ``--format spz``
+(:func:`cusgs_jax.io.spz.write_spz`, through the optional ``gsply`` package: the ``spz`` extra). A JSON summary goes to stdout, with the held-out
 PSNR of the bake before and after refinement. Only argparse
 is imported before the arguments are parsed, so ``--help`` does not load JAX; a
 :class:`~cusgs_jax.errors.UserError` is one line on stderr and exit code 2.
@@ -29,12 +30,32 @@ from collections.abc import Sequence
 from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
-__all__ = ["main", "export_run", "DEFAULT_REFINE_STEPS"]
+__all__ = ["main", "export_run", "output_format", "DEFAULT_REFINE_STEPS", "FORMATS"]
 
 PROG = "cusgs-export"
 
 DEFAULT_REFINE_STEPS = 1000
 """Refinement steps when ``--refine`` is not given (benchmarks/results/refine/: the measured PSNR-vs-steps curve)."""
+
+
+FORMATS = ("ply", "spz")
+"""Output formats: the standard 3DGS PLY, Niantic's SPZ (:mod:`cusgs_jax.io.spz`)."""
+
+
+def output_format(out, fmt: str | None) -> str:
+    """The format to write ``out`` in: ``fmt``, else ``spz`` for an ``.spz`` name, else ``ply``.
+
+    Raises:
+      UserError: an unknown ``fmt``, or one that contradicts the name's ``.ply`` / ``.spz`` suffix.
+    """
+    suffix = pathlib.Path(out).suffix.lower()
+    if fmt is None:
+        return "spz" if suffix == ".spz" else "ply"
+    if fmt not in FORMATS:
+        raise UserError(f"--format {fmt}: expected one of {', '.join(FORMATS)}")
+    if suffix in (".ply", ".spz") and suffix[1:] != fmt:
+        raise UserError(f"--format {fmt} but the output {out} is named {suffix}: name it .{fmt} or drop --format")
+    return fmt
 
 
 def _sh_degree(text: str) -> int:
@@ -49,7 +70,10 @@ def _parser() -> argparse.ArgumentParser:
         description="Bake a trained cusgs-train run (anchors decoded by MLPs per view) into a standard 3DGS PLY "
                     "(SH colours fitted over view directions) and print a JSON summary.")
     ap.add_argument("run_dir", metavar="RUN_DIR", help="output folder of a cusgs-train run (holds checkpoints/)")
-    ap.add_argument("out", metavar="OUT.ply", help="PLY file to write (its folder is created)")
+    ap.add_argument("out", metavar="OUT.ply", help="file to write, .ply or .spz (its folder is created)")
+    ap.add_argument("--format", choices=FORMATS, default=None,
+                    help="ply: the standard 3DGS PLY; spz: Niantic's compressed SPZ (needs the spz extra, gsply); "
+                         "default: spz for an .spz name, else ply")
     ap.add_argument("--sh-degree", type=_sh_degree, default=3, metavar="D", help="SH degree 0-3 (default 3)")
     ap.add_argument("--directions", type=int_at_least(1), default=64, metavar="N",
                     help="view directions per anchor (Fibonacci sphere), at least (D+1)^2 (default 64)")
@@ -82,16 +106,18 @@ def _parser() -> argparse.ArgumentParser:
 
 def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_opacity: float = 0.005,
                colmap_frame: bool = True, views: str = "auto", step: int | None = None, chunk_anchors: int = 1024,
-               progress: bool = True, refine: int | None = None, scene=None, seed: int = 0) -> dict:
-    """Bake the run's newest (or ``step``) checkpoint into the standard PLY ``out``, refined by default.
+               progress: bool = True, refine: int | None = None, scene=None, seed: int = 0,
+               fmt: str | None = None) -> dict:
+    """Bake the run's newest (or ``step``) checkpoint into the standard PLY (or SPZ) ``out``, refined by default.
 
     ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :data:`DEFAULT_REFINE_STEPS`
     when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
     ``data.path``, or the demo scene for a demo run). Without a scene the plain bake is written and a
-    warning says so. ``seed``: the refinement's view order.
+    warning says so. ``seed``: the refinement's view order. ``fmt``: "ply", "spz" or None
+    (:func:`output_format`: from the name's suffix).
 
     Returns:
-      {"ply", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
+      {"ply" or "spz" (the path written), "format", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
        opacity ≤ min_opacity from every view), "considered" (alive anchors × N), "anchors",
        "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
@@ -101,7 +127,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
        "seconds_per_100_steps" (the steps after the first)} or {"steps": 0, "skipped": why}}.
     Raises:
       UserError: not a run folder, no or damaged checkpoint, no world transform for
-        the COLMAP frame, a bad setting, or an unwritable output.
+        the COLMAP frame, a bad setting, an unwritable output, or SPZ without the gsply package.
     """
     import dataclasses
     import time
@@ -111,6 +137,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
 
     from cusgs_jax.app.load_run import load_trained
     from cusgs_jax.io import write_ply
+    from cusgs_jax.io.spz import require_gsply, write_spz
     from cusgs_jax.model.bake import bake_splats, to_colmap_frame
     from cusgs_jax.splat.sh import num_sh_coeffs
 
@@ -121,6 +148,9 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     if refine is not None and int(refine) < 0:
         raise UserError(f"--refine {refine}: expected a number of steps ≥ 0 (0 writes the plain bake)")
     out = pathlib.Path(out)
+    fmt = output_format(out, fmt)
+    if fmt == "spz":
+        require_gsply(out)  # before the bake and the refinement, not after
     scene_path = _scene_folder(scene) if scene is not None else None
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,10 +176,10 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                                      quats=quats.astype(np.float32), sh=sh.astype(np.float32))
     refined, refine_summary = _refine(splats, model, refine, scene_path, colmap_frame=colmap_frame, seed=seed,
                                       progress=progress)
-    path = write_ply(out, refined)
+    path = write_spz(out, refined) if fmt == "spz" else write_ply(out, refined)
     dropped = summary.considered - summary.gaussians
-    return dict(
-        ply=str(path), run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
+    return {fmt: str(path), "format": fmt} | dict(
+        run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
         gaussians=summary.gaussians, dropped=dropped, considered=summary.considered, anchors=model.num_anchors,
         sh_degree=sh_degree, directions=directions, min_opacity=min_opacity,
         views="cameras" if cameras is not None else "sphere", cameras=summary.cameras,
@@ -283,7 +313,7 @@ class _WarningLines:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-export RUN_DIR OUT.ply [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
+    """CLI: ``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format F] [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
     [--chunk A] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH] [--seed S] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
@@ -294,7 +324,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,
                                 min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, views=args.views,
                                 step=args.step, chunk_anchors=args.chunk, progress=not args.quiet,
-                                refine=args.refine, scene=args.scene, seed=args.seed)
+                                refine=args.refine, scene=args.scene, seed=args.seed, fmt=args.format)
     except UserError as e:  # a bad run folder, checkpoint or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")
     print(json.dumps(result, indent=2))
