@@ -299,3 +299,37 @@ def test_export_refine_options_are_checked(trained, tmp_path, capsys):
         assert not (tmp_path / "x.ply").exists()
     with pytest.raises(UserError, match="--refine -2"):
         export_run(run_dir, tmp_path / "x.ply", refine=-2, progress=False)
+
+
+def test_export_writes_spz_for_an_spz_name_or_format_spz(trained, tmp_path, capsys):
+    pytest.importorskip("gsply", reason="the spz extra is not installed (pip install -e '.[spz]')")
+    from cusgs_jax.io.spz import read_spz
+
+    _, run_dir = trained
+    ply = export_run(run_dir, tmp_path / "m.ply", progress=False, refine=0)
+    assert main([str(run_dir), str(tmp_path / "m.spz"), "--refine", "0", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["format"] == "spz" and summary["spz"] == str(tmp_path / "m.spz") and "ply" not in summary
+    assert summary["gaussians"] == ply["gaussians"] and summary["file_mb"] < ply["file_mb"]
+    spz, plain = read_spz(tmp_path / "m.spz"), read_ply(tmp_path / "m.ply")
+    assert spz.num_gaussians == plain.num_gaussians and spz.sh_degree == plain.sh_degree
+    np.testing.assert_allclose(spz.means, plain.means, atol=2 ** -12)  # the same Gaussians, quantised
+    out = export_run(run_dir, tmp_path / "named.bin", progress=False, refine=0, fmt="spz")
+    assert out["format"] == "spz" and read_spz(tmp_path / "named.bin").num_gaussians == plain.num_gaussians
+
+
+def test_export_format_errors_are_one_line_exit_2(trained, tmp_path, capsys, monkeypatch):
+    _, run_dir = trained
+    for argv, needle in (([str(tmp_path / "x.spz"), "--format", "ply"], "--format ply but the output"),
+                         ([str(tmp_path / "x.ply"), "--format", "spz"], "--format spz but the output"),
+                         ([str(tmp_path / "x.ply"), "--format", "splat"], "--format")):
+        with pytest.raises(SystemExit) as e:
+            main([str(run_dir)] + argv + ["--quiet"])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and needle in err and err.count("\n") == 1, argv
+    monkeypatch.setitem(sys.modules, "gsply", None)  # as without the spz extra: refused before the bake
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(tmp_path / "x.spz"), "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "pip install 'cusgs-jax[spz]'" in err and err.count("\n") == 1
+    assert not list(tmp_path.glob("x.*"))
