@@ -244,12 +244,13 @@ def test_export_refines_by_default_against_the_runs_scene(trained, tmp_path, cap
     import cusgs_jax.app.export as export
 
     scene, run_dir = trained
-    monkeypatch.setattr(export, "DEFAULT_REFINE_STEPS", 60)  # the default K, shortened for the test
+    monkeypatch.setattr(export, "DEFAULT_REFINE_EPOCHS", 12)  # the default epochs, fewer for the test
     ply = tmp_path / "refined.ply"
     assert main([str(run_dir), str(ply), "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     refine = summary["refine"]
-    assert refine["steps"] == 60 and refine["scene"] == str(scene) and refine["scene_from"] == "data.path"
+    assert refine["steps"] == 12 * 5 and refine["epochs"] == 12 and refine["steps_from"] == "default: 12 epochs"
+    assert refine["scene"] == str(scene) and refine["scene_from"] == "data.path"
     assert (refine["train_views"], refine["held_out_views"]) == (5, 1) and refine["frame"] == "colmap"
     assert refine["seconds"] > 0 and refine["seconds_per_100_steps"] > 0
     ev = json.loads((run_dir / "eval.json").read_text())
@@ -266,6 +267,7 @@ def test_export_refines_in_the_normalised_frame_too(trained, tmp_path):
     colmap = export_run(run_dir, tmp_path / "c.ply", progress=False, refine=0)
     norm = export_run(run_dir, tmp_path / "n.ply", progress=False, refine=20, colmap_frame=False, scene=scene)["refine"]
     assert norm["frame"] == "normalised" and norm["scene_from"] == "--scene"
+    assert (norm["steps"], norm["steps_from"], norm["epochs"]) == (20, "--refine", 4.0)
     # the same bake seen by the same cameras, moved into the training frame: the same picture
     assert norm["psnr_bake"] == pytest.approx(evaluate_ply(colmap["ply"], scene, progress=False)["psnr"], abs=0.02)
     assert norm["psnr_refined"] > norm["psnr_bake"]

@@ -10,7 +10,8 @@ sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bak
 whose docstring gives and measures every choice), moves the result to the
 COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
 ``cusgs-render-ply --colmap`` expects), then refines it as plain 3DGS against the
-scene's training views (``--refine K`` steps, :func:`cusgs_jax.io.refine_splats`; on by
+scene's training views (``--refine K`` steps, by default 30 per training view,
+:func:`cusgs_jax.io.refine_splats`; on by
 default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
 the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it: a standard PLY
 (:func:`cusgs_jax.io.write_ply`), or Niantic's SPZ for an ``.spz`` name or ``--format spz``
@@ -30,12 +31,20 @@ from collections.abc import Sequence
 from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
-__all__ = ["main", "export_run", "output_format", "DEFAULT_REFINE_STEPS", "FORMATS"]
+__all__ = ["main", "export_run", "output_format", "default_refine_steps", "DEFAULT_REFINE_EPOCHS", "FORMATS"]
 
 PROG = "cusgs-export"
 
-DEFAULT_REFINE_STEPS = 1000
-"""Refinement steps when ``--refine`` is not given (benchmarks/results/refine/: the measured PSNR-vs-steps curve)."""
+DEFAULT_REFINE_EPOCHS = 30
+"""Passes over the training views when ``--refine`` is not given: K = 30 × the scene's training views
+(:func:`default_refine_steps`). Chosen on two scenes (benchmarks/results/refine/, README "Export"): a
+fixed K = 1000 was 30 epochs of the 26-view demo room but 17 of the 60-view object scene, which
+stayed 0.65 dB below its run; every view needs about as many updates, whatever their number."""
+
+
+def default_refine_steps(train_views: int) -> int:
+    """K when ``--refine`` is not given: :data:`DEFAULT_REFINE_EPOCHS` × ``train_views`` (at least 1)."""
+    return max(1, DEFAULT_REFINE_EPOCHS * int(train_views))
 
 
 FORMATS = ("ply", "spz")
@@ -94,7 +103,8 @@ def _parser() -> argparse.ArgumentParser:
                        help="write in the normalised training frame (camera extent 1, centred on the cameras)")
     ap.add_argument("--refine", type=int_at_least(0), default=None, metavar="K",
                     help=f"refine the baked Gaussians as plain 3DGS for K steps against the scene's training views "
-                         f"(default {DEFAULT_REFINE_STEPS} when the run's scene is found; 0: write the plain bake)")
+                         f"(default {DEFAULT_REFINE_EPOCHS} x the number of training views when the run's scene is "
+                         f"found; 0: write the plain bake)")
     ap.add_argument("--scene", default=None, metavar="PATH",
                     help="the run's scene folder for --refine (default: the run's data.path, or the built-in demo "
                          "scene)")
@@ -110,8 +120,8 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                fmt: str | None = None) -> dict:
     """Bake the run's newest (or ``step``) checkpoint into the standard PLY (or SPZ) ``out``, refined by default.
 
-    ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :data:`DEFAULT_REFINE_STEPS`
-    when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
+    ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :func:`default_refine_steps`
+    of the scene's training views when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
     ``data.path``, or the demo scene for a demo run). Without a scene the plain bake is written and a
     warning says so. ``seed``: the refinement's view order. ``fmt``: "ply", "spz" or None
     (:func:`output_format`: from the name's suffix).
@@ -122,7 +132,8 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
        "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
        splatter settings), "file_mb", "checkpoint_mb", "seconds", "refine": {"steps", "scene", "frame",
-       "train_views", "held_out_views", "psnr_run" (eval.json), "psnr_bake", "psnr_refined" (held-out,
+       "train_views", "held_out_views", "steps_from" ("--refine" or the default's epochs), "epochs" (steps per
+       training view), "psnr_run" (eval.json), "psnr_bake", "psnr_refined" (held-out,
        None without held-out views), "seconds", "first_step_seconds" (compiling included),
        "seconds_per_100_steps" (the steps after the first)} or {"steps": 0, "skipped": why}}.
     Raises:
@@ -233,7 +244,6 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     log = logging.getLogger("cusgs_jax")
     if refine == 0:
         return splats, dict(steps=0, skipped="--refine 0")
-    steps = DEFAULT_REFINE_STEPS if refine is None else int(refine)
     if not colmap_frame and model.world is None:
         why = ("the run records no world transform, so the scene's cameras cannot be placed in the normalised "
                "frame: wrote the unrefined bake (refinement skipped)")
@@ -250,6 +260,7 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     data, splat = model.cfg.data, model.cfg.splat
     scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=splat.background, num_random_points=2)
+    steps = default_refine_steps(len(scene.train_indices)) if refine is None else int(refine)
     if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there
         scene = dataclasses.replace(scene, viewmats=model.world.viewmats(scene.viewmats))
     if _run_size(model) not in ((0, 0), (scene.width, scene.height)):
@@ -276,7 +287,8 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
 
     run_psnr = (model.evaluation or {}).get("psnr")
     return refined, dict(
-        steps=steps, scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
+        steps=steps, steps_from="--refine" if refine is not None else f"default: {DEFAULT_REFINE_EPOCHS} epochs",
+        epochs=round(steps / max(len(scene.train_indices), 1), 2), scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
         train_views=int(len(scene.train_indices)), held_out_views=int(len(scene.test_indices)),
         psnr_run=None if run_psnr is None else round(float(run_psnr), 3), psnr_bake=db(before), psnr_refined=db(after),
         seconds=round(seconds, 3), first_step_seconds=round(ticks[0] - start, 3),
