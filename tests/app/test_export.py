@@ -323,12 +323,15 @@ def test_export_writes_spz_for_an_spz_name_or_format_spz(trained, tmp_path, caps
 def test_export_format_errors_are_one_line_exit_2(trained, tmp_path, capsys, monkeypatch):
     _, run_dir = trained
     for argv, needle in (([str(tmp_path / "x.spz"), "--format", "ply"], "--format ply but the output"),
-                         ([str(tmp_path / "x.ply"), "--format", "spz"], "--format spz but the output"),
-                         ([str(tmp_path / "x.ply"), "--format", "splat"], "--format")):
+                         ([str(tmp_path / "x.ply"), "--format", "spz"], "--format spz but the output")):
         with pytest.raises(SystemExit) as e:
             main([str(run_dir)] + argv + ["--quiet"])
         err = capsys.readouterr().err
         assert e.value.code == 2 and needle in err and err.count("\n") == 1, argv
+    with pytest.raises(SystemExit) as e:  # argparse's own message (usage, then one error line)
+        main([str(run_dir), str(tmp_path / "x.ply"), "--format", "splat"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --format: invalid choice: 'splat'" in err.splitlines()[-1]
     monkeypatch.setitem(sys.modules, "gsply", None)  # as without the spz extra: refused before the bake
     with pytest.raises(SystemExit) as e:
         main([str(run_dir), str(tmp_path / "x.spz"), "--quiet"])

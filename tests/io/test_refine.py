@@ -124,8 +124,11 @@ def test_a_step_is_jitted_pure_and_deterministic(scene):
         np.testing.assert_array_equal(np.asarray(params[name]), value)
     assert bool(m1["applied"]) and int(m1["overflow"]) == 0
     assert not np.allclose(np.asarray(p1["sh_dc"]), copy["sh_dc"])
-    # the first Adam step moves every element by about its group's learning rate (3DGS's rates)
-    for name, rate in (("sh_dc", 2.5e-3), ("opacity_logits", 0.05), ("log_scales", 5e-3), ("quats", 1e-3)):
+    # the first Adam step moves every element by about its group's learning rate: 3DGS's for position and
+    # opacity, 4× 3DGS's for colour and shape (RefineSettings)
+    assert (settings.lr_sh_dc, settings.lr_scaling, settings.lr_rotation) == pytest.approx((4 * 2.5e-3, 4 * 5e-3, 4e-3))
+    for name, rate in (("sh_dc", settings.lr_sh_dc), ("opacity_logits", 0.05), ("log_scales", settings.lr_scaling),
+                       ("quats", settings.lr_rotation)):
         moved = np.abs(np.asarray(p1[name]) - copy[name])
         assert np.max(moved) == pytest.approx(rate, rel=1e-3), name
     moved = np.abs(np.asarray(p1["means"]) - copy["means"])

@@ -79,7 +79,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Bake a trained cusgs-train run (anchors decoded by MLPs per view) into a standard 3DGS PLY "
                     "(SH colours fitted over view directions) and print a JSON summary.")
     ap.add_argument("run_dir", metavar="RUN_DIR", help="output folder of a cusgs-train run (holds checkpoints/)")
-    ap.add_argument("out", metavar="OUT.ply", help="file to write, .ply or .spz (its folder is created)")
+    ap.add_argument("out", metavar="OUT", help="file to write: OUT.ply, or OUT.spz (its folder is created)")
     ap.add_argument("--format", choices=FORMATS, default=None,
                     help="ply: the standard 3DGS PLY; spz: Niantic's compressed SPZ (needs the spz extra, gsply); "
                          "default: spz for an .spz name, else ply")
