@@ -73,7 +73,7 @@ def test_refine_lowers_training_loss_and_raises_heldout_psnr(scene):
     psnr_before, psnr_after = heldout_psnr(model, scene), heldout_psnr(refined, scene)
     print(f"train loss {before:.4f} -> {after:.4f}; held-out PSNR {psnr_before:.2f} -> {psnr_after:.2f} dB")
     assert after < 0.8 * before
-    assert psnr_after > psnr_before + 2.0  # measured: 13.70 -> 18.02 dB
+    assert psnr_after > psnr_before + 2.0  # measured: 13.70 -> 18.38 dB (18.02 with 3DGS's colour and shape rates)
     for name in ("means", "log_scales", "opacity_logits", "sh"):  # every group moved
         assert not np.allclose(getattr(refined, name), getattr(model, name)), name
 

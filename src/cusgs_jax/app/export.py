@@ -15,7 +15,8 @@ scene's training views (``--refine K`` steps, by default 30 per training view,
 default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
 the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it: a standard PLY
 (:func:`cusgs_jax.io.write_ply`), or Niantic's SPZ for an ``.spz`` name or ``--format spz``
-(:func:`cusgs_jax.io.spz.write_spz`, through the optional ``gsply`` package: the ``spz`` extra). A JSON summary goes to stdout, with the held-out
+(:func:`cusgs_jax.io.spz.write_spz`, through the optional ``gsply`` package: the ``spz`` extra).
+A JSON summary goes to stdout, with the held-out
 PSNR of the bake before and after refinement. Only argparse
 is imported before the arguments are parsed, so ``--help`` does not load JAX; a
 :class:`~cusgs_jax.errors.UserError` is one line on stderr and exit code 2.
@@ -127,7 +128,8 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     (:func:`output_format`: from the name's suffix).
 
     Returns:
-      {"ply" or "spz" (the path written), "format", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
+      {"ply" or "spz" (the path written), "format", "run", "step", "frame": "colmap"|"normalised", "gaussians",
+       "dropped" (never visible:
        opacity ≤ min_opacity from every view), "considered" (alive anchors × N), "anchors",
        "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
@@ -288,7 +290,8 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     run_psnr = (model.evaluation or {}).get("psnr")
     return refined, dict(
         steps=steps, steps_from="--refine" if refine is not None else f"default: {DEFAULT_REFINE_EPOCHS} epochs",
-        epochs=round(steps / max(len(scene.train_indices), 1), 2), scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
+        epochs=round(steps / max(len(scene.train_indices), 1), 2),
+        scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
         train_views=int(len(scene.train_indices)), held_out_views=int(len(scene.test_indices)),
         psnr_run=None if run_psnr is None else round(float(run_psnr), 3), psnr_bake=db(before), psnr_refined=db(after),
         seconds=round(seconds, 3), first_step_seconds=round(ticks[0] - start, 3),
@@ -325,7 +328,8 @@ class _WarningLines:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format F] [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
+    """CLI: ``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format F] [--sh-degree D] [--directions N] [--min-opacity O]
+    [--views V] [--step S]
     [--chunk A] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH] [--seed S] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)

@@ -82,8 +82,8 @@ from cusgs_jax.model.decode import decode_gaussians, frustum_mask
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
 from cusgs_jax.splat.sh import sh_basis, sh_degree
 
-__all__ = ["BakeSummary", "BakedGaussians", "bake_anchors", "bake_splats", "fibonacci_sphere", "fit_sh", "matrix_to_quat",
-           "mean_covariance", "mean_shape", "sh_fit_matrix", "to_colmap_frame", "rotate_sh"]
+__all__ = ["BakeSummary", "BakedGaussians", "bake_anchors", "bake_splats", "fibonacci_sphere", "fit_sh",
+           "matrix_to_quat", "mean_covariance", "mean_shape", "sh_fit_matrix", "to_colmap_frame", "rotate_sh"]
 
 OPACITY_EPS = 1e-6  # stored opacities are clipped to (eps, 1 − eps) before the logit
 MAX_CAMERAS = 256  # training cameras that opacity and shape are averaged over (evenly spread subset)
