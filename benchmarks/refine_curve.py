@@ -1,4 +1,4 @@
-"""Held-out PSNR of an exported PLY against refinement steps (chooses ``cusgs-export --refine``'s default); prints JSON.
+"""Held-out PSNR of an exported PLY against refinement steps (the curve behind ``cusgs-export``'s default length); prints JSON.
 
 Bakes a finished run once (``cusgs-export --refine 0``, COLMAP frame), then for each
 ``--steps`` value K refines that bake from scratch for K steps

@@ -183,12 +183,13 @@ def test_export_refines_by_default_against_the_runs_scene(trained, tmp_path, cap
     import cusgs_jax.app.export as export
 
     scene, run_dir = trained
-    monkeypatch.setattr(export, "DEFAULT_REFINE_STEPS", 60)  # the default K, shortened for the test
+    monkeypatch.setattr(export, "DEFAULT_REFINE_EPOCHS", 12)  # the default epochs, fewer for the test
     ply = tmp_path / "refined.ply"
     assert main([str(run_dir), str(ply), "--quiet"]) == 0
     summary = json.loads(capsys.readouterr().out)
     refine = summary["refine"]
-    assert refine["steps"] == 60 and refine["scene"] == str(scene) and refine["scene_from"] == "data.path"
+    assert refine["steps"] == 12 * 5 and refine["epochs"] == 12 and refine["steps_from"] == "default: 12 epochs"
+    assert refine["scene"] == str(scene) and refine["scene_from"] == "data.path"
     assert (refine["train_views"], refine["held_out_views"]) == (5, 1) and refine["frame"] == "colmap"
     assert refine["seconds"] > 0 and refine["seconds_per_100_steps"] > 0
     ev = json.loads((run_dir / "eval.json").read_text())
@@ -205,6 +206,7 @@ def test_export_refines_in_the_normalised_frame_too(trained, tmp_path):
     colmap = export_run(run_dir, tmp_path / "c.ply", progress=False, refine=0)
     norm = export_run(run_dir, tmp_path / "n.ply", progress=False, refine=20, colmap_frame=False, scene=scene)["refine"]
     assert norm["frame"] == "normalised" and norm["scene_from"] == "--scene"
+    assert (norm["steps"], norm["steps_from"], norm["epochs"]) == (20, "--refine", 4.0)
     # the same bake seen by the same cameras, moved into the training frame: the same picture
     assert norm["psnr_bake"] == pytest.approx(evaluate_ply(colmap["ply"], scene, progress=False)["psnr"], abs=0.02)
     assert norm["psnr_refined"] > norm["psnr_bake"]
@@ -254,3 +256,40 @@ def test_run_scene_of_a_lens_demo_run(tmp_path, monkeypatch):
     assert path is None and "demo-lens" in why  # not generated: nothing is generated here
     made = lens_demo_path(lens="simple_radial", num_views=2, width=32, height=24)
     assert _run_scene(SimpleNamespace(cfg=cfg)) == (made, "the built-in demo scene")
+
+
+def test_export_writes_spz_for_an_spz_name_or_format_spz(trained, tmp_path, capsys):
+    pytest.importorskip("gsply", reason="the spz extra is not installed (pip install -e '.[spz]')")
+    from cusgs_jax.io.spz import read_spz
+
+    _, run_dir = trained
+    ply = export_run(run_dir, tmp_path / "m.ply", progress=False, refine=0)
+    assert main([str(run_dir), str(tmp_path / "m.spz"), "--refine", "0", "--quiet"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["format"] == "spz" and summary["spz"] == str(tmp_path / "m.spz") and "ply" not in summary
+    assert summary["gaussians"] == ply["gaussians"] and summary["file_mb"] < ply["file_mb"]
+    spz, plain = read_spz(tmp_path / "m.spz"), read_ply(tmp_path / "m.ply")
+    assert spz.num_gaussians == plain.num_gaussians and spz.sh_degree == plain.sh_degree
+    np.testing.assert_allclose(spz.means, plain.means, atol=2 ** -12)  # the same Gaussians, quantised
+    out = export_run(run_dir, tmp_path / "named.bin", progress=False, refine=0, fmt="spz")
+    assert out["format"] == "spz" and read_spz(tmp_path / "named.bin").num_gaussians == plain.num_gaussians
+
+
+def test_export_format_errors_are_one_line_exit_2(trained, tmp_path, capsys, monkeypatch):
+    _, run_dir = trained
+    for argv, needle in (([str(tmp_path / "x.spz"), "--format", "ply"], "--format ply but the output"),
+                         ([str(tmp_path / "x.ply"), "--format", "spz"], "--format spz but the output")):
+        with pytest.raises(SystemExit) as e:
+            main([str(run_dir)] + argv + ["--quiet"])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and needle in err and err.count("\n") == 1, argv
+    with pytest.raises(SystemExit) as e:  # argparse's own message (usage, then one error line)
+        main([str(run_dir), str(tmp_path / "x.ply"), "--format", "splat"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "argument --format: invalid choice: 'splat'" in err.splitlines()[-1]
+    monkeypatch.setitem(sys.modules, "gsply", None)  # as without the spz extra: refused before the bake
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(tmp_path / "x.spz"), "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "pip install 'cusgs-jax[spz]'" in err and err.count("\n") == 1
+    assert not list(tmp_path.glob("x.*"))

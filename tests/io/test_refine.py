@@ -73,7 +73,7 @@ def test_refine_lowers_training_loss_and_raises_heldout_psnr(scene):
     psnr_before, psnr_after = heldout_psnr(model, scene), heldout_psnr(refined, scene)
     print(f"train loss {before:.4f} -> {after:.4f}; held-out PSNR {psnr_before:.2f} -> {psnr_after:.2f} dB")
     assert after < 0.8 * before
-    assert psnr_after > psnr_before + 2.0  # measured: 13.70 -> 18.02 dB
+    assert psnr_after > psnr_before + 2.0  # measured: 13.70 -> 18.38 dB (18.02 with 3DGS's colour and shape rates)
     for name in ("means", "log_scales", "opacity_logits", "sh"):  # every group moved
         assert not np.allclose(getattr(refined, name), getattr(model, name)), name
 
@@ -124,8 +124,11 @@ def test_a_step_is_jitted_pure_and_deterministic(scene):
         np.testing.assert_array_equal(np.asarray(params[name]), value)
     assert bool(m1["applied"]) and int(m1["overflow"]) == 0
     assert not np.allclose(np.asarray(p1["sh_dc"]), copy["sh_dc"])
-    # the first Adam step moves every element by about its group's learning rate (3DGS's rates)
-    for name, rate in (("sh_dc", 2.5e-3), ("opacity_logits", 0.05), ("log_scales", 5e-3), ("quats", 1e-3)):
+    # the first Adam step moves every element by about its group's learning rate: 3DGS's for position and
+    # opacity, 4× 3DGS's for colour and shape (RefineSettings)
+    assert (settings.lr_sh_dc, settings.lr_scaling, settings.lr_rotation) == pytest.approx((4 * 2.5e-3, 4 * 5e-3, 4e-3))
+    for name, rate in (("sh_dc", settings.lr_sh_dc), ("opacity_logits", 0.05), ("log_scales", settings.lr_scaling),
+                       ("quats", settings.lr_rotation)):
         moved = np.abs(np.asarray(p1[name]) - copy[name])
         assert np.max(moved) == pytest.approx(rate, rel=1e-3), name
     moved = np.abs(np.asarray(p1["means"]) - copy["means"])

@@ -13,7 +13,8 @@ from cusgs_jax.config import DecoderConfig
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.io import SplatModel, render_splats
 from cusgs_jax.model.anchors import AnchorParams, AnchorState
-from cusgs_jax.model.bake import (bake_anchors, bake_splats, fibonacci_sphere, fit_sh, mean_shape, sh_fit_matrix,
+from cusgs_jax.model.bake import (bake_anchors, bake_splats, fibonacci_sphere, fit_sh, matrix_to_quat, mean_covariance,
+                                  mean_shape, sh_fit_matrix,
                                   to_colmap_frame)
 from cusgs_jax.model.decode import init_decoder
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
@@ -76,6 +77,38 @@ def test_mean_shape_is_exact_for_one_shape_and_ignores_zero_weights():
     _, ms = mean_shape(jnp.asarray(quats[:2]), jnp.asarray(np.stack([s, 4 * s])), jnp.zeros((2, 7)))
     np.testing.assert_allclose(np.asarray(ms), 2 * s, rtol=1e-5)
 
+
+
+def test_mean_covariance_is_the_weighted_mean_of_the_covariances():
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(3, 9, 4)).astype(np.float32)
+    s = rng.uniform(0.01, 0.3, (3, 9, 3)).astype(np.float32)
+    w = rng.uniform(0.0, 1.0, (3, 9)).astype(np.float32)
+    w[2, :4] = 0.0  # off in one view: it does not count
+    mq, ms = mean_covariance(jnp.asarray(q), jnp.asarray(s), jnp.asarray(w))
+    want = np.einsum("vg,vgij->gij", w / w.sum(0), _cov(q, s))
+    np.testing.assert_allclose(_cov(mq, ms), want, rtol=2e-4, atol=1e-8)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(mq), axis=1), 1.0, atol=1e-6)
+    # one shape (any sign and norm of its quaternion) is kept exactly; all-zero weights count views equally
+    one, _ = mean_covariance(jnp.asarray(np.stack([q[0], -2 * q[0]])), jnp.asarray(np.stack([s[0], s[0]])),
+                             jnp.asarray(np.stack([w[0], 0 * w[0]])))
+    np.testing.assert_allclose(_cov(one, mean_covariance(jnp.asarray(q[:1]), jnp.asarray(s[:1]),
+                                                         jnp.ones((1, 9)))[1]), _cov(q[0], s[0]), rtol=2e-4)
+    _, equal = mean_covariance(jnp.asarray(q[:2]), jnp.asarray(s[:2]), jnp.zeros((2, 9)))
+    np.testing.assert_allclose(np.sort(np.asarray(equal) ** 2, axis=1),
+                               np.sort(np.linalg.eigvalsh(0.5 * (_cov(q[0], s[0]) + _cov(q[1], s[1]))), axis=1),
+                               rtol=2e-4)
+
+
+def test_matrix_to_quat_inverts_quats_to_rotmats_and_stays_finite_at_half_turns():
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(64, 4))
+    q[:8, 0] = 1e-4  # rotations by almost 180°: trace ≈ −1, the case the axis flips avoid in mean_covariance
+    q = (q / np.linalg.norm(q, axis=1, keepdims=True)).astype(np.float32)
+    back = np.asarray(matrix_to_quat(quats_to_rotmats(jnp.asarray(q))))
+    keep = np.trace(np.asarray(quats_to_rotmats(jnp.asarray(q))), axis1=1, axis2=2) > -0.75
+    assert np.min(np.abs(np.sum(back[keep] * q[keep], axis=1))) > 1 - 1e-5
+    assert keep.sum() > 30 and np.all(np.isfinite(back))
 
 def _anchors(num=5, seed=0):
     rng = np.random.default_rng(seed)

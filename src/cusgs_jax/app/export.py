@@ -1,6 +1,6 @@
 """``cusgs-export``: bake a trained run into a standard 3DGS PLY that every viewer reads.
 
-``cusgs-export RUN_DIR OUT.ply [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
+``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format ply|spz] [--sh-degree 3] [--directions 64] [--min-opacity 0.005]
 [--views auto|cameras|sphere] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH]``
 loads the newest checkpoint of a run folder (:func:`cusgs_jax.io.load_run.load_trained`;
 the bake needs no scene images, the refinement does), decodes every anchor from ``--directions`` sphere
@@ -10,10 +10,13 @@ sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bak
 whose docstring gives and measures every choice), moves the result to the
 COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
 ``cusgs-render-ply --colmap`` expects), then refines it as plain 3DGS against the
-scene's training views (``--refine K`` steps, :func:`cusgs_jax.io.refine_splats`; on by
+scene's training views (``--refine K`` steps, by default 30 per training view,
+:func:`cusgs_jax.io.refine_splats`; on by
 default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
-the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it
-(:func:`cusgs_jax.io.write_ply`). A JSON summary goes to stdout, with the held-out
+the built-in demo scene; ``--refine 0`` writes the plain bake) and writes it: a standard PLY
+(:func:`cusgs_jax.io.write_ply`), or Niantic's SPZ for an ``.spz`` name or ``--format spz``
+(:func:`cusgs_jax.io.spz.write_spz`, through the optional ``gsply`` package: the ``spz`` extra).
+A JSON summary goes to stdout, with the held-out
 PSNR of the bake before and after refinement. Only argparse
 is imported before the arguments are parsed, so ``--help`` does not load JAX; a
 :class:`~cusgs_jax.errors.UserError` is one line on stderr and exit code 2.
@@ -29,12 +32,40 @@ from collections.abc import Sequence
 from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.errors import UserError
 
-__all__ = ["main", "export_run", "DEFAULT_REFINE_STEPS"]
+__all__ = ["main", "export_run", "output_format", "default_refine_steps", "DEFAULT_REFINE_EPOCHS", "FORMATS"]
 
 PROG = "cusgs-export"
 
-DEFAULT_REFINE_STEPS = 1000
-"""Refinement steps when ``--refine`` is not given (benchmarks/results/refine/: the measured PSNR-vs-steps curve)."""
+DEFAULT_REFINE_EPOCHS = 30
+"""Passes over the training views when ``--refine`` is not given: K = 30 × the scene's training views
+(:func:`default_refine_steps`). Chosen on two scenes (benchmarks/results/refine/, README "Export"): a
+fixed K = 1000 was 30 epochs of the 26-view demo room but 17 of the 60-view object scene, which
+stayed 0.65 dB below its run; every view needs about as many updates, whatever their number."""
+
+
+def default_refine_steps(train_views: int) -> int:
+    """K when ``--refine`` is not given: :data:`DEFAULT_REFINE_EPOCHS` × ``train_views`` (at least 1)."""
+    return max(1, DEFAULT_REFINE_EPOCHS * int(train_views))
+
+
+FORMATS = ("ply", "spz")
+"""Output formats: the standard 3DGS PLY, Niantic's SPZ (:mod:`cusgs_jax.io.spz`)."""
+
+
+def output_format(out, fmt: str | None) -> str:
+    """The format to write ``out`` in: ``fmt``, else ``spz`` for an ``.spz`` name, else ``ply``.
+
+    Raises:
+      UserError: an unknown ``fmt``, or one that contradicts the name's ``.ply`` / ``.spz`` suffix.
+    """
+    suffix = pathlib.Path(out).suffix.lower()
+    if fmt is None:
+        return "spz" if suffix == ".spz" else "ply"
+    if fmt not in FORMATS:
+        raise UserError(f"--format {fmt}: expected one of {', '.join(FORMATS)}")
+    if suffix in (".ply", ".spz") and suffix[1:] != fmt:
+        raise UserError(f"--format {fmt} but the output {out} is named {suffix}: name it .{fmt} or drop --format")
+    return fmt
 
 
 def _sh_degree(text: str) -> int:
@@ -49,7 +80,10 @@ def _parser() -> argparse.ArgumentParser:
         description="Bake a trained cusgs-train run (anchors decoded by MLPs per view) into a standard 3DGS PLY "
                     "(SH colours fitted over view directions) and print a JSON summary.")
     ap.add_argument("run_dir", metavar="RUN_DIR", help="output folder of a cusgs-train run (holds checkpoints/)")
-    ap.add_argument("out", metavar="OUT.ply", help="PLY file to write (its folder is created)")
+    ap.add_argument("out", metavar="OUT", help="file to write: OUT.ply, or OUT.spz (its folder is created)")
+    ap.add_argument("--format", choices=FORMATS, default=None,
+                    help="ply: the standard 3DGS PLY; spz: Niantic's compressed SPZ (needs the spz extra, gsply); "
+                         "default: spz for an .spz name, else ply")
     ap.add_argument("--sh-degree", type=_sh_degree, default=3, metavar="D", help="SH degree 0-3 (default 3)")
     ap.add_argument("--directions", type=int_at_least(1), default=64, metavar="N",
                     help="view directions per anchor (Fibonacci sphere), at least (D+1)^2 (default 64)")
@@ -70,7 +104,8 @@ def _parser() -> argparse.ArgumentParser:
                        help="write in the normalised training frame (camera extent 1, centred on the cameras)")
     ap.add_argument("--refine", type=int_at_least(0), default=None, metavar="K",
                     help=f"refine the baked Gaussians as plain 3DGS for K steps against the scene's training views "
-                         f"(default {DEFAULT_REFINE_STEPS} when the run's scene is found; 0: write the plain bake)")
+                         f"(default {DEFAULT_REFINE_EPOCHS} x the number of training views when the run's scene is "
+                         f"found; 0: write the plain bake)")
     ap.add_argument("--scene", default=None, metavar="PATH",
                     help="the run's scene folder for --refine (default: the run's data.path, or the built-in demo "
                          "scene)")
@@ -82,26 +117,30 @@ def _parser() -> argparse.ArgumentParser:
 
 def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_opacity: float = 0.005,
                colmap_frame: bool = True, views: str = "auto", step: int | None = None, chunk_anchors: int = 1024,
-               progress: bool = True, refine: int | None = None, scene=None, seed: int = 0) -> dict:
-    """Bake the run's newest (or ``step``) checkpoint into the standard PLY ``out``, refined by default.
+               progress: bool = True, refine: int | None = None, scene=None, seed: int = 0,
+               fmt: str | None = None) -> dict:
+    """Bake the run's newest (or ``step``) checkpoint into the standard PLY (or SPZ) ``out``, refined by default.
 
-    ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :data:`DEFAULT_REFINE_STEPS`
-    when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
+    ``refine``: refinement steps (:func:`cusgs_jax.io.refine_splats`); None: :func:`default_refine_steps`
+    of the scene's training views when the scene is found, 0: the plain bake. ``scene``: the scene folder (default: the run's
     ``data.path``, or the demo scene for a demo run). Without a scene the plain bake is written and a
-    warning says so. ``seed``: the refinement's view order.
+    warning says so. ``seed``: the refinement's view order. ``fmt``: "ply", "spz" or None
+    (:func:`output_format`: from the name's suffix).
 
     Returns:
-      {"ply", "run", "step", "frame": "colmap"|"normalised", "gaussians", "dropped" (never visible:
+      {"ply" or "spz" (the path written), "format", "run", "step", "frame": "colmap"|"normalised", "gaussians",
+       "dropped" (never visible:
        opacity ≤ min_opacity from every view), "considered" (alive anchors × N), "anchors",
        "sh_degree", "directions", "min_opacity", "views": "cameras"|"sphere", "cameras" (how many), "cameras_from" ("checkpoint",
        the scene folder, or null), "appearance": "mean"|"none", "background" and "antialiased" (the run's
        splatter settings), "file_mb", "checkpoint_mb", "seconds", "refine": {"steps", "scene", "frame",
-       "train_views", "held_out_views", "psnr_run" (eval.json), "psnr_bake", "psnr_refined" (held-out,
+       "train_views", "held_out_views", "steps_from" ("--refine" or the default's epochs), "epochs" (steps per
+       training view), "psnr_run" (eval.json), "psnr_bake", "psnr_refined" (held-out,
        None without held-out views), "seconds", "first_step_seconds" (compiling included),
        "seconds_per_100_steps" (the steps after the first)} or {"steps": 0, "skipped": why}}.
     Raises:
       UserError: not a run folder, no or damaged checkpoint, no world transform for
-        the COLMAP frame, a bad setting, or an unwritable output.
+        the COLMAP frame, a bad setting, an unwritable output, or SPZ without the gsply package.
     """
     import dataclasses
     import time
@@ -111,6 +150,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
 
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.io import write_ply
+    from cusgs_jax.io.spz import require_gsply, write_spz
     from cusgs_jax.model.bake import bake_splats, to_colmap_frame
     from cusgs_jax.splat.sh import num_sh_coeffs
 
@@ -121,6 +161,9 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     if refine is not None and int(refine) < 0:
         raise UserError(f"--refine {refine}: expected a number of steps ≥ 0 (0 writes the plain bake)")
     out = pathlib.Path(out)
+    fmt = output_format(out, fmt)
+    if fmt == "spz":
+        require_gsply(out)  # before the bake and the refinement, not after
     scene_path = _scene_folder(scene) if scene is not None else None
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -146,10 +189,10 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                                      quats=quats.astype(np.float32), sh=sh.astype(np.float32))
     refined, refine_summary = _refine(splats, model, refine, scene_path, colmap_frame=colmap_frame, seed=seed,
                                       progress=progress)
-    path = write_ply(out, refined)
+    path = write_spz(out, refined) if fmt == "spz" else write_ply(out, refined)
     dropped = summary.considered - summary.gaussians
-    return dict(
-        ply=str(path), run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
+    return {fmt: str(path), "format": fmt} | dict(
+        run=str(model.run_dir), step=model.step, frame="colmap" if colmap_frame else "normalised",
         gaussians=summary.gaussians, dropped=dropped, considered=summary.considered, anchors=model.num_anchors,
         sh_degree=sh_degree, directions=directions, min_opacity=min_opacity,
         views="cameras" if cameras is not None else "sphere", cameras=summary.cameras,
@@ -203,7 +246,6 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     log = logging.getLogger("cusgs_jax")
     if refine == 0:
         return splats, dict(steps=0, skipped="--refine 0")
-    steps = DEFAULT_REFINE_STEPS if refine is None else int(refine)
     if not colmap_frame and model.world is None:
         why = ("the run records no world transform, so the scene's cameras cannot be placed in the normalised "
                "frame: wrote the unrefined bake (refinement skipped)")
@@ -220,6 +262,7 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     data, splat = model.cfg.data, model.cfg.splat
     scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=splat.background, num_random_points=2)
+    steps = default_refine_steps(len(scene.train_indices)) if refine is None else int(refine)
     if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there
         scene = dataclasses.replace(scene, viewmats=model.world.viewmats(scene.viewmats))
     if _run_size(model) not in ((0, 0), (scene.width, scene.height)):
@@ -246,7 +289,9 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
 
     run_psnr = (model.evaluation or {}).get("psnr")
     return refined, dict(
-        steps=steps, scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
+        steps=steps, steps_from="--refine" if refine is not None else f"default: {DEFAULT_REFINE_EPOCHS} epochs",
+        epochs=round(steps / max(len(scene.train_indices), 1), 2),
+        scene=str(scene_path), scene_from=found, frame="colmap" if colmap_frame else "normalised",
         train_views=int(len(scene.train_indices)), held_out_views=int(len(scene.test_indices)),
         psnr_run=None if run_psnr is None else round(float(run_psnr), 3), psnr_bake=db(before), psnr_refined=db(after),
         seconds=round(seconds, 3), first_step_seconds=round(ticks[0] - start, 3),
@@ -283,7 +328,8 @@ class _WarningLines:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-export RUN_DIR OUT.ply [--sh-degree D] [--directions N] [--min-opacity O] [--views V] [--step S]
+    """CLI: ``cusgs-export RUN_DIR OUT.ply|OUT.spz [--format F] [--sh-degree D] [--directions N] [--min-opacity O]
+    [--views V] [--step S]
     [--chunk A] [--colmap-frame | --normalised-frame] [--refine K] [--scene PATH] [--seed S] [--quiet]``."""
     ap = _parser()
     args = ap.parse_args(argv)
@@ -294,7 +340,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,
                                 min_opacity=args.min_opacity, colmap_frame=args.colmap_frame, views=args.views,
                                 step=args.step, chunk_anchors=args.chunk, progress=not args.quiet,
-                                refine=args.refine, scene=args.scene, seed=args.seed)
+                                refine=args.refine, scene=args.scene, seed=args.seed, fmt=args.format)
     except UserError as e:  # a bad run folder, checkpoint or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {e}\n")
     print(json.dumps(result, indent=2))
