@@ -10,7 +10,8 @@ other work on the machine hits all of them alike; the medians are over rounds.
 splax runs its pure-JAX path (``rasterize(..., mode="jax")``) driven as its own example does
 (``Gaussian3D.from_props`` + ``Camera.from_K_and_viewmat`` → ``Camera.project`` →
 ``rasterize``), imported from a source folder (``--splax-src``; it needs ``jaxlie`` and
-``jax_dataclasses``). It keeps only the first ``max_intersects`` Gaussians (depth order) of a
+``jax_dataclasses``), from a copy with one bug fixed (:data:`SPLAX_PATCHES`: its 3D covariance
+used the scales of Gaussians 0–2 for every Gaussian; ``--no-splax-patch`` runs it as is). It keeps only the first ``max_intersects`` Gaussians (depth order) of a
 tile, so it runs in two ways:
 
 - ``splax_default``: its defaults, tile 40 and ``max_intersects`` 100 (drops Gaussians);
@@ -40,7 +41,9 @@ import math
 import os
 import pathlib
 import platform
+import shutil
 import sys
+import tempfile
 import time
 
 import jax
@@ -78,21 +81,32 @@ CONVENTIONS = [
     "sigmoid, scale through clip(>=1e-6) + log + exp, and clips the image to [0, 1]; its "
     "quaternions must be unit (jaxlie), so the splax wrapper normalises them (inside the "
     "differentiated function, like ours)",
-    "pixel centres: the same (pixel (i, j) at (j + 0.5, i + 0.5) in our coordinates; splax "
-    "samples integer coordinates with the projected mean shifted by +0.5)",
+    "pixel centres: ours samples pixel (i, j) at (j + 0.5, i + 0.5) with the mean at "
+    "K (x/z, y/z, 1); splax samples (j, i) with the mean shifted by +0.5, i.e. (j - 0.5, i - 0.5) "
+    "in our coordinates: its image is ours moved by one pixel. Picture checks render ours (and "
+    "the oracle) with the principal point moved by +1 px so the samples coincide",
 ]
 
 
 # --- splax ---------------------------------------------------------------------------------------
 
 
-def load_splax(src: str):
-    """Import splax from its source folder (the one holding ``splax/``).
+# (file, text, replacement): splax's Camera.project builds every Gaussian's 3D covariance with
+# jnp.diag(scale**2) of the [G, 3] scales, i.e. the diagonal of that matrix (the scales of
+# Gaussians 0, 1, 2) for all G; the batched diagonal is scale**2 itself. Same cost, and without
+# it splax would not draw the scene's Gaussians (its example sets one scale for all, hiding it).
+SPLAX_PATCHES = [("_camera.py", "jnp.diag(gaussians.scale**2),", "gaussians.scale**2,  # patched: batched diagonal")]
+
+
+def load_splax(src: str, patch: bool = True):
+    """Import splax from its source folder (the one holding ``splax/``), from a patched copy
+    (:data:`SPLAX_PATCHES`) unless ``patch`` is False.
 
     Returns:
-      (splax module, jaxlie module, {file: sha256} of splax's sources).
+      (splax module, jaxlie module, {file: sha256} of splax's original sources, patches applied).
     Raises:
-      UserError: the folder has no splax package, or jaxlie / jax_dataclasses are missing.
+      UserError: the folder has no splax package, a patch does not apply, or jaxlie /
+        jax_dataclasses are missing.
     """
     package = pathlib.Path(src).expanduser().resolve() / "splax"
     if not (package / "__init__.py").is_file():
@@ -104,14 +118,26 @@ def load_splax(src: str):
     except ImportError as exc:
         raise UserError(f"splax needs jaxlie and jax_dataclasses ({exc}); "
                         "install them with: pip install jaxlie jax_dataclasses") from exc
+    digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest()[:16] for p in sorted(package.glob("*.py"))}
+    applied = []
+    if patch:
+        copy = pathlib.Path(tempfile.mkdtemp(prefix="splax_patched_")) / "splax"
+        shutil.copytree(package, copy)
+        for name, text, replacement in SPLAX_PATCHES:
+            source = (copy / name).read_text(encoding="utf-8")
+            if source.count(text) != 1:
+                raise UserError(f"--splax-src {src}: splax/{name} does not contain {text!r} exactly once "
+                                "(another splax revision?); pass --no-splax-patch to run it unpatched")
+            (copy / name).write_text(source.replace(text, replacement), encoding="utf-8")
+            applied.append(dict(file=name, replaced=text, by=replacement))
+        package = copy
     sys.path.insert(0, str(package.parent))
     import splax
 
     if pathlib.Path(splax.__file__).resolve().parent != package:
         raise UserError(f"--splax-src {src}: another splax was imported ({splax.__file__}); "
                         "uninstall it or pass the folder it came from")
-    digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest()[:16] for p in sorted(package.glob("*.py"))}
-    return splax, jaxlie, digests
+    return splax, jaxlie, digests, applied
 
 
 def splax_project(splax, jaxlie, width: int, height: int):
@@ -275,61 +301,69 @@ def measure_cell(splax_mods, num: int, size: int, args) -> dict:
     for name, (render, row) in variants.items():
         compiled, compile_row = compile_renderer(render, arrays, weights)
         row = dict(variant=name, gaussians=num, width=size, height=size, **row, **compile_row)
-        peak = max(v or 0 for k, v in compile_row.items() if k.endswith("peak_bytes"))
-        if peak > args.max_bytes:
-            row["skipped"] = f"XLA peak estimate {peak / 1e9:.2f} GB > --max-bytes {args.max_bytes / 1e9:.2f} GB"
-        else:
-            programs[name] = compiled
+        programs[name] = {}
+        for stage, program in compiled.items():
+            peak = compile_row[f"{stage}_peak_bytes"] or 0
+            if peak > args.max_bytes:
+                row[f"{stage}_skipped"] = (f"XLA peak estimate {peak / 1e9:.2f} GB > --max-bytes "
+                                           f"{args.max_bytes / 1e9:.2f} GB")
+            else:
+                programs[name][stage] = program
         rows[name] = row
         print(json.dumps(row), file=sys.stderr, flush=True)
 
     for stage in ("forward", "forward_backward"):
-        medians = time_alternately({n: p[stage] for n, p in programs.items()}, arrays, args.repeats)
+        medians = time_alternately({n: p[stage] for n, p in programs.items() if stage in p}, arrays, args.repeats)
         for name, seconds in medians.items():
             rows[name][f"{stage}_median_s"] = seconds
 
-    images = {name: np.asarray(p["forward"](*arrays)) for name, p in programs.items()}
+    images = {name: np.asarray(p["forward"](*arrays)) for name, p in programs.items() if "forward" in p}
     pictures = _picture_checks(images, arrays, size, args, variants)
     summary = _summary(rows)
     return dict(gaussians=num, width=size, height=size, splax_tile_counts=per_tile,
                 rows=list(rows.values()), pictures=pictures, **summary)
 
 
+def splax_pixel_grid(K: jax.Array) -> jax.Array:
+    """[3, 3] intrinsics whose pixel samples are splax's: principal point moved by +1 px."""
+    return K.at[0, 2].add(1.0).at[1, 2].add(1.0)
+
+
 def _picture_checks(images: dict, arrays, size: int, args, variants) -> dict:
-    """PSNR (dB) between the images; ``matched`` = ours with eps2d 0 (splax has no low-pass)."""
+    """PSNR (dB) between the images. ``matched``: ours with splax's samples
+    (:func:`splax_pixel_grid`) and eps2d 0 (splax has no low-pass); ``oracle``: the float64
+    reference, with our samples and eps2d 0.3 for ours, splax's samples and eps2d 0 for splax."""
     ours_name = next(n for n in images if n.startswith("ours"))
-    tile = variants[ours_name][1]["tile_size"]
-    matched = np.asarray(jax.jit(our_renderer(size, size, tile, args.chunk_size,
-                                              variants[ours_name][1]["max_pairs"], eps2d=0.0))(*arrays))
-    checks = {f"{name}_vs_ours_eps2d0": psnr(img, matched) for name, img in images.items() if name.startswith("splax")}
-    checks[f"{ours_name}_vs_ours_eps2d0"] = psnr(images[ours_name], matched)
+    ours_row = variants[ours_name][1]
+    shifted = [*arrays[:6], splax_pixel_grid(arrays[6])]
+    matched = np.asarray(jax.jit(our_renderer(size, size, ours_row["tile_size"], args.chunk_size,
+                                              ours_row["max_pairs"], eps2d=0.0))(*shifted))
+    splax_images = {name: img for name, img in images.items() if name.startswith("splax")}
+    checks = {f"{name}_vs_ours_matched": psnr(img, matched) for name, img in splax_images.items()}
     if arrays[0].shape[0] <= args.oracle_max_gaussians:
-        host = [np.asarray(a) for a in arrays]
-        for eps2d in (0.3, 0.0):
-            oracle = rasterize_reference(*host, size, size, eps2d=eps2d)["image"]
-            mine = images[ours_name] if eps2d else matched
-            checks[f"ours_eps2d{eps2d:g}_vs_oracle_eps2d{eps2d:g}"] = psnr(mine, oracle)
-            if not eps2d:
-                checks.update({f"{name}_vs_oracle_eps2d0": psnr(img, oracle)
-                               for name, img in images.items() if name.startswith("splax")})
+        oracle = rasterize_reference(*[np.asarray(a) for a in arrays], size, size, eps2d=0.3)["image"]
+        checks[f"{ours_name}_vs_oracle"] = psnr(images[ours_name], oracle)
+        oracle = rasterize_reference(*[np.asarray(a) for a in shifted], size, size, eps2d=0.0)["image"]
+        checks["ours_matched_vs_oracle_matched"] = psnr(matched, oracle)
+        checks.update({f"{name}_vs_oracle_matched": psnr(img, oracle) for name, img in splax_images.items()})
     return checks
 
 
 def _summary(rows: dict) -> dict:
     """Ours' fastest variant against splax's fastest exact variant and its defaults."""
-    timed = {n: r for n, r in rows.items() if "forward_backward_median_s" in r}
-    ours = min((r for n, r in timed.items() if n.startswith("ours")), key=lambda r: r["forward_backward_median_s"])
-    exact = [r for n, r in timed.items() if n.startswith("splax_exact")]
-    out = dict(ours_best=ours["variant"])
-    if exact:
-        best = min(exact, key=lambda r: r["forward_backward_median_s"])
-        out.update(splax_best_exact=best["variant"],
-                   speedup_forward_backward_vs_splax_exact=best["forward_backward_median_s"] / ours["forward_backward_median_s"],
-                   speedup_forward_vs_splax_exact=best["forward_median_s"] / ours["forward_median_s"])
-    if "splax_default" in timed:
-        d = timed["splax_default"]
-        out.update(speedup_forward_backward_vs_splax_default=d["forward_backward_median_s"] / ours["forward_backward_median_s"],
-                   speedup_forward_vs_splax_default=d["forward_median_s"] / ours["forward_median_s"])
+    out = {}
+    for stage in ("forward", "forward_backward"):
+        key = f"{stage}_median_s"
+        timed = {n: r[key] for n, r in rows.items() if key in r}
+        ours = min((n for n in timed if n.startswith("ours")), key=timed.get)
+        exact = [n for n in timed if n.startswith("splax_exact")]
+        out[f"ours_best_{stage}"] = ours
+        if exact:
+            best = min(exact, key=timed.get)
+            out[f"splax_best_exact_{stage}"] = best
+            out[f"speedup_{stage}_vs_splax_exact"] = timed[best] / timed[ours]
+        if "splax_default" in timed:
+            out[f"speedup_{stage}_vs_splax_default"] = timed["splax_default"] / timed[ours]
     return out
 
 
@@ -347,6 +381,8 @@ def parse_args(argv=None):
                         help="skip timing a program whose XLA peak-memory estimate is larger")
     parser.add_argument("--oracle-max-gaussians", type=int, default=10_000,
                         help="float64 oracle PSNR on cells with at most this many Gaussians (0: never)")
+    parser.add_argument("--no-splax-patch", action="store_true",
+                        help="run splax as it is (its covariance then uses Gaussians 0-2's scales for all)")
     parser.add_argument("--quick", action="store_true", help="the issue's cell only: 50k Gaussians at 256²")
     parser.add_argument("--out", default=None, help="JSON file (default benchmarks/results/peers/peer_<date>.json)")
     args = parser.parse_args(argv)
@@ -363,7 +399,7 @@ def parse_args(argv=None):
 def main(argv=None):
     args = parse_args(argv)
     try:
-        splax, jaxlie, digests = load_splax(args.splax_src)
+        splax, jaxlie, digests, patches = load_splax(args.splax_src, patch=not args.no_splax_patch)
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
@@ -373,7 +409,7 @@ def main(argv=None):
         jax=jax.__version__, backend=jax.default_backend(), device=str(jax.devices()[0]),
         machine=platform.machine(), cpu_count=os.cpu_count(), python=platform.python_version(),
         splax=dict(source=str(pathlib.Path(args.splax_src).resolve()), sha256_16=digests, mode="jax",
-                   patches=[]),
+                   patches=patches),
         timing="median over alternating rounds (each program called once per round, rotating order)",
         loss="sum(image * w), w ~ N(0, 1) fixed (seed 1); gradient w.r.t. means, quats, scales, opacities, colors",
         conventions=CONVENTIONS, repeats=args.repeats, cells=cells,
