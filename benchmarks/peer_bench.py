@@ -98,6 +98,27 @@ CONVENTIONS = [
 SPLAX_PATCHES = [("_camera.py", "jnp.diag(gaussians.scale**2),", "gaussians.scale**2,  # patched: batched diagonal")]
 
 
+def patched_copy(package: pathlib.Path, patches, folder: pathlib.Path):
+    """Copy ``package`` into ``folder`` and apply ``patches`` [(file, text, replacement)] there.
+
+    Returns:
+      (the copy's package folder, [{"file", "replaced", "by"}] applied).
+    Raises:
+      UserError: a text does not occur exactly once in its file.
+    """
+    copy = folder / package.name
+    shutil.copytree(package, copy)
+    applied = []
+    for name, text, replacement in patches:
+        source = (copy / name).read_text(encoding="utf-8")
+        if source.count(text) != 1:
+            raise UserError(f"--splax-src: {package.name}/{name} does not contain {text!r} exactly once "
+                            "(another splax revision?); pass --no-splax-patch to run it unpatched")
+        (copy / name).write_text(source.replace(text, replacement), encoding="utf-8")
+        applied.append(dict(file=name, replaced=text, by=replacement))
+    return copy, applied
+
+
 def load_splax(src: str, patch: bool = True):
     """Import splax from its source folder (the one holding ``splax/``), from a patched copy
     (:data:`SPLAX_PATCHES`) unless ``patch`` is False.
@@ -121,16 +142,7 @@ def load_splax(src: str, patch: bool = True):
     digests = {p.name: hashlib.sha256(p.read_bytes()).hexdigest()[:16] for p in sorted(package.glob("*.py"))}
     applied = []
     if patch:
-        copy = pathlib.Path(tempfile.mkdtemp(prefix="splax_patched_")) / "splax"
-        shutil.copytree(package, copy)
-        for name, text, replacement in SPLAX_PATCHES:
-            source = (copy / name).read_text(encoding="utf-8")
-            if source.count(text) != 1:
-                raise UserError(f"--splax-src {src}: splax/{name} does not contain {text!r} exactly once "
-                                "(another splax revision?); pass --no-splax-patch to run it unpatched")
-            (copy / name).write_text(source.replace(text, replacement), encoding="utf-8")
-            applied.append(dict(file=name, replaced=text, by=replacement))
-        package = copy
+        package, applied = patched_copy(package, SPLAX_PATCHES, pathlib.Path(tempfile.mkdtemp(prefix="splax_")))
     sys.path.insert(0, str(package.parent))
     import splax
 
