@@ -382,6 +382,7 @@ def _summary(rows: dict) -> dict:
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--splax-src", required=True, help="splax's src folder (the one holding splax/)")
+    parser.add_argument("--splax-revision", default=None, help="splax's commit, recorded in the JSON")
     parser.add_argument("--gaussians", type=int, nargs="+", default=[10_000, 50_000, 100_000])
     parser.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     parser.add_argument("--our-tiles", type=int, nargs="+", default=[8], help="our tile sizes (config default 8)")
@@ -415,13 +416,15 @@ def main(argv=None):
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         sys.exit(2)
+    load_before = os.getloadavg()
     cells = [measure_cell((splax, jaxlie), num, size, args) for num in args.gaussians for size in args.sizes]
     report = dict(
         benchmark="peer_splax", date=datetime.date.today().isoformat(),
         jax=jax.__version__, backend=jax.default_backend(), device=str(jax.devices()[0]),
         machine=platform.machine(), cpu_count=os.cpu_count(), python=platform.python_version(),
-        splax=dict(source=str(pathlib.Path(args.splax_src).resolve()), sha256_16=digests, mode="jax",
-                   patches=patches),
+        load_average_1min_before_after=[load_before[0], os.getloadavg()[0]],
+        splax=dict(source=str(pathlib.Path(args.splax_src).resolve()), revision=args.splax_revision,
+                   sha256_16=digests, mode="jax", patches=patches),
         timing="median over alternating rounds (each program called once per round, rotating order)",
         loss="sum(image * w), w ~ N(0, 1) fixed (seed 1); gradient w.r.t. means, quats, scales, opacities, colors",
         conventions=CONVENTIONS, repeats=args.repeats, cells=cells,
