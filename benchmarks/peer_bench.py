@@ -11,8 +11,9 @@ splax runs its pure-JAX path (``rasterize(..., mode="jax")``) driven as its own 
 (``Gaussian3D.from_props`` + ``Camera.from_K_and_viewmat`` → ``Camera.project`` →
 ``rasterize``), imported from a source folder (``--splax-src``; it needs ``jaxlie`` and
 ``jax_dataclasses``), from a copy with one bug fixed (:data:`SPLAX_PATCHES`: its 3D covariance
-used the scales of Gaussians 0–2 for every Gaussian; ``--no-splax-patch`` runs it as is). It keeps only the first ``max_intersects`` Gaussians (depth order) of a
-tile, so it runs in two ways:
+used the scales of Gaussians 0–2 for every Gaussian; ``--no-splax-patch`` runs it as is).
+It keeps only the first ``max_intersects`` Gaussians (depth order) of a tile, so it runs in
+two ways:
 
 - ``splax_default``: its defaults, tile 40 and ``max_intersects`` 100 (drops Gaussians);
 - ``splax_exact_t<N>``: tile N with ``max_intersects`` = the largest number of Gaussians any
@@ -27,8 +28,9 @@ can be matched (``eps2d`` 0: splax has no 0.3 low-pass), and, for cells with at 
 (``cusgs_jax.testing.splat_reference``). The conventions that still differ are listed in the
 JSON (``conventions``).
 
-    python benchmarks/peer_bench.py --splax-src /work/splax_src/src --quick
-    python benchmarks/peer_bench.py --splax-src /work/splax_src/src --gaussians 10000 50000 100000 --sizes 128 256
+    git clone https://github.com/chungmin99/splax && pip install jaxlie jax_dataclasses
+    python benchmarks/peer_bench.py --splax-src splax/src --quick
+    python benchmarks/peer_bench.py --splax-src splax/src --splax-tiles 8 16 --gaussians 10000 50000 100000 --sizes 128 256
 """
 
 from __future__ import annotations
