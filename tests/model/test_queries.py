@@ -108,8 +108,15 @@ def test_refilled_slots_get_fresh_queries_and_moments(feature_scene, per_gaussia
     for i in range(2):
         state, _ = step(state, feature_scene.batch(seed=i))
     capacity = state.anchors.capacity
+    # three slots whose table moments are non-zero (their Gaussians reached a sampled feature pixel), so the
+    # restart below has something to clear
+    moved = [np.any(np.asarray(x) != 0, axis=tuple(range(1, np.ndim(x))))
+             for path, x in jax.tree_util.tree_leaves_with_path(state.opt_state)
+             if "query_table" in jax.tree_util.keystr(path)]
+    candidates = np.flatnonzero(np.logical_and.reduce(moved))
+    assert len(candidates) >= 3
     rows = np.zeros(capacity, bool)
-    rows[[1, 4, capacity - 1]] = True
+    rows[[candidates[0], candidates[1], candidates[-1]]] = True
     slots = np.flatnonzero(rows)
     table = state.anchors.params.query_table
     anchors = place_anchors(state.anchors, slots, np.zeros((3, 3)), np.zeros((3, 8)), np.zeros(3),
