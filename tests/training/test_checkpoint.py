@@ -276,7 +276,6 @@ def _fail_tmp_writes(monkeypatch, code):
     (errno.EACCES, "cannot write checkpoint 2 into {dir} (Permission denied): set train.checkpoint_dir (or "
                    "hydra.run.dir) to a writable folder; the last complete checkpoint is 1"),
 ])
-@pytest.mark.filterwarnings("error::pytest.PytestUnraisableExceptionWarning")
 def test_failed_save_removes_the_partial_checkpoint(fresh, tmp_path, monkeypatch, caplog, code, expected):
     template, _ = fresh
     folder = tmp_path / "ckpt"
@@ -284,10 +283,18 @@ def test_failed_save_removes_the_partial_checkpoint(fresh, tmp_path, monkeypatch
     ckpt = Checkpointer(folder)
     ckpt.save(1, states[1], {"step": 1})
     _fail_tmp_writes(monkeypatch, code)
-    # as cusgs-train does: without quiet_orbax the same error arrives, followed by unraisable "Event loop is closed"
-    with quiet_orbax(), caplog.at_level(logging.WARNING), pytest.raises(CheckpointError) as info:
-        ckpt.save(2, states[2], {"step": 2})
-        time.sleep(0.2)  # inside the block: orbax's abandoned writes report into closed loops meanwhile
+    # as cusgs-train does: without quiet_orbax the same error arrives, followed by unraisable "Event loop is closed";
+    # what quiet_orbax lets through during the failed save is recorded (orbax's later reads, which a loaded
+    # machine's garbage collector may report at any time, are not this test's business)
+    passed_through, outer = [], sys.unraisablehook
+    sys.unraisablehook = passed_through.append
+    try:
+        with quiet_orbax(), caplog.at_level(logging.WARNING), pytest.raises(CheckpointError) as info:
+            ckpt.save(2, states[2], {"step": 2})
+            time.sleep(0.2)  # inside the block: orbax's abandoned writes report into closed loops meanwhile
+    finally:
+        sys.unraisablehook = outer
+    assert not passed_through, [str(u.exc_value) for u in passed_through]
     assert str(info.value).startswith(expected.format(dir=folder)), str(info.value)
     assert not [r for r in caplog.records if r.name in ("absl", "asyncio") and r.levelno >= logging.WARNING]
     assert sorted(p.name for p in folder.iterdir()) == ["1"]
