@@ -38,7 +38,7 @@ PROG = "cusgs-export"
 
 DEFAULT_REFINE_EPOCHS = 30
 """Passes over the training views when ``--refine`` is not given: K = 30 × the scene's training views
-(:func:`default_refine_steps`). Chosen on two scenes (benchmarks/results/refine/, README "Export"): a
+(:func:`default_refine_steps`). Chosen on two scenes (benchmarks/results/refine/, docs/export.md): a
 fixed K = 1000 was 30 epochs of the 26-view demo room but 17 of the 60-view object scene, which
 stayed 0.65 dB below its run; every view needs about as many updates, whatever their number."""
 

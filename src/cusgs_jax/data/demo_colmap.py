@@ -131,7 +131,7 @@ def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, f
     the COLMAP model into ``sparse_dir`` (the SfM stand-in of every demo scene).
 
     Points and observations come from the pinhole camera ``K`` and its ``depths`` / ``face_maps``
-    [V][H, W]. With ``lens = (COLMAP model name, params)`` the model's camera is that lens instead
+    [V, H, W]. With ``lens = (COLMAP model name, params)`` the model's camera is that lens instead
     and every keypoint is the lens's projection of its point (``img_from_cam``; it may then lie
     just outside the image, where the lens sees less than the pinhole): the same points and
     tracks, seen through another camera (:mod:`cusgs_jax.data.demo_lens`).
