@@ -9,10 +9,13 @@ naming the option and the fix, or None. The caller prints it and exits 2.
 
 from __future__ import annotations
 
+import importlib
 import os
 import pathlib
 
+from cusgs_jax.config import compose_config, compose_node
 from cusgs_jax.errors import UserError
+from cusgs_jax.sweep.pareto import check_sweeper_settings
 
 _INFO_FLAGS = ("help", "hydra_help", "cfg", "info", "shell_completion")
 
@@ -101,16 +104,13 @@ def _check_sweeper(fixed: list[str], arguments: list[str] = ()) -> None:
     line ``arguments``) and every end / choice of ``params`` must compose."""
     from omegaconf import OmegaConf
 
-    from cusgs_jax.config import compose_node
-
     sweeper = compose_node(fixed, return_hydra_config=True).hydra.sweeper
     if not str(sweeper.get("_target_", "")).endswith("ParetoSweeper"):
         return
     try:
-        import optuna  # noqa: F401
+        importlib.import_module("optuna")  # installed and importable
     except ImportError:
         raise UserError("hydra/sweeper=pareto needs Optuna: pip install -e \".[optuna]\"") from None
-    from cusgs_jax.sweep.pareto import check_sweeper_settings
 
     problem = check_sweeper_settings(OmegaConf.to_container(sweeper, resolve=False), arguments)
     if problem:
@@ -123,8 +123,6 @@ def _check_sweeper(fixed: list[str], arguments: list[str] = ()) -> None:
 
 def _compose(overrides: list[str]) -> None:
     from hydra.errors import ConfigCompositionException, MissingConfigException
-
-    from cusgs_jax.config import compose_config
 
     try:
         compose_config(overrides)

@@ -19,6 +19,7 @@ import pathlib
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
+from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
@@ -76,8 +77,8 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     import numpy as np
     from tqdm import tqdm
 
+    # lazy: these import JAX; keeps cusgs-render-ply --help free of it
     from cusgs_jax.data.run_inputs import require_ssim_size
-    from cusgs_jax.data.layouts import load_any_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact
 
@@ -122,14 +123,14 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
 
 def _recentred(model, scene):
     """The model moved by −c (c = mean camera centre, float64): :func:`cusgs_jax.io.recentre_splats`."""
-    from cusgs_jax.io import recentre_splats
+    from cusgs_jax.io import recentre_splats  # lazy: cusgs_jax.io imports JAX; keeps --help free of it
 
     return recentre_splats(model, scene.camera_centers.mean(axis=0))
 
 
 def _camera(scene, view: int, shift):
     """The scene's camera ``view`` in the frame moved by −``shift``: :func:`cusgs_jax.io.scene_camera`."""
-    from cusgs_jax.io import scene_camera
+    from cusgs_jax.io import scene_camera  # lazy: cusgs_jax.io imports JAX; keeps --help free of it
 
     return scene_camera(scene, view, shift)
 

@@ -59,12 +59,17 @@ from cusgs_jax.data.run_inputs import feature_targets, load_data, load_feature_t
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies
+from cusgs_jax.eval.features import evaluate_features
+from cusgs_jax.eval.lpips import lpips_metrics
+from cusgs_jax.eval.plots import plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import usable_features
 from cusgs_jax.io.load_run import BANKS_FILE
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
+from cusgs_jax.training.distributed import require_single_process
+from cusgs_jax.training.parallel import resolve_devices
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
@@ -120,9 +125,6 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
     (:func:`~cusgs_jax.densify.factory.make_strategies`); a resume must pass the same ones.
     """
-    from cusgs_jax.training.distributed import require_single_process
-    from cusgs_jax.training.parallel import resolve_devices
-
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
@@ -426,8 +428,6 @@ def _strategy_results(session: Session) -> dict:
 
 def _devices(session: Session) -> int:
     """Devices the step's views are sharded over (1 for a single-view step)."""
-    from cusgs_jax.training.parallel import resolve_devices
-
     return resolve_devices(session.cfg.train.batch_size, session.cfg.train.devices)
 
 
@@ -482,8 +482,6 @@ def _evaluate(session: Session, anchors, **kwargs) -> dict:
 
 def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
     """Feature errors of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
-    from cusgs_jax.eval.features import evaluate_features
-
     return evaluate_features(session.feature_render, anchors, session.state.nets, session.scene, session.test_idx,
                              session.banks, session.feature_sets, **kwargs)
 
@@ -531,9 +529,6 @@ def _cameras(session: Session, idx) -> dict:
 
 def finalise(session: Session) -> dict:
     """Final held-out evaluation, ``eval.json``, plots; returns the ``eval.json`` dict."""
-    from cusgs_jax.eval.lpips import lpips_metrics
-    from cusgs_jax.eval.plots import plot_error_vs_time
-
     cfg, out, state = session.cfg, session.out, session.state
     save = cfg.eval.save_renders
     lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve

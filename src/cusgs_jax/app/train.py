@@ -34,6 +34,7 @@ from omegaconf import DictConfig
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.config import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
+from cusgs_jax.sweep.pareto import result_objectives
 
 log = logging.getLogger("cusgs_jax")
 register_configs()  # config.Config is the schema and the defaults of conf/config.yaml
@@ -72,7 +73,7 @@ def _objectives(hydra_cfg) -> list[str]:
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
-    from cusgs_jax.app.run import run
+    from cusgs_jax.app.run import run  # lazy: app.run imports JAX; keeps cusgs-train --help free of it
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
@@ -97,8 +98,6 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
         return math.nan
     objectives = _objectives(hydra_cfg)
     if objectives:  # hydra/sweeper=pareto (cusgs_jax/sweep/pareto.py)
-        from cusgs_jax.sweep.pareto import result_objectives
-
         return result_objectives(result, objectives)
     return float(result["psnr"])
 

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least
 from cusgs_jax.errors import UserError
+from cusgs_jax.extract.pretrained import clip_text_encoder
 
 __all__ = ["main", "open_viewer"]
 
@@ -58,6 +59,7 @@ def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int
         raise UserError("the viewer needs viser: pip install -e '.[viewer]'")
     if jpeg_quality is not None and not 1 <= jpeg_quality <= 100:
         raise UserError(f"--jpeg-quality {jpeg_quality}: must be 1-100")
+    # lazy: these import JAX (and orbax); keeps cusgs-view --help free of them
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.view.render import from_trained
     from cusgs_jax.view.server import NO_CLIP_REASON, Viewer
@@ -65,8 +67,6 @@ def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int
     model = from_trained(load_trained(run_dir, step=step))
     encoder, reason = None, NO_CLIP_REASON
     if clip is not None or clip_net is not None:
-        from cusgs_jax.extract.pretrained import clip_text_encoder
-
         encoder = clip_text_encoder(clip, arch=clip_arch, net=clip_net)
     try:
         viewer = Viewer(model, host=host, port=port, height=height, jpeg_quality=jpeg_quality, text_encoder=encoder,
@@ -86,7 +86,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     ap = _parser()
     args = ap.parse_args(argv)
-    from cusgs_jax.training.checkpoint import quiet_orbax
+    from cusgs_jax.training.checkpoint import quiet_orbax  # lazy: imports JAX and orbax; keeps --help free of them
 
     try:
         with quiet_orbax():  # orbax's repeats after a damaged checkpoint: dropped

@@ -27,8 +27,11 @@ import os
 import pathlib
 
 from cusgs_jax.config import DATASET_FORMATS
-from cusgs_jax.data.colmap import SceneData
+from cusgs_jax.data.blender import load_blender_scene
+from cusgs_jax.data.colmap import SceneData, load_scene
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.images import check_background
+from cusgs_jax.data.nerfstudio import load_nerfstudio_scene, split_name
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS
 
 __all__ = ["DATASET_FORMATS", "detect_format", "load_any_scene", "default_background"]
@@ -105,18 +108,11 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
         _folder(path)
     bg = default_background(fmt) if background is None else background
     if fmt == "blender":
-        from cusgs_jax.data.blender import load_blender_scene
-
         return load_blender_scene(path, downscale=downscale, background=bg, num_random_points=num_random_points,
                                   seed=seed)
     if fmt == "nerfstudio":
-        from cusgs_jax.data.nerfstudio import load_nerfstudio_scene
-
         return load_nerfstudio_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg,
                                      num_random_points=num_random_points, seed=seed)
-    from cusgs_jax.data.colmap import load_scene
-    from cusgs_jax.data.images import check_background
-    from cusgs_jax.data.nerfstudio import split_name
 
     scene = load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg)
     return dataclasses.replace(scene, dataset_format="colmap", split=split_name(holdout_every),

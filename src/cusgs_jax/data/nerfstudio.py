@@ -56,6 +56,7 @@ from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, f
 from cusgs_jax.data.images import check_background, scaled_size
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
+from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images
 
 __all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
            "UNSUPPORTED_MODELS"]
@@ -175,8 +176,6 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> li
     import tempfile
 
     import pycolmap
-
-    from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images
 
     ids, cameras, views = {}, {}, []
     for name, image, camera in frames:

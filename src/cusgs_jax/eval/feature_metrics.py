@@ -27,6 +27,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from cusgs_jax.data.features import resize_features
+
 __all__ = [
     "COS_EPS",
     "baseline_errors",
@@ -176,8 +178,6 @@ def resize_to(maps, size: tuple[int, int]) -> np.ndarray:
     :func:`cusgs_jax.data.features.resize_features`, which takes ``(w, h)`` and
     does the work (exact box filter). The same size returns the input itself.
     """
-    from cusgs_jax.data.features import resize_features
-
     arr = np.asarray(maps)
     h, w = (int(s) for s in size)
     if arr.ndim in (3, 4) and arr.shape[-3:-1] == (h, w):

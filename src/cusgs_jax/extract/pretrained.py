@@ -11,8 +11,8 @@ dinov2   model width  DINOv2 last-layer patch tokens (after the final norm) via 
 
 Both need LOCAL weights (``weights=PATH``; nothing is ever downloaded) and the ``pretrained`` extra
 (``pip install -e '.[pretrained]'``: torch, open_clip_torch, timm). Those packages are imported only
-when an extractor is built, never when this module is imported; :mod:`cusgs_jax.extract.scene`
-itself imports this module only when a clip or dinov2 extraction is asked for.
+when an extractor is built, never when this module is imported (:mod:`cusgs_jax.extract.scene`
+imports it at module level).
 
 Weights:
 

@@ -21,7 +21,7 @@ dinov2    model width            optional: DINOv2 patch tokens via timm (local w
 The first five (:data:`BUILT_IN_EXTRACTORS`) are deterministic and offline (the first four
 weight-free; vgg16 needs the ``lpips`` extra's weight file and imports JAX, only when asked for)
 and are extracted automatically when a run needs them; clip and dinov2 live in
-:mod:`cusgs_jax.extract.pretrained`, imported only when asked for.
+:mod:`cusgs_jax.extract.pretrained` (torch is imported only when one is asked for).
 
 Resolution: by default the maps have the loaded image size (``downscale``); with
 ``resolution=(W, H)`` the image is first resized to W×H (anti-aliased; object ids by nearest
@@ -64,6 +64,7 @@ from cusgs_jax.extract.descriptors import (
     hog_features,
     semantic_features,
 )
+from cusgs_jax.extract.pretrained import PRETRAINED
 
 __all__ = [
     "BUILT_IN_EXTRACTORS",
@@ -142,15 +143,13 @@ class _Semantic:
 
 def _vgg16(model: str, options: dict):
     """The vgg16 extractor of :mod:`cusgs_jax.extract.vgg` (JAX is imported on first use)."""
-    from cusgs_jax.extract.vgg import Vgg16
+    from cusgs_jax.extract.vgg import Vgg16  # lazy: vgg imports JAX; keeps cusgs-extract --help free of it
 
     return Vgg16(model, options)
 
 
 def _pretrained(model: str, options: dict):
     """An extractor of :mod:`cusgs_jax.extract.pretrained` (torch is imported on first use)."""
-    from cusgs_jax.extract.pretrained import PRETRAINED
-
     return PRETRAINED[model](model, options)
 
 

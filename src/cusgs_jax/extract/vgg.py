@@ -69,6 +69,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax import convnets
+from cusgs_jax.data.features import FeatureError
 from cusgs_jax.extract.base import View, fit_aspect, pop_options, resized_image
 
 __all__ = ["LAYERS", "Vgg16", "default_size", "vgg16_features"]
@@ -126,8 +127,6 @@ class Vgg16:
     def __init__(self, model: str, options: dict):
         self.opts = pop_options(model, options, {"layer": "relu3_3"})
         if self.opts["layer"] not in LAYERS:
-            from cusgs_jax.data.features import FeatureError
-
             raise FeatureError(f"vgg16 option layer={self.opts['layer']!r} is not a VGG16 tap: use one of "
                                f"{', '.join(LAYERS)}")
         convnets.weights_file("vgg", needed_by=_NEEDED_BY)  # a missing extra fails here, before any work

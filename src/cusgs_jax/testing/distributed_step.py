@@ -10,21 +10,20 @@ from __future__ import annotations
 import json
 import sys
 
+import jax
+import numpy as np
+
+from cusgs_jax.config import Config
+from cusgs_jax.densify.factory import make_strategies
+from cusgs_jax.testing.scenes import sfm_points
+from cusgs_jax.training.distributed import initialize, local_value
+from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.step import make_train_step
+from cusgs_jax.types import Camera
+
 
 def run_steps(steps: int = 2) -> dict:
     """``steps`` B = 2 steps of the tiny test scene on the global view mesh: {"losses", "param_sums"}."""
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from cusgs_jax.config import Config
-    from cusgs_jax.densify.factory import make_strategies
-    from cusgs_jax.testing.scenes import sfm_points
-    from cusgs_jax.training.distributed import local_value
-    from cusgs_jax.training.state import init_train_state
-    from cusgs_jax.training.step import make_train_step
-    from cusgs_jax.types import Camera
-
     width, height = 32, 24
     cfg = Config().replace(train=dict(iterations=50, batch_size=2, devices="2"),
                            model=dict(voxel_size=0.25, n_offsets=4, latent_dim=8, hidden=16, appearance_dim=8),
@@ -44,14 +43,11 @@ def run_steps(steps: int = 2) -> dict:
         state, metrics = step(state, batch)
         losses.append(float(local_value(metrics["loss"])))
     sums = [float(np.sum(np.asarray(local_value(x), np.float64))) for x in jax.tree_util.tree_leaves(state.trainable)]
-    del jnp
     return dict(losses=losses, param_sums=sums, devices=int(step.mesh.size), processes=jax.process_count())
 
 
 def main() -> None:
     port, process_id, out = sys.argv[1], int(sys.argv[2]), sys.argv[3]
-    from cusgs_jax.training.distributed import initialize
-
     initialize(f"localhost:{port}", num_processes=2, process_id=process_id)
     result = run_steps()
     if process_id == 0:

@@ -16,6 +16,8 @@ from cusgs_jax.model.decode import (Gaussians, ViewInputs, VisibleSlots, decode_
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import RenderOutput, rasterize
+from cusgs_jax.splat.project import project_gaussians
+from cusgs_jax.splat.tiles import TileGrid, tile_bounds
 from cusgs_jax.training.capacity import Capacities, ExactRender, max_pairs
 from cusgs_jax.types import Camera
 
@@ -103,9 +105,6 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     Returns:
       {"visible_anchors", "active_gaussians", "pairs"}: [] int32 each.
     """
-    from cusgs_jax.splat.project import project_gaussians
-    from cusgs_jax.splat.tiles import TileGrid, tile_bounds
-
     splat = cfg.splat
     g, view = decode_view(nets, anchors, camera, appearance_index, cfg.model, anchors.capacity)
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,

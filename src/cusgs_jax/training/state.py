@@ -15,6 +15,7 @@ import numpy as np
 import optax
 
 from cusgs_jax.config import Config, require
+from cusgs_jax.data.random_points import random_voxel_size
 from cusgs_jax.densify.base import Strategy
 from cusgs_jax.model.anchors import AnchorState, auto_voxel_size, init_anchors
 from cusgs_jax.model.decode import init_decoder
@@ -36,8 +37,6 @@ def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | 
     if cfg.model.voxel_size is not None:
         return cfg
     if random_cameras is not None:
-        from cusgs_jax.data.random_points import random_voxel_size
-
         size = random_voxel_size(*random_cameras)
         log.info("model.voxel_size=auto: %.5g (half a pixel's footprint at the distance the cameras look at; "
                  "the %d initial points are random)", size, len(points))

@@ -31,6 +31,7 @@ from cusgs_jax.model.anchors import is_per_anchor, map_rows
 from cusgs_jax.model.decode import gather_visible, to_slots, view_inputs, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training import parallel
 from cusgs_jax.training.render import decode_view_inputs, render_gaussians, work_metrics
 from cusgs_jax.training.state import TrainState
 
@@ -143,8 +144,6 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
     is the same code for both.
     """
     from jax.sharding import PartitionSpec as P
-
-    from cusgs_jax.training import parallel
 
     batch_size = cfg.train.batch_size
     sparse = cfg.optim.sparse and batch_size == 1
@@ -291,8 +290,6 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
     Inputs are placed on the mesh before the jitted call (state replicated, views split), so
     arrays coming back from host-side growing and pruning never change the compiled step.
     """
-    from cusgs_jax.training import parallel
-
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
     mesh = parallel.view_mesh(cfg)
     jitted = jax.jit(_step_body(cfg, tx, strategies, capacities, mesh), donate_argnums=0)

@@ -9,7 +9,10 @@ image centre, so the render fills the canvas exactly as three.js draws it.
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
+
+from cusgs_jax.types import Camera
 
 __all__ = ["render_size", "intrinsics", "world_to_camera", "from_viser", "to_viser", "scene_up", "look_at_point"]
 
@@ -64,10 +67,6 @@ def world_to_camera(wxyz, position) -> np.ndarray:
 
 def from_viser(wxyz, position, fov_y: float, width: int, height: int):
     """Our :class:`~cusgs_jax.types.Camera` of a viser camera rendered at W×H."""
-    import jax.numpy as jnp
-
-    from cusgs_jax.types import Camera
-
     return Camera(jnp.asarray(intrinsics(fov_y, width, height)), jnp.asarray(world_to_camera(wxyz, position)),
                   int(width), int(height))
 

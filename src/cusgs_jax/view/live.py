@@ -17,13 +17,10 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable, Iterator
-from typing import TYPE_CHECKING
 
 from cusgs_jax.config import TrainOptions
 from cusgs_jax.view.render import ViewModel
-
-if TYPE_CHECKING:  # annotation only: the server needs viser (the viewer extra), imported when the view is on
-    from cusgs_jax.view.server import Viewer
+from cusgs_jax.view.server import Viewer  # viser (the viewer extra) is imported only when a Viewer starts
 
 __all__ = ["LiveView", "live_view"]
 
@@ -80,8 +77,6 @@ def live_view(opts: TrainOptions, snapshot: Snapshot) -> Iterator[LiveView | Non
     if not opts.viewer:
         yield None
         return
-    from cusgs_jax.view.server import Viewer  # viser (the viewer extra) is needed only with the view on
-
     viewer = Viewer(snapshot(), port=opts.viewer_port)
     log.info("live viewer at %s (at most %.0f%% of the training time goes to it)", viewer.url,
              100 * opts.viewer_budget)

@@ -20,19 +20,22 @@ from __future__ import annotations
 import dataclasses
 from typing import TYPE_CHECKING, Any
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.extract.optional import usable_features
 from cusgs_jax.config import Config
+from cusgs_jax.extract.optional import usable_features
+from cusgs_jax.training.capacity import ExactRender
+from cusgs_jax.training.render import render_model, view_work_probe
+from cusgs_jax.view.camera import scene_up
+from cusgs_jax.view.modes import Frame
 
-if TYPE_CHECKING:  # annotations only: these import JAX, which this module leaves to its functions
-    import jax
-
+if TYPE_CHECKING:  # annotations only
     from cusgs_jax.data.colmap import SceneData
     from cusgs_jax.io.load_run import TrainedModel
     from cusgs_jax.model.anchors import AnchorState
     from cusgs_jax.types import Camera
-    from cusgs_jax.view.modes import Frame
 
 __all__ = ["ViewCamera", "ViewModel", "ViewRenderer", "from_trained", "mean_appearance_nets", "scene_cameras",
            "view_model"]
@@ -74,8 +77,6 @@ def mean_appearance_nets(nets: dict[str, Any]) -> dict[str, Any]:
     """``nets`` with the appearance table [V, E] replaced by its mean [1, E] (render with index 0)."""
     if "appearance" not in nets:
         return nets
-    import jax.numpy as jnp
-
     return {**nets, "appearance": jnp.mean(nets["appearance"], axis=0, keepdims=True)}
 
 
@@ -104,10 +105,6 @@ def view_model(cfg: Config, anchors: AnchorState, nets: dict[str, Any], banks: d
     """The :class:`ViewModel` of a model's arrays: ``anchors`` compacted
     (:func:`~cusgs_jax.model.anchors.compact`), ``nets`` with the per-view appearance table [V, E] (replaced
     here by its mean), ``banks`` {model: [M, D]} (NumPy or jax) or None, ``cameras`` to jump to."""
-    import jax.numpy as jnp
-
-    from cusgs_jax.view.camera import scene_up
-
     alive = np.asarray(anchors.alive)
     centers = np.asarray(anchors.centers)[alive]
     center = centers.mean(axis=0) if len(centers) else np.zeros(3)
@@ -134,10 +131,6 @@ class ViewRenderer:
     """Renders a :class:`ViewModel` at a camera (jitted once per image size; pair capacity grown as needed)."""
 
     def __init__(self, cfg: Config):
-        from cusgs_jax.training.capacity import ExactRender
-
-        from cusgs_jax.training.render import view_work_probe
-
         probe = view_work_probe(cfg)
         # The viewer's render takes (anchors, nets, camera, banks) and always the mean appearance, index 0.
         self._render = ExactRender(lambda capacities: _build(cfg, capacities), None, cfg.model.n_offsets,
@@ -145,8 +138,6 @@ class ViewRenderer:
 
     def render(self, model: ViewModel, camera: Camera, *, features: bool = False) -> Frame:
         """:class:`~cusgs_jax.view.modes.Frame` of ``model`` at ``camera``; ``features``: also every feature model's."""
-        from cusgs_jax.view.modes import Frame
-
         banks = model.banks if features and model.feature_models else None
         rgb, depth, alpha, feats = self._render(model.anchors, model.nets, camera, banks)
         return Frame(rgb=np.asarray(rgb), depth=np.asarray(depth), alpha=np.asarray(alpha),
@@ -157,11 +148,6 @@ def _build(cfg: Config, capacities):
     """``build(capacities)`` for :class:`~cusgs_jax.training.capacity.ExactRender`: ``render(anchors, nets, camera,
     banks or None) -> (rgb [H,W,3], depth [H,W], alpha [H,W], {model: [H,W,D]}, work metrics)`` with the
     mean appearance embedding (index 0 of :func:`mean_appearance_nets`)."""
-    import jax
-    import jax.numpy as jnp
-
-    from cusgs_jax.training.render import render_model
-
     @jax.jit
     def render(anchors, nets, camera, banks):
         out, feats, work = render_model(anchors, nets, camera, jnp.int32(0), cfg, capacities, banks)
