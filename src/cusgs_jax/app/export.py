@@ -30,6 +30,8 @@ import pathlib
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least, number_in
+from cusgs_jax.data.demo_lens import lens_demo_folder
+from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "export_run", "output_format", "default_refine_steps", "DEFAULT_REFINE_EPOCHS", "FORMATS"]
@@ -148,6 +150,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     import numpy as np
     from tqdm import tqdm
 
+    # lazy (these import JAX): keeps cusgs-export --help free of JAX
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.io import write_ply
     from cusgs_jax.io.spz import require_gsply, write_spz
@@ -222,7 +225,6 @@ def _run_scene(model) -> tuple[pathlib.Path | None, str]:
         if path.is_dir():
             return path, "data.path"
         return None, f"the run's scene data.path={data.path} is not a folder here"
-    from cusgs_jax.data.demo_lens import lens_demo_folder
 
     path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
                             width=data.demo.width, height=data.demo.height)  # cusgs-train cached it there; nothing is generated
@@ -240,8 +242,7 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     import numpy as np
     from tqdm import tqdm
 
-    from cusgs_jax.data.layouts import load_any_scene
-    from cusgs_jax.io import heldout_psnr, refine_splats
+    from cusgs_jax.io import heldout_psnr, refine_splats  # lazy (JAX): keeps cusgs-export --help free of JAX
 
     log = logging.getLogger("cusgs_jax")
     if refine == 0:
@@ -334,7 +335,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap = _parser()
     args = ap.parse_args(argv)
     try:
-        from cusgs_jax.training.checkpoint import quiet_orbax
+        from cusgs_jax.training.checkpoint import quiet_orbax  # lazy (JAX, orbax): keeps --help free of JAX
 
         with _WarningLines(), quiet_orbax():  # orbax's repeats after a damaged checkpoint: dropped
             result = export_run(args.run_dir, args.out, sh_degree=args.sh_degree, directions=args.directions,

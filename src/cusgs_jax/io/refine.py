@@ -44,6 +44,8 @@ import optax
 
 from cusgs_jax import losses
 from cusgs_jax.config import SplatConfig
+from cusgs_jax.data.normalize import camera_centers, camera_extent
+from cusgs_jax.eval import metrics
 from cusgs_jax.io.ply import SplatModel
 from cusgs_jax.io.render import recentre_splats, render_splats, render_splats_exact, scene_camera
 from cusgs_jax.training.capacity import grown_pairs_per_gaussian, max_pairs
@@ -239,7 +241,6 @@ def refine_splats(model: SplatModel, scene, steps: int, *, background=None, sh_d
     Raises:
       ValueError: negative ``steps`` or a scene without training views.
     """
-    from cusgs_jax.data.normalize import camera_centers, camera_extent
 
     steps = int(steps)
     if steps < 0:
@@ -298,8 +299,6 @@ def heldout_psnr(model: SplatModel, scene, indices=None, *, background=None, sh_
     Renders as ``cusgs-render-ply`` does (recentred, :func:`~cusgs_jax.io.render_splats_exact`,
     clipped to [0, 1], :func:`cusgs_jax.eval.metrics.psnr`). NaN when there is no view.
     """
-    from cusgs_jax.eval import metrics
-
     indices = np.asarray(scene.test_indices if indices is None else indices)
     if not len(indices):
         return float("nan")

@@ -80,7 +80,8 @@ from cusgs_jax.config import DecoderConfig
 from cusgs_jax.model.anchors import AnchorParams
 from cusgs_jax.model.decode import decode_gaussians, frustum_mask
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
-from cusgs_jax.splat.sh import sh_basis, sh_degree
+from cusgs_jax.io.ply import SplatModel
+from cusgs_jax.splat.sh import MAX_SH_DEGREE, num_sh_coeffs, sh_basis, sh_degree
 
 __all__ = ["BakeSummary", "BakedGaussians", "bake_anchors", "bake_splats", "fibonacci_sphere", "fit_sh",
            "matrix_to_quat", "mean_covariance", "mean_shape", "sh_fit_matrix", "to_colmap_frame", "rotate_sh"]
@@ -373,8 +374,6 @@ def bake_splats(anchors, nets: dict, cfg: DecoderConfig, *, sh_degree: int = 3, 
       (SplatModel with opacity logits clipped to (1e-6, 1 − 1e-6), log scales and
       unit wxyz quaternions, all float32; :class:`BakeSummary`).
     """
-    from cusgs_jax.io.ply import SplatModel
-    from cusgs_jax.splat.sh import MAX_SH_DEGREE, num_sh_coeffs
 
     if sh_degree not in range(MAX_SH_DEGREE + 1):
         raise ValueError(f"sh_degree must be 0..{MAX_SH_DEGREE}, got {sh_degree}")
