@@ -30,6 +30,19 @@ from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.io import heldout_psnr, read_ply, refine_splats
 
 
+def baked_run(run_dir, scene=None):
+    """(the trained run, its scene's path, the scene as the run loaded it, the run's plain bake as a
+    SplatModel): what a refinement benchmark starts from (``scene``: a path overriding the run's)."""
+    model = load_trained(run_dir)
+    scene_path = pathlib.Path(scene) if scene else _run_scene(model)[0]
+    data, splat = model.cfg.data, model.cfg.splat
+    loaded = load_any_scene(scene_path, format=data.format, downscale=data.downscale,
+                            holdout_every=data.holdout_every, background=splat.background, num_random_points=2)
+    with tempfile.TemporaryDirectory() as tmp:
+        bake = export_run(run_dir, pathlib.Path(tmp) / "bake.ply", refine=0, progress=False)
+        return model, scene_path, loaded, read_ply(bake["ply"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run_dir")
@@ -39,14 +52,8 @@ def main() -> None:
     ap.add_argument("--out", default=None, help="also write the JSON here")
     args = ap.parse_args()
 
-    model = load_trained(args.run_dir)
-    scene_path = pathlib.Path(args.scene) if args.scene else _run_scene(model)[0]
-    data, splat = model.cfg.data, model.cfg.splat
-    scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=splat.background, num_random_points=2)
-    with tempfile.TemporaryDirectory() as tmp:
-        bake = export_run(args.run_dir, pathlib.Path(tmp) / "bake.ply", refine=0, progress=False)
-        baked = read_ply(bake["ply"])
+    model, scene_path, scene, baked = baked_run(args.run_dir, args.scene)
+    splat = model.cfg.splat
     train_subset = scene.train_indices[np.unique(np.linspace(0, len(scene.train_indices) - 1,
                                                              args.train_views).round().astype(int))]
     render = dict(background=scene.background, sh_degree=baked.sh_degree, antialiased=bool(splat.antialiased))

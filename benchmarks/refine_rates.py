@@ -15,16 +15,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 import pathlib
-import tempfile
 import time
 
 import numpy as np
 
-from cusgs_jax.app.export import _run_scene, export_run
-from cusgs_jax.io.load_run import load_trained
-from cusgs_jax.data.layouts import load_any_scene
-from cusgs_jax.io import heldout_psnr, read_ply, refine_splats
+from cusgs_jax.io import heldout_psnr, refine_splats
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from refine_curve import baked_run  # noqa: E402
 
 
 def main() -> None:
@@ -36,14 +37,8 @@ def main() -> None:
     args = ap.parse_args()
 
     variants = json.loads(args.variants)
-    model = load_trained(args.run_dir)
-    scene_path = pathlib.Path(args.scene) if args.scene else _run_scene(model)[0]
-    data, splat = model.cfg.data, model.cfg.splat
-    scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=splat.background, num_random_points=2)
-    with tempfile.TemporaryDirectory() as tmp:
-        bake = export_run(args.run_dir, pathlib.Path(tmp) / "bake.ply", refine=0, progress=False)
-        baked = read_ply(bake["ply"])
+    model, scene_path, scene, baked = baked_run(args.run_dir, args.scene)
+    splat = model.cfg.splat
     train = scene.train_indices
     subset = train[np.unique(np.linspace(0, len(train) - 1, 8).round().astype(int))]
     render = dict(background=scene.background, sh_degree=baked.sh_degree, antialiased=bool(splat.antialiased))

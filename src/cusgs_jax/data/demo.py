@@ -135,19 +135,13 @@ def _write_views(out: pathlib.Path, scene, poses, names, width, height, K):
       depths: list of V float32 [H, W] (camera z, 0 = none) and face_maps: list of V int64
       [H, W] face ids (-1 = none), in view order.
     """
-    import imageio.v3 as iio
 
     for sub in ("images", "depth", "object_ids"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     depths, face_maps = [], []
     for v, (R, t) in enumerate(poses):
         image, depth, obj, faces = render_view(scene, R, t, width, height, K)
-        stem = names[v][:-4]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            iio.imwrite(out / "images" / names[v], image)
-        np.save(out / "depth" / f"{stem}.npy", depth)
-        np.save(out / "object_ids" / f"{stem}.npy", obj)
+        write_view_files(out, names[v], image, depth, obj)
         depths.append(depth)
         face_maps.append(faces)
     return depths, face_maps
@@ -157,6 +151,19 @@ def default_cache_dir() -> pathlib.Path:
     """``$CUSGS_CACHE_DIR``, or ``~/.cache/cusgs_jax`` when unset."""
     env = os.environ.get("CUSGS_CACHE_DIR")
     return pathlib.Path(env) if env else pathlib.Path.home() / ".cache" / "cusgs_jax"
+
+
+def write_view_files(out: pathlib.Path, name: str, image: np.ndarray, depth: np.ndarray, obj: np.ndarray) -> None:
+    """One demo view's files under ``out``: ``images/<name>`` ([H, W, 3] uint8) and the ray-cast
+    ``depth/<stem>.npy`` ([H, W] float32) and ``object_ids/<stem>.npy`` ([H, W] uint8) that annotate it."""
+    import imageio.v3 as iio
+
+    stem = name[:-4]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        iio.imwrite(out / "images" / name, image)
+    np.save(out / "depth" / f"{stem}.npy", depth)
+    np.save(out / "object_ids" / f"{stem}.npy", obj)
 
 
 def demo_scene_folder(cache_dir=None, *, seed=0, num_views=30, width=160, height=120) -> pathlib.Path:
@@ -204,30 +211,6 @@ def cached_scene(final, generate) -> pathlib.Path:
     tmp = pathlib.Path(tempfile.mkdtemp(prefix=prefix, dir=root))
     try:
         generate(tmp)
-        try:
-            os.replace(tmp, final)
-        except OSError:
-            if not (final / "scene.json").is_file():  # lost a race only if the winner finished
-                raise
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return final
-    root.mkdir(parents=True, exist_ok=True)
-    prefix = f".{name}.tmp-"
-    # Clear temporary folders left behind by interrupted runs (old enough not to be in progress).
-    for stale in root.glob(prefix + "*"):
-        try:
-            if time.time() - stale.stat().st_mtime > 3600:
-                shutil.rmtree(stale, ignore_errors=True)
-        except OSError:
-            pass
-    if final.exists() and not (final / "scene.json").is_file():
-        shutil.rmtree(final)  # an incomplete folder not made by us (e.g. a partial copy)
-    tmp = pathlib.Path(tempfile.mkdtemp(prefix=prefix, dir=root))
-    try:
-        generate_demo_scene(tmp, seed=seed, num_views=num_views, width=width, height=height,
-                            overwrite=True)
         try:
             os.replace(tmp, final)
         except OSError:

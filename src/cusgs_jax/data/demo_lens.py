@@ -32,7 +32,6 @@ from __future__ import annotations
 import json
 import pathlib
 import time
-import warnings
 
 import numpy as np
 
@@ -43,9 +42,10 @@ from cusgs_jax.data.demo import (
     default_cache_dir,
     demo_scene_folder,
     demo_scene_path,
+    write_view_files,
 )
 from cusgs_jax.data.demo_colmap import write_sfm_model
-from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, render_view, surface_colour
+from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, mean_colour, render_view
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras
 
 __all__ = ["LENSES", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
@@ -97,13 +97,7 @@ def render_lens_view(scene, R, t, camera):
     hit = fc >= 0
     depth = np.where(hit, tc, 0.0).astype(np.float32).reshape(h, w)
     obj = np.where(hit, scene.face_obj[np.maximum(fc, 0)], 0).astype(np.uint8).reshape(h, w)
-    colour = np.zeros((w * h, 3))
-    dirs = _lens_rays(camera, R, _SUBSAMPLES)
-    for d in dirs:
-        ts, fs = cast_rays(scene, centre, d)
-        ok = fs >= 0
-        colour[ok] += surface_colour(scene, centre + ts[ok, None] * d[ok], fs[ok])
-    colour /= dirs.shape[0]
+    colour = mean_colour(scene, centre, _lens_rays(camera, R, _SUBSAMPLES))
     image = np.round(np.clip(colour, 0.0, 1.0) * 255.0).astype(np.uint8).reshape(h, w, 3)
     return image, depth, obj, fc.reshape(h, w)
 
@@ -125,7 +119,6 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
     Returns:
       pathlib.Path of ``out_dir``.
     """
-    import imageio.v3 as iio
     import pycolmap
 
     if num_views < 2 or width < 2 or height < 2 or num_points < 1:
@@ -155,12 +148,7 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         image, *_ = render_lens_view(scene, R, t, camera)
         _, depth, obj, _ = render_view(scene, R, t, int(loaded.width), int(loaded.height), K_loaded,
                                        supersample=False)
-        stem = names[v][:-4]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            iio.imwrite(out / "images" / names[v], image)
-        np.save(out / "depth" / f"{stem}.npy", depth)
-        np.save(out / "object_ids" / f"{stem}.npy", obj)
+        write_view_files(out, names[v], image, depth, obj)
         # the pinhole demo's depth and faces (centre rays only): its SfM points, unchanged
         _, pin_depth, _, faces = render_view(scene, R, t, width, height, K, supersample=False)
         pin_depths.append(pin_depth)

@@ -312,6 +312,17 @@ def _camera_rays(R, width, height, K, offsets):
     return np.stack(out)
 
 
+def mean_colour(scene, centre: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """[P, 3] surface colour seen from ``centre`` along the [K, P, 3] ray sets ``dirs`` (K sub-pixel
+    samples of P pixels), averaged over the K samples; a ray that hits nothing adds black."""
+    colour = np.zeros((dirs.shape[1], 3))
+    for d in dirs:
+        ts, fs = cast_rays(scene, centre, d)
+        ok = fs >= 0
+        colour[ok] += surface_colour(scene, centre + ts[ok, None] * d[ok], fs[ok])
+    return colour / dirs.shape[0]
+
+
 def render_view(scene, R, t, width, height, K, supersample=True):
     """Ray-cast one view.
 
@@ -330,12 +341,7 @@ def render_view(scene, R, t, width, height, K, supersample=True):
                             [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)])
     else:
         dirs = d_c[None]
-    colour = np.zeros((width * height, 3))
-    for d in dirs:
-        ts, fs = cast_rays(scene, centre, d)
-        ok = fs >= 0
-        colour[ok] += surface_colour(scene, centre + ts[ok, None] * d[ok], fs[ok])
-    colour /= dirs.shape[0]
+    colour = mean_colour(scene, centre, dirs)
     image = np.round(np.clip(colour, 0.0, 1.0) * 255.0).astype(np.uint8).reshape(height, width, 3)
     return image, depth, obj.reshape(height, width), fc.reshape(height, width)
 
