@@ -137,6 +137,7 @@ def test_last_curve_point_equals_the_final_evaluation(straight):
     assert curve[-1]["psnr"] > curve[0]["psnr"] + 0.03, curve
 
 
+@pytest.mark.slow  # 31 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_resume_continues_exactly(tiny_scene, straight, tmp_path):
     straight_dir, _ = straight
     interrupted = tmp_path / "interrupted"
@@ -158,6 +159,7 @@ def test_resume_continues_exactly(tiny_scene, straight, tmp_path):
     assert [c["step"] for c in _jsonl(interrupted / "eval_curve.jsonl")] == [15, 30]
 
 
+@pytest.mark.slow  # 28 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp_path):
     """A run killed after its last logs but before its last checkpoint is resumed with more
     iterations: the step columns of metrics.jsonl and eval_curve.jsonl stay strictly increasing
@@ -208,6 +210,7 @@ def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, 
     assert np.isfinite(rows[-1]["feature_loss"])
 
 
+@pytest.mark.slow  # 39 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_scene, tmp_path):
     """The same capture reconstructed 1000× larger somewhere else trains the same (normalised frame)."""
     from cusgs_jax.testing.scenes import transformed_scene
@@ -225,6 +228,7 @@ def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_sc
     assert big["psnr"] == pytest.approx(base["psnr"], abs=0.1)
 
 
+@pytest.mark.slow  # 38 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_path, monkeypatch):
     """360° case: every anchor is in every view. Tiny first capacities grow, steps replay, nothing is dropped."""
     from cusgs_jax.app import run as run_module
@@ -386,6 +390,7 @@ def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, 
     assert not (tmp_path / "refused").exists()  # refused before any work
 
 
+@pytest.mark.slow  # 66 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_a_run_pruned_to_a_few_anchors_shrinks_its_capacity_and_resumes_exactly(tiny_scene, tmp_path, caplog):
     """Pruning 90 % of the anchors at step 10 leaves the capacity nearly empty: it shrinks (the step
     recompiles and pays for what is alive), training goes on, and a run killed after step 20 resumes

@@ -73,6 +73,7 @@ def test_record_failure_writes_error_and_traceback(tmp_path):
     assert data["error"] == "ValueError: bad voxel size" and "Traceback" in data["traceback"]
 
 
+@pytest.mark.slow  # 29 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_hydra_app_runs_and_reports_bad_paths(tiny_scene, tmp_path):
     cmd = [*APP, f"data.path={tiny_scene}", *TINY, f"hydra.run.dir={tmp_path / 'app'}"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=600)

@@ -23,6 +23,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.slow  # 31 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_the_batched_step_over_two_processes_equals_one_process_with_two_devices(tmp_path):
     """Each process has 1 CPU device; the 2-view step is sharded over both (gloo carries the psum).
 

@@ -209,6 +209,7 @@ def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
     np.testing.assert_array_equal(np.asarray(stats.grad_count), seen.astype(np.float32))
 
 
+@pytest.mark.slow  # 27 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_prune_pass_honours_ratio_and_pruned_anchors_are_inert(prune_setup):
     cfg, tx, step, prune, state0 = prune_setup
     state = _copy(state0)
