@@ -160,5 +160,7 @@ def test_without_clip_the_text_box_says_why(viewer, page):
     from cusgs_jax.view.server import NO_CLIP_REASON
 
     assert viewer.gui_text.disabled
+    # the GUI panel is drawn after the page loads: wait for it (an immediate count() failed under load)
+    page.get_by_text("--clip WEIGHTS", exact=False).first.wait_for(state="attached", timeout=20_000)
     assert page.get_by_text("--clip WEIGHTS", exact=False).count() >= 1
     assert "--clip" in NO_CLIP_REASON
