@@ -7,6 +7,7 @@ ray casting), so the lens ray casting, the COLMAP model and the undistortion agr
 
 from __future__ import annotations
 
+import dataclasses
 import filecmp
 import json
 
@@ -17,9 +18,10 @@ from scipy.ndimage import gaussian_filter
 
 pycolmap = pytest.importorskip("pycolmap")
 
+from cusgs_jax.config import DemoConfig  # noqa: E402
 from cusgs_jax.data.colmap import load_scene  # noqa: E402
 from cusgs_jax.data.demo import generate_demo_scene  # noqa: E402
-from cusgs_jax.data.demo_lens import (LENSES, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
+from cusgs_jax.data.demo_lens import (LENSES, configured_demo, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
                                       render_lens_view, write_lens_demo)
 from cusgs_jax.data.demo_render import build_scene, render_view  # noqa: E402
 
@@ -151,4 +153,9 @@ def test_lens_demo_path_caches(cache_dir):
     assert json.loads((path / "scene.json").read_text())["lens"] == "opencv"
     stamp = (path / "scene.json").stat().st_mtime_ns
     assert lens_demo_path(lens="opencv", **small) == path and (path / "scene.json").stat().st_mtime_ns == stamp
+    # a run's data.demo names the same folder, found (not generated) or generated
+    demo = DemoConfig(views=2, width=32, height=24, lens="opencv")
+    assert configured_demo(demo) == path == configured_demo(demo, generate=True)
+    assert (path / "scene.json").stat().st_mtime_ns == stamp
+    assert not configured_demo(dataclasses.replace(demo, lens="simple_radial")).exists()  # not generated
     assert set(LENSES) == {"pinhole", "opencv", "simple_radial"}

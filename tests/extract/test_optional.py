@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 
 from cusgs_jax import convnets
-from cusgs_jax.config import DEMO_FEATURE_MODELS, FeatureConfig, FeatureModelConfig
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, DataConfig, FeatureConfig, FeatureModelConfig
 from cusgs_jax.extract import optional
-from cusgs_jax.extract.optional import OPTIONAL_PACKAGES, available_models, usable_features
+from cusgs_jax.extract.optional import OPTIONAL_PACKAGES, available_models, run_features, usable_features
 
 
 @pytest.fixture
@@ -49,3 +49,11 @@ def test_usable_features_keeps_auto_and_the_other_settings(without_lpips):
     assert [m.name for m in demo.models] == ["daisy", "semantic"] and demo.hidden == 12 and demo.query_dim == 32
     resolved = usable_features(FeatureConfig(hidden=12).resolve(demo_scene=True))
     assert resolved == demo
+
+
+def test_run_features_resolves_auto_for_the_scene_then_leaves_out_what_cannot_be_extracted(without_lpips):
+    demo = Config()  # no data.path: the built-in demo scene
+    assert demo.features.models is None
+    assert run_features(demo).models == tuple(m for m in DEMO_FEATURE_MODELS if m.name != "vgg16")
+    user = Config(data=DataConfig(path="/scenes/garden"))
+    assert run_features(user).models == ()

@@ -30,7 +30,7 @@ import pathlib
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least, number_in
-from cusgs_jax.data.demo_lens import lens_demo_folder
+from cusgs_jax.data.demo_lens import configured_demo
 from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.errors import UserError
 
@@ -226,8 +226,7 @@ def _run_scene(model) -> tuple[pathlib.Path | None, str]:
             return path, "data.path"
         return None, f"the run's scene data.path={data.path} is not a folder here"
 
-    path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
-                            width=data.demo.width, height=data.demo.height)  # cusgs-train cached it there; nothing is generated
+    path = configured_demo(data.demo)  # where cusgs-train cached it; nothing is generated here
     if (path / "scene.json").is_file():
         return path, "the built-in demo scene"
     return None, f"the run's scene, the built-in demo scene, is not in its cache folder {path}"

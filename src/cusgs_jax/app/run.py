@@ -63,7 +63,7 @@ from cusgs_jax.eval.features import evaluate_features
 from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
-from cusgs_jax.extract.optional import usable_features
+from cusgs_jax.extract.optional import run_features
 from cusgs_jax.io.load_run import BANKS_FILE
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
@@ -138,7 +138,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     _require_not_past(cfg, latest, ckpt.directory)
-    cfg = dataclasses.replace(cfg, features=usable_features(cfg.features.resolve(demo_scene=not cfg.data.path)))
+    cfg = dataclasses.replace(cfg, features=run_features(cfg))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
     cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats, scene.Ks, scene.width, scene.height)

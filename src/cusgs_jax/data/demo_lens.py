@@ -48,7 +48,7 @@ from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, mean_colour, render_view
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras
 
-__all__ = ["LENSES", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
+__all__ = ["LENSES", "configured_demo", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
            "write_lens_demo"]
 
 LENSES = ("pinhole", "opencv", "simple_radial")
@@ -198,3 +198,11 @@ def lens_demo_path(cache_dir=None, *, lens="pinhole", seed=0, num_views=30, widt
     return cached_scene(final, lambda tmp: write_lens_demo(
         tmp, model, params, seed=seed, num_views=num_views, width=width, height=height, overwrite=True,
         lens_name=lens))
+
+
+def configured_demo(demo, *, generate: bool = False) -> pathlib.Path:
+    """The folder of the demo scene a run's ``data.demo`` (:class:`~cusgs_jax.config.DemoConfig`: lens,
+    seed, views, size) describes: generated on first use when ``generate`` (:func:`lens_demo_path`),
+    else only where it is cached (:func:`lens_demo_folder`)."""
+    find = lens_demo_path if generate else lens_demo_folder
+    return find(lens=demo.lens, seed=demo.seed, num_views=demo.views, width=demo.width, height=demo.height)

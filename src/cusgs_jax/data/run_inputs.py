@@ -14,7 +14,7 @@ import numpy as np
 
 from cusgs_jax.config import Config, FeatureConfig
 from cusgs_jax.data.colmap import SceneData
-from cusgs_jax.data.demo_lens import lens_demo_path
+from cusgs_jax.data.demo_lens import configured_demo
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet, feature_dir, feature_file, load_features
 from cusgs_jax.data.images import scaled_size
@@ -43,8 +43,7 @@ def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
     path = data.path
     if not path:
         demo = data.demo
-        path = lens_demo_path(lens=demo.lens, seed=demo.seed, num_views=demo.views, width=demo.width,
-                              height=demo.height)
+        path = configured_demo(demo, generate=True)
         log.info("using the built-in demo scene%s at %s",
                  "" if demo.lens == "pinhole" else f" through the {demo.lens} lens", path)
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,

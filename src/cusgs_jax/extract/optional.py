@@ -21,7 +21,7 @@ from collections.abc import Callable
 from cusgs_jax import convnets
 from cusgs_jax.config import FeatureConfig, FeatureModelConfig
 
-__all__ = ["OPTIONAL_PACKAGES", "available_models", "usable_features"]
+__all__ = ["OPTIONAL_PACKAGES", "available_models", "run_features", "usable_features"]
 
 log = logging.getLogger("cusgs_jax")
 
@@ -50,3 +50,10 @@ def usable_features(features: FeatureConfig) -> FeatureConfig:
         return features
     models = available_models(features.models)
     return features if models == features.models else dataclasses.replace(features, models=models)
+
+
+def run_features(cfg) -> FeatureConfig:
+    """The feature models a run of ``cfg`` (a :class:`~cusgs_jax.config.Config`) trains: ``features.models``
+    resolved for its scene (auto: the demo's models on the built-in demo scene, none on a user's) and
+    :func:`usable_features` of them. Setup and the viewer of a run folder both ask here."""
+    return usable_features(cfg.features.resolve(demo_scene=not cfg.data.path))

@@ -44,7 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from cusgs_jax.config import Config, from_dict, from_omegaconf
 from cusgs_jax.data.colmap import load_cameras
-from cusgs_jax.data.demo_lens import lens_demo_folder
+from cusgs_jax.data.demo_lens import configured_demo
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
 from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
@@ -270,8 +270,7 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tup
     if data.path:
         path = pathlib.Path(str(data.path)).expanduser()
     else:
-        path = lens_demo_folder(lens=data.demo.lens, seed=data.demo.seed, num_views=data.demo.views,
-                                width=data.demo.width, height=data.demo.height)
+        path = configured_demo(data.demo)
     if not path.is_dir():
         return None, None
     try:

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import Config
-from cusgs_jax.extract.optional import usable_features
+from cusgs_jax.extract.optional import run_features
 from cusgs_jax.training.capacity import ExactRender
 from cusgs_jax.training.render import render_model, view_work_probe
 from cusgs_jax.view.camera import scene_up
@@ -121,7 +121,7 @@ def from_trained(model: TrainedModel) -> ViewModel:
     """
     cfg = model.cfg
     if model.banks:  # a cusgs-train run's .hydra config: resolve its feature models as setup did
-        cfg = cfg.replace(features=usable_features(cfg.features.resolve(demo_scene=not cfg.data.path)))
+        cfg = cfg.replace(features=run_features(cfg))
     banks = model.banks if cfg.features.enabled else None
     cameras = _camera_list("train", model.cameras) + _camera_list("held-out", model.held_out_cameras)
     return view_model(cfg, model.anchors, model.nets, banks, cameras)
