@@ -1,0 +1,64 @@
+"""The default demo run's training step (RGB + the demo's feature models) of two source trees, side by side.
+
+Each round runs the old then the new tree (``--old-src`` / ``--new-src``, e.g. a ``git worktree`` of the
+earlier revision's ``src``) in its own interpreter: setup as ``cusgs-train`` does with no overrides,
+5 warm-up steps, then the median of 40 timed steps (replays included, as the run loop does). Prints one
+JSON line per tree and round, then the per-round ratios old/new.
+
+    git worktree add --detach /tmp/old 834d7df
+    python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --rounds 3
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+
+def child(src: str) -> dict:
+    from cusgs_jax.app import run as run_loop
+    from cusgs_jax.config import compose_config
+
+    session = run_loop.setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
+    batch = run_loop._batches(session)
+    for step in range(5):
+        run_loop._exact_step(session, batch(step))
+    times = []
+    for step in range(5, 45):
+        start = time.perf_counter()
+        run_loop._exact_step(session, batch(step))
+        times.append(time.perf_counter() - start)
+    return dict(src=src, median_step_s=statistics.median(times))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--old-src", required=True)
+    ap.add_argument("--new-src", required=True)
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.child)))
+        return
+    rows = []
+    for _ in range(args.rounds):
+        for src in (args.old_src, args.new_src):
+            env = dict(os.environ, PYTHONPATH=os.path.abspath(src))
+            out = subprocess.run([sys.executable, os.path.abspath(__file__), "--old-src", args.old_src,
+                                  "--new-src", args.new_src, "--child", src], env=env, capture_output=True,
+                                 text=True, check=True)
+            rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
+            print(json.dumps(rows[-1]), flush=True)
+    ratios = [a["median_step_s"] / b["median_step_s"] for a, b in zip(rows[::2], rows[1::2])]
+    print(json.dumps(dict(ratios_old_over_new=ratios, median_ratio=statistics.median(ratios))))
+
+
+if __name__ == "__main__":
+    main()
