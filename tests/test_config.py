@@ -346,3 +346,10 @@ def test_data_demo_lens_validation():
     assert compose_config(["data.demo.lens=opencv"]).data.demo.lens == "opencv"
     with pytest.raises(ConfigError, match="data.demo.lens='fisheye': must be pinhole, opencv or simple_radial"):
         compose_config(["data.demo.lens=fisheye"])
+
+
+def test_data_undistort_validation():
+    assert compose_config([]).data.undistort == "crop"
+    assert compose_config(["data.undistort=mask"]).data.undistort == "mask"
+    with pytest.raises(ConfigError, match="data.undistort='blur': must be crop .* or mask"):
+        compose_config(["data.undistort=blur"])

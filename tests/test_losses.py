@@ -222,3 +222,35 @@ def test_everything_jits(astronaut):
     assert abs(float(loss) - float(ref_loss)) < 1e-6
     g = jax.jit(jax.grad(lambda p: image_loss(p, degraded, scales, mask)[0]))(jnp.asarray(img))
     assert g.shape == img.shape and np.all(np.isfinite(np.asarray(g)))
+
+
+def test_masked_ssim_and_loss_ignore_invalid_pixels(astronaut):
+    """A valid-pixel mask: SSIM is skimage's map of both images zeroed outside the mask, averaged over
+    the valid pixels of the border-cropped grid; L1 is the mean over the valid pixels; the invalid
+    pixels get no gradient, and changing them (in pred or in target) changes nothing."""
+    img, degraded = (np.asarray(x, np.float64) for x in astronaut)
+    rng = np.random.default_rng(3)
+    valid = np.ones(img.shape[:2], bool)
+    valid[:10] = False
+    valid[:, -7:] = False
+    valid[rng.uniform(size=valid.shape) < 0.05] = False
+    zeroed = lambda x: np.where(valid[..., None], x, 0.0)  # noqa: E731
+    _, full = sk_ssim(zeroed(degraded), zeroed(img), full=True)
+    r = 5
+    expected = full[r:-r, r:-r][valid[r:-r, r:-r]].mean()
+    got = float(ssim(degraded.astype(np.float32), img.astype(np.float32), mask=valid))
+    assert abs(got - expected) < TOL
+    assert abs(got - float(ssim(degraded.astype(np.float32), img.astype(np.float32)))) > 1e-3  # the mask matters
+    loss, terms = image_loss(degraded.astype(np.float32), img.astype(np.float32), pixel_mask=valid)
+    assert abs(float(terms["l1"]) - np.abs(degraded - img)[valid].mean()) < 1e-6
+    # pred's invalid pixels: no gradient, and any value there gives the same loss
+    grad = jax.grad(lambda p: image_loss(p, jnp.asarray(img, jnp.float32), pixel_mask=valid)[0])(
+        jnp.asarray(degraded, jnp.float32))
+    assert np.all(np.asarray(grad)[~valid] == 0) and np.any(np.asarray(grad)[valid] != 0)
+    scrambled = np.where(valid[..., None], degraded, rng.uniform(size=img.shape)).astype(np.float32)
+    assert float(image_loss(scrambled, img.astype(np.float32), pixel_mask=valid)[0]) == float(loss)
+    other = np.where(valid[..., None], img, rng.uniform(size=img.shape)).astype(np.float32)
+    assert float(image_loss(degraded.astype(np.float32), other, pixel_mask=valid)[0]) == float(loss)
+    # an all-valid mask is the unmasked loss
+    np.testing.assert_allclose(float(image_loss(degraded, img, pixel_mask=np.ones_like(valid))[0]),
+                               float(image_loss(degraded, img)[0]), rtol=1e-6)

@@ -72,6 +72,10 @@ class DataConfig:
     # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
     align: str = "none"
     random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
+    # Distorted cameras (data/undistort.py): "crop" to the largest valid rectangle (COLMAP's
+    # image_undistorter default), or "mask": keep the source frame and leave its invalid pixels out of
+    # the loss, the metrics and the feature targets.
+    undistort: str = "crop"
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
     def __post_init__(self):
@@ -84,6 +88,9 @@ class DataConfig:
                 f"must be auto or one of {', '.join(DATASET_FORMATS)} (the layout of data.path)",
                 "e.g. data.format=auto to detect it from the files present")
         _at_least(self, "data", 2, "random_points")
+        require(self.undistort in ("crop", "mask"), "data.undistort", self.undistort,
+                "must be crop (keep the largest valid rectangle) or mask (keep the frame, mask its invalid pixels)",
+                "e.g. data.undistort=mask")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -41,6 +41,7 @@ __all__ = [
     "ssim_loss",
     "ssim_map",
     "volume_regularizer",
+    "zero_invalid",
 ]
 
 SSIM_SIGMA = 1.5
@@ -151,14 +152,44 @@ def ssim_map(pred, target, *, data_range: float = 1.0, sigma: float = SSIM_SIGMA
     return (a1 * a2) / (b1 * b2)
 
 
-def ssim(pred, target, *, data_range: float = 1.0, sigma: float = SSIM_SIGMA) -> jnp.ndarray:
+def ssim(pred, target, *, data_range: float = 1.0, sigma: float = SSIM_SIGMA, mask=None) -> jnp.ndarray:
     """Mean SSIM of two [H, W, C] (or [H, W]) images in [0, data_range] → scalar.
 
     Matches skimage's Gaussian-weighted, population-covariance SSIM (see module
     docstring) to float rounding. Identical images give 1 (up to rounding), and the
     gradient is finite everywhere, including constant and all-zero images.
+
+    ``mask``: optional [H, W] valid-pixel mask (bool, or 0/1). Both images are first set to 0
+    outside it (:func:`zero_invalid`), so a window that straddles the mask's edge sees the same
+    constant in both, and the mean runs over the map's valid pixels (1 when none is left after the
+    border crop). Neither the value nor the gradient depends on the pixels outside the mask.
     """
-    return jnp.mean(ssim_map(pred, target, data_range=data_range, sigma=sigma))
+    if mask is None:
+        return jnp.mean(ssim_map(pred, target, data_range=data_range, sigma=sigma))
+    pred, target = zero_invalid(pred, target, mask)
+    values = ssim_map(pred, target, data_range=data_range, sigma=sigma)
+    r = (gaussian_window(sigma).shape[0] - 1) // 2
+    weights = jnp.asarray(mask, values.dtype)[r:pred.shape[0] - r, r:pred.shape[1] - r]
+    weights = jnp.broadcast_to(weights[..., None], values.shape)
+    total = jnp.sum(weights)
+    return jnp.where(total > 0, jnp.sum(weights * values) / jnp.where(total > 0, total, 1.0), 1.0)
+
+
+def zero_invalid(pred, target, mask) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """``pred`` and ``target`` [H, W, C] with the pixels outside the valid-pixel ``mask`` [H, W] set to 0
+    in both.
+
+    What the masked loss and metrics compare (the invalid pixels of an image undistorted with
+    ``data.undistort=mask`` hold no content): those pixels add no error and no gradient, and since
+    they are the same constant in both images, what the target holds there cannot change a windowed
+    statistic (SSIM, LPIPS) at the valid pixels next to them.
+    """
+    pred, target = _float_pair(pred, target)
+    keep = jnp.asarray(mask).astype(bool)
+    if keep.ndim == pred.ndim - 1:
+        keep = keep[..., None]
+    zero = jnp.zeros((), pred.dtype)
+    return jnp.where(keep, pred, zero), jnp.where(keep, target, zero)
 
 
 def ssim_loss(pred, target, *, data_range: float = 1.0, sigma: float = SSIM_SIGMA) -> jnp.ndarray:
@@ -218,7 +249,9 @@ def image_loss(pred, target, scales=None, mask=None, *, pixel_mask=None, l1_weig
         the volume term is 0.
       mask: optional [G] bool selecting the Gaussians the regulariser averages over
         (Scaffold-GS: the neural Gaussians visible / kept in this view).
-      pixel_mask: optional [H, W] weights for the L1 term (SSIM is unmasked).
+      pixel_mask: optional [H, W] valid-pixel mask (bool or 0/1, e.g. ``SceneData.valid``): L1 is
+        the mean over the valid pixels and SSIM the masked mean of :func:`ssim`; pixels outside it
+        add neither loss nor gradient.
       l1_weight, ssim_weight, volume_weight: term weights (may be traced values).
     Returns:
       (loss, terms): scalar loss and a dict of scalars
@@ -226,7 +259,7 @@ def image_loss(pred, target, scales=None, mask=None, *, pixel_mask=None, l1_weig
       "ssim_loss" = 1 − ssim, "volume" the unweighted regulariser.
     """
     l1_term = l1(pred, target, pixel_mask)
-    ssim_term = ssim(pred, target)
+    ssim_term = ssim(pred, target, mask=pixel_mask)
     d_ssim = 1.0 - ssim_term
     if scales is None:
         volume = jnp.zeros((), l1_term.dtype)

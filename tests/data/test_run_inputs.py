@@ -9,8 +9,9 @@ import pytest
 
 from cusgs_jax.config import Config, DataConfig, compose_config
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.data.run_inputs import (FLOAT16_MAX, feature_targets, load_data, load_feature_targets,
-                                       resolve_background, view_order)
+                                       mask_feature_maps, resolve_background, view_order)
 from cusgs_jax.testing.transforms_scenes import write_blender_scene
 
 
@@ -109,3 +110,39 @@ def test_view_order_is_a_permutation_per_epoch():
     assert sorted(seq[:7]) == list(range(7)) and sorted(seq[7:]) == list(range(7))
     assert seq == [view_order(3, 7, s) for s in range(14)]
     assert seq[:7] != seq[7:]  # a fresh permutation per epoch
+
+
+def test_mask_feature_maps_zeroes_the_vectors_of_invalid_pixels():
+    """A feature pixel reads the image pixel nearest its centre, as the loss samples it."""
+    maps = np.arange(2 * 3 * 4 * 2, dtype=np.float32).reshape(2, 3, 4, 2) + 1.0
+    fs = FeatureSet("m", maps, np.ones((2, 3, 4), bool), 2, (4, 3), {})
+    valid = np.ones((2, 6, 8), bool)
+    valid[0, :2, :2] = False  # image pixels under feature pixel (0, 0) of view 0
+    valid[1, 5, 7] = False  # under feature pixel (2, 3) of view 1
+    out = mask_feature_maps(fs, valid)
+    zero = np.zeros((2, 3, 4), bool)
+    zero[0, 0, 0] = zero[1, 2, 3] = True
+    assert np.all(out.maps[zero] == 0) and np.array_equal(out.maps[~zero], maps[~zero])
+    assert np.array_equal(out.valid, ~zero)
+
+
+def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_of_the_other_mode(tmp_path, monkeypatch):
+    from cusgs_jax.testing.distorted_scenes import CAMERAS, distorted_colmap_scene
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    root = tmp_path / "s"
+    distorted_colmap_scene(root, [("SIMPLE_RADIAL", CAMERAS["SIMPLE_RADIAL"])])
+    cfg = compose_config([f"data.path={root}", "data.undistort=mask", "data.holdout_every=0",
+                          "features.models=[{name: daisy}]"])
+    scene, _ = load_data(cfg)
+    assert scene.valid is not None and 0 < (~scene.valid).mean() < 0.3
+    maps, banks = load_feature_targets(cfg.features, scene, 0)  # extracts from the masked images
+    fs = maps["daisy"]
+    assert fs.meta["undistort"] == "mask"
+    assert fs.maps.shape[1:3] == scene.valid.shape[1:]  # daisy: one vector per image pixel
+    assert np.all(fs.maps[~scene.valid] == 0) and np.all(np.any(fs.maps[scene.valid] != 0, axis=-1))
+    crop = compose_config([f"data.path={root}", "data.holdout_every=0", "features.models=[{name: daisy}]"])
+    crop_scene, _ = load_data(crop)
+    with pytest.raises(SceneError, match=r"daisy features .* data\.undistort=mask, but this run uses "
+                                         r"data\.undistort=crop: re-extract them \(cusgs-extract .* --undistort crop"):
+        load_feature_targets(crop.features, crop_scene, 0)

@@ -117,8 +117,8 @@ def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     real = undistort._undistort_into
 
-    def racing(tmp, *args):
-        real(tmp, *args)
+    def racing(tmp, *args, **kwargs):
+        real(tmp, *args, **kwargs)
         final = tmp.parent / tmp.name[1:].split(".tmp-")[0]  # tmp is .<final name>.tmp-XXXX
         shutil.copytree(tmp, final)  # the other job got there first
 
@@ -284,3 +284,59 @@ def test_cache_key_changes_with_camera(tmp_path):
     opts2 = pycolmap.UndistortCameraOptions()
     opts2.blank_pixels = 1.0
     assert key != undistort._cache_key(views, sources, {1: cam}, opts2, "v")
+
+
+@pytest.mark.parametrize("model", list(CAMERAS))
+def test_mask_mode_keeps_the_frame(tmp_path, model):
+    """data.undistort=mask: the source size and intrinsics without distortion; the valid-pixel mask
+    is exactly the bright part of a uniformly bright source, and the markers still sit on their
+    pinhole projections."""
+    distorted_colmap_scene(tmp_path / "u", [(model, CAMERAS[model])], uniform=True)
+    scene = load_scene(tmp_path / "u", holdout_every=0, undistort="mask")
+    source = pycolmap.Camera(model=model, width=W, height=H, params=list(CAMERAS[model]))
+    assert (scene.width, scene.height) == (W, H)
+    np.testing.assert_allclose(scene.Ks[0], [[source.focal_length_x, 0, source.principal_point_x],
+                                             [0, source.focal_length_y, source.principal_point_y], [0, 0, 1]])
+    assert scene.valid.shape == (N_VIEWS, H, W) and scene.valid.dtype == bool
+    images = scene.images.astype(int)
+    assert np.abs(images[scene.valid] - BACKGROUND).max() <= 1  # valid: image content only
+    assert np.all(images[~scene.valid] < BACKGROUND // 2)  # invalid: COLMAP's black
+    # Analytic check: a pixel whose source location lies > 1.5 px inside the frame is valid, one
+    # > 1.5 px outside is not (COLMAP's bilinear footprint decides the pixels in between).
+    pinhole = pycolmap.Camera(model="PINHOLE", width=W, height=H, params=[
+        source.focal_length_x, source.focal_length_y, source.principal_point_x, source.principal_point_y])
+    ys, xs = np.mgrid[0:H, 0:W]
+    centres = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], -1).astype(np.float64)
+    rays = pinhole.cam_from_img(centres)
+    src = source.img_from_cam(np.concatenate([rays, np.ones((len(rays), 1))], -1)).reshape(H, W, 2)
+    inside = np.minimum(np.minimum(src[..., 0], W - src[..., 0]), np.minimum(src[..., 1], H - src[..., 1]))
+    assert np.all(scene.valid[0][inside > 1.5]) and not np.any(scene.valid[0][inside < -1.5])
+    if model == "SIMPLE_RADIAL":  # pincushion: the corners of the pinhole frame lie outside the source
+        assert 0.02 < 1 - scene.valid.mean() < 0.3
+    distorted_colmap_scene(tmp_path / "m", [(model, CAMERAS[model])])
+    marked = load_scene(tmp_path / "m", holdout_every=0, undistort="mask")
+    errors = marker_errors(marked)
+    assert len(errors) >= 4 * N_VIEWS and max(errors) < 0.25, max(errors)
+    # load_cameras gives the same cameras without undistorting
+    _, Ks, width, height, _ = load_cameras(tmp_path / "m", holdout_every=0, undistort="mask")
+    assert (width, height) == (W, H) and np.allclose(Ks, marked.Ks)
+    # crop mode has no mask and its own cache folder
+    assert load_scene(tmp_path / "m", holdout_every=0).valid is None
+
+
+def test_mask_mode_downscale_is_conservative(tmp_path):
+    distorted_colmap_scene(tmp_path / "u", [("SIMPLE_RADIAL", CAMERAS["SIMPLE_RADIAL"])], uniform=True)
+    full = load_scene(tmp_path / "u", holdout_every=0, undistort="mask")
+    half = load_scene(tmp_path / "u", holdout_every=0, undistort="mask", downscale=2)
+    assert half.valid.shape == (N_VIEWS, scaled_size(H, 2), scaled_size(W, 2))
+    # a downscaled pixel is valid only when no black pixel was mixed into it
+    assert np.abs(half.images.astype(int)[half.valid] - BACKGROUND).max() <= 1
+    blocks = full.valid.reshape(N_VIEWS, H // 2, 2, W // 2, 2).all(axis=(2, 4))
+    assert not np.any(half.valid & ~blocks)  # never valid where a full-size pixel was not
+    assert half.valid.mean() > 0.8 * blocks.mean()  # and not needlessly small
+
+
+def test_bad_undistort_mode(tmp_path):
+    distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
+    with pytest.raises(ValueError, match="undistortion mode 'blur'"):
+        load_scene(tmp_path / "s", holdout_every=0, undistort="blur")

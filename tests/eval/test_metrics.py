@@ -66,3 +66,15 @@ def test_mean_and_per_view():
         mean_and_per_view(psnr, preds[:2], targets)
     with pytest.raises(ValueError):
         mean_and_per_view(psnr, [], [])
+
+
+def test_psnr_with_a_mask_scores_only_the_valid_pixels():
+    rng = np.random.default_rng(7)
+    a, b = rng.uniform(size=(2, 20, 30, 3))
+    valid = rng.uniform(size=(20, 30)) < 0.7
+    expected = peak_signal_noise_ratio(a[valid], b[valid], data_range=1.0)
+    assert abs(float(psnr(a, b, mask=valid)) - expected) < 1e-4
+    b2 = np.where(valid[..., None], b, 0.0)  # whatever lies outside the mask
+    assert float(psnr(a, b2, mask=valid)) == float(psnr(a, b, mask=valid))
+    assert float(psnr(a, b, mask=np.ones_like(valid))) == pytest.approx(float(psnr(a, b)), abs=1e-5)
+    assert float(psnr(a, b, mask=np.zeros_like(valid))) == PSNR_MAX_DB  # nothing to score

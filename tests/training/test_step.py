@@ -414,3 +414,26 @@ def test_a_batched_step_whose_views_overflow_changes_nothing():
     assert int(metrics["dropped_anchors"]) > 0
     for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(jax.device_get(after))):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_valid_pixel_mask_makes_the_invalid_target_pixels_irrelevant(setup):
+    """batch["valid"] (data.undistort=mask): the step's loss, metrics and new parameters do not depend
+    on the target outside the mask, and do depend on it without one."""
+    cfg, tx, strategies, step, state0 = setup
+    valid = np.ones((H, W), bool)
+    valid[:6] = False
+    valid[:, :5] = False
+    base = _batch(1)
+    other = np.asarray(base["image"]).copy()
+    other[~valid] = np.random.default_rng(5).uniform(size=(int((~valid).sum()), 3))
+    results = []
+    for image, mask in ((base["image"], valid), (other, valid), (other, None)):
+        batch = dict(base, image=jnp.asarray(image))
+        if mask is not None:
+            batch["valid"] = jnp.asarray(mask)
+        state, metrics = step(_copy(state0), batch)
+        results.append((jax.device_get(state.trainable), {k: float(metrics[k]) for k in ("loss", "psnr")}))
+    assert results[0][1] == results[1][1]
+    for a, b in zip(jax.tree_util.tree_leaves(results[0][0]), jax.tree_util.tree_leaves(results[1][0])):
+        np.testing.assert_array_equal(a, b)
+    assert results[2][1]["loss"] != results[1][1]["loss"]

@@ -261,7 +261,7 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
         found = "--scene"
     data, splat = model.cfg.data, model.cfg.splat
     scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=splat.background, num_random_points=2)
+                           background=splat.background, num_random_points=2, undistort=data.undistort)
     steps = default_refine_steps(len(scene.train_indices)) if refine is None else int(refine)
     if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there
         scene = dataclasses.replace(scene, viewmats=model.world.viewmats(scene.viewmats))

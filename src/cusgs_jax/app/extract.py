@@ -17,7 +17,8 @@ __all__ = ["main"]
 
 PROG = "cusgs-extract"
 #: cusgs-train's option names in the loaders' messages → this tool's arguments
-FLAGS = {"data.path": "SCENE", "data.format": "--format", "data.downscale": "--downscale"}
+FLAGS = {"data.path": "SCENE", "data.format": "--format", "data.downscale": "--downscale",
+         "data.undistort": "--undistort"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -38,6 +39,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--overwrite", action="store_true", help="replace existing features")
     ap.add_argument("--dtype", choices=("float16", "float32"), default="float16")
     ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D", help="load images at 1/D resolution")
+    ap.add_argument("--undistort", default="crop", choices=("crop", "mask"),
+                    help="distorted cameras: crop to the valid rectangle or keep the frame and mask it, as the "
+                         "training run's data.undistort (default crop)")
     ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (32)")
     ap.add_argument("--layer", default=None,
                     help="vgg16: the VGG16 tap, relu1_2|relu2_2|relu3_3|relu4_3|relu5_3 (relu3_3)")
@@ -69,7 +73,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         s = extract(args.scene, args.model, resolution=args.resolution, downscale=args.downscale,
                     dtype=args.dtype, overwrite=args.overwrite, progress=not args.quiet, format=args.format,
-                    **options)
+                    undistort=args.undistort, **options)
     except UserError as e:  # bad scene, features or options: one line, exit 2 (as cusgs-train)
         ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(f"{s.model} features -> {s.folder}\n"

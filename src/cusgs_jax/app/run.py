@@ -342,6 +342,7 @@ def _batches(session: Session):
     """
     scene, idx, size = session.scene, session.train_idx, session.cfg.train.batch_size
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
+    valid = None if scene.valid is None else jnp.asarray(scene.valid[idx])  # [V, H, W] bool
     viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
 
     def batch(step: int) -> dict:
@@ -351,6 +352,8 @@ def _batches(session: Session):
             view = jnp.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)])
         out = dict(image=images[view], camera=Camera(Ks[view], viewmats[view], scene.width, scene.height),
                    index=jnp.int32(view) if size == 1 else view.astype(jnp.int32))
+        if valid is not None:
+            out["valid"] = valid[view]
         if session.banks is not None:
             out["features"] = {name: t[view] for name, t in session.targets.items()}
             out["banks"] = session.banks
@@ -553,6 +556,9 @@ def finalise(session: Session) -> dict:
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
         evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
         background=list(cfg.splat.background_color), curve=session.curve,
+        # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
+        valid_pixels=1.0 if session.scene.valid is None
+        else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,
     )
     if session.banks is not None:
         result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)

@@ -45,6 +45,7 @@ from cusgs_jax.data.undistort import (
     needs_undistortion,
     undistorted_cameras,
     undistorted_images,
+    undistorted_masks,
 )
 
 __all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
@@ -86,6 +87,10 @@ class SceneData:
       random_points: the points are :func:`cusgs_jax.data.random_points.random_points` (a layout without
         points), not SfM points; ``model.voxel_size=auto`` then uses
         :func:`cusgs_jax.data.random_points.random_voxel_size` instead of their spacing.
+      valid: [V, H, W] bool, True where a pixel holds image content — the valid-pixel masks of
+        distorted cameras undistorted with ``data.undistort=mask`` (:mod:`.undistort`); None when
+        every pixel is valid. The loss, the held-out metrics and the feature targets ignore the
+        others.
     """
 
     path: pathlib.Path
@@ -104,6 +109,7 @@ class SceneData:
     split: str = "every_8th"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     random_points: bool = False
+    valid: np.ndarray | None = None
 
     @property
     def camera_centers(self) -> np.ndarray:
@@ -121,7 +127,7 @@ class SceneData:
 
 
 def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
-               background: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> SceneData:
+               background: tuple[float, float, float] = (0.0, 0.0, 0.0), undistort: str = "crop") -> SceneData:
     """Load a COLMAP scene folder.
 
     Args:
@@ -134,13 +140,16 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
       background: RGB in [0, 1] that images with an alpha channel (RGBA, grey+alpha) are
         composited onto — the rendering background, ``splat.background``; a warning on the
         ``cusgs_jax`` logger says how many images had one.
+      undistort: ``data.undistort`` for distorted cameras: "crop" to the valid rectangle or
+        "mask" the invalid pixels (:mod:`.undistort`; ``SceneData.valid``).
 
     Raises:
       SceneError: for any problem with the data or these settings.
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
     background = check_background(background)
-    scene, files, rec, entries, cameras, undistort = _read_model(path, downscale)
+    mode = undistort
+    scene, files, rec, entries, cameras, undistort = _read_model(path, downscale, mode)
     names, viewmats = _poses(entries, files)
     points, point_colors = _points(rec, files["points3D"])
 
@@ -151,6 +160,8 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
                          cameras, downscale, from_prescaled, scene, background=background)
     height, width = images.shape[1:3]
+    valid = None if undistort is None else undistorted_masks(image_root, [image.camera_id for _, _, image in entries],
+                                                             downscale)
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
     train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
 
@@ -169,10 +180,11 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
         train_indices=train_indices,
         test_indices=test_indices,
         extent=extent,
+        valid=valid,
     )
 
 
-def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
+def load_cameras(path: str | os.PathLike, *, downscale: int = 1, undistort: str = "crop",
                  holdout_every: int = 8) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
     """The cameras of a COLMAP scene as :func:`load_scene` gives them, without reading any image.
 
@@ -188,7 +200,7 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = 1,
       SceneError: as :func:`load_scene` for the model and these settings.
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
-    scene, files, _, entries, cameras, _ = _read_model(path, downscale)
+    scene, files, _, entries, cameras, _ = _read_model(path, downscale, undistort)
     _, viewmats = _poses(entries, files)
     first = cameras[entries[0][2].camera_id]
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
@@ -209,7 +221,7 @@ class _Model(NamedTuple):
     #                 the undistorted images (undistorting and caching them on first use)
 
 
-def _read_model(path, downscale: int) -> _Model:
+def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
     """Read and check the COLMAP model of ``path``: registered images with unique names, supported
     cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise.
     Distorted cameras are replaced by their undistorted PINHOLE cameras (:mod:`.undistort`)."""
@@ -232,9 +244,9 @@ def _read_model(path, downscale: int) -> _Model:
         source = used
 
         def undistort() -> pathlib.Path:
-            return undistorted_images(scene, model_dir, views, source)
+            return undistorted_images(scene, model_dir, views, source, mode=mode)
 
-        used = undistorted_cameras(source)
+        used = undistorted_cameras(source, mode=mode)
     cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"]) for cid, cam in used.items()}
     _check_common_size(entries, cameras, downscale, files)
     return _Model(scene, files, rec, entries, cameras, undistort)

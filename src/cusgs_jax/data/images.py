@@ -157,6 +157,13 @@ def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndar
     return np.clip(np.round(out), 0, 255).astype(np.uint8)
 
 
+def downscale_mask(mask: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
+    """A valid-pixel mask [H, W] bool downscaled like the images (:func:`_downscale`) to ``out_hw``:
+    a pixel stays valid only when the downscaled image there mixes in no invalid pixel."""
+    rgb = np.repeat(np.where(mask, 255, 0).astype(np.uint8)[..., None], 3, axis=-1)
+    return _downscale(rgb, factor, out_hw)[..., 0] == 255
+
+
 def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, folder: pathlib.Path,
                scene: pathlib.Path) -> str:
     """The second half of a wrong-image-size message: the likely cause and what to do."""

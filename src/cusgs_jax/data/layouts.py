@@ -87,7 +87,7 @@ def detect_format(path: str | os.PathLike) -> str:
 
 def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: int = 1, holdout_every: int = 8,
                    background: tuple[float, float, float] | None = None,
-                   num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0) -> SceneData:
+                   num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0, undistort: str = "crop") -> SceneData:
     """Load the scene folder ``path`` in its layout (``data.format``; ``"auto"``: :func:`detect_format`).
 
     Args:
@@ -96,6 +96,8 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
         their test frames instead).
       background: ``splat.background``, or None for the layout's default (:func:`default_background`).
       num_random_points, seed: initial points of layouts without any (``data.random_points``).
+      undistort: ``data.undistort``, "crop" or "mask", for distorted COLMAP and nerfstudio cameras
+        (:mod:`cusgs_jax.data.undistort`).
     Returns:
       SceneData with ``dataset_format``, ``split`` and ``background`` filled in.
     Raises:
@@ -112,8 +114,8 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
                                   seed=seed)
     if fmt == "nerfstudio":
         return load_nerfstudio_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg,
-                                     num_random_points=num_random_points, seed=seed)
+                                     num_random_points=num_random_points, seed=seed, undistort=undistort)
 
-    scene = load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg)
+    scene = load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg, undistort=undistort)
     return dataclasses.replace(scene, dataset_format="colmap", split=split_name(holdout_every),
                                background=check_background(bg))

@@ -56,7 +56,7 @@ from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, f
 from cusgs_jax.data.images import check_background, scaled_size
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
-from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images
+from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images, undistorted_masks
 
 __all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
            "UNSUPPORTED_MODELS"]
@@ -164,14 +164,18 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
                            params=params)
 
 
-def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> list:
+def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode: str = "crop"
+               ) -> tuple[list, tuple[pathlib.Path, list[int]] | None]:
     """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are.
 
     Args:
       frames: [(name, image path, FrameCamera)] in view order.
+      mode: ``data.undistort``, "crop" or "mask" (:mod:`cusgs_jax.data.undistort`).
     Returns:
-      [(image path, FrameCamera, prescaled usable)] — undistorted frames read their image from the
-      cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common size.
+      ([(image path, FrameCamera, prescaled usable)], masks) — undistorted frames read their image from the
+      cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common size;
+      ``masks`` is (that folder, [V] camera ids) for :func:`~cusgs_jax.data.undistort.undistorted_masks`, None
+      when nothing was undistorted.
     """
     import tempfile
 
@@ -186,7 +190,7 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> li
             cameras[ids[key]] = _colmap_camera(camera, ids[key], name, json_path)
         views.append(ids[key])
     if not any(needs_undistortion(c) for c in cameras.values()):
-        return [(image, camera, True) for _, image, camera in frames]
+        return [(image, camera, True) for _, image, camera in frames], None
     images_dir = scene / "images"
     names = []
     for name, image, _ in frames:
@@ -204,10 +208,10 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> li
                                            pycolmap.Rigid3d())
     with tempfile.TemporaryDirectory(prefix="cusgs-nerfstudio-model-") as model_dir:
         model.write(model_dir)
-        folder = undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras)
+        folder = undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras, mode=mode)
     pinhole = {cid: FrameCamera("PINHOLE", *(float(v) for v in cam.params), int(cam.width), int(cam.height), {})
-               for cid, cam in undistorted_cameras(cameras).items()}
-    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)]
+               for cid, cam in undistorted_cameras(cameras, mode=mode).items()}
+    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)], (folder, views)
 
 
 def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -246,7 +250,8 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
 
 def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
                           background: tuple[float, float, float] | None = None,
-                          num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0) -> SceneData:
+                          num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
+                          undistort: str = "crop") -> SceneData:
     """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
 
     Args:
@@ -255,6 +260,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
       holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
       background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
       num_random_points, seed: the initial points when the scene has no ``ply_file_path``.
+      undistort: ``data.undistort`` for distorted frames: "crop" or "mask" (:mod:`cusgs_jax.data.undistort`).
 
     Returns:
       SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
@@ -288,7 +294,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         viewmats.append(opengl_c2w_to_viewmat(frame["transform_matrix"], f"frames[{i}]", json_path))
         names.append(name)
     images_in, cameras = [], []
-    for name, (image, camera, prescaled_ok) in zip(names, _undistort(scene, frames_in, json_path)):
+    undistorted, masks = _undistort(scene, frames_in, json_path, undistort)
+    for name, (image, camera, prescaled_ok) in zip(names, undistorted):
         prescaled = scene / f"images_{downscale}" / image.name
         use_prescaled = prescaled_ok and downscale > 1 and prescaled.is_file()
         images_in.append(FrameImage(name, prescaled if use_prescaled else image, (camera.width, camera.height),
@@ -298,6 +305,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
     _check_common_size(names, cameras, downscale, json_path)
     images, _ = load_frame_images(images_in, downscale=downscale, background=background, json_path=json_path)
     height, width = images.shape[1:3]
+    valid = None if masks is None else undistorted_masks(*masks, downscale)
     d = float(downscale)
     Ks = np.array([[[c.fx / d, 0.0, c.cx / d], [0.0, c.fy / d, c.cy / d], [0.0, 0.0, 1.0]] for c in cameras])
     viewmats = np.stack(viewmats)
@@ -317,7 +325,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
-        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None)
+        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None, valid=valid)
 
 
 def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,

@@ -6,6 +6,7 @@ Naming (:mod:`cusgs_jax.types`): V views, h×w feature map, D feature dimension,
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import jax
@@ -48,7 +49,7 @@ def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
                  "" if demo.lens == "pinhole" else f" through the {demo.lens} lens", path)
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=cfg.splat.background, num_random_points=data.random_points,
-                           seed=cfg.train.seed)
+                           seed=cfg.train.seed, undistort=data.undistort)
     require_ssim_size(scene, data.downscale, "data.downscale")
     return normalize_scene(scene, align=data.align)
 
@@ -95,16 +96,29 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
     training pixels (``psc_rows``) in random order, so the ``max_bank_entries``
     cap samples the whole scene rather than its first views.
 
+    A scene with a valid-pixel mask (``data.undistort=mask``) needs features extracted from the masked
+    images (their ``meta.json`` says ``"undistort": "mask"``; SceneError otherwise), and the target
+    vectors whose pixel lies outside the mask are zeroed — "no target" (:func:`mask_feature_maps`).
+
     Returns:
       (maps {model: FeatureSet}, banks {model: [M, D] float32 numpy}).
     """
     maps, banks = {}, {}
+    masked = scene.valid is not None
     for index, model in enumerate(fcfg.model_list):
         # locked: the jobs of a parallel sweep share the demo scene's cache
         if fcfg.auto_extract and model.name in BUILT_IN_EXTRACTORS and ensure_extracted(
-                scene.path, model.name, progress=False):
+                scene.path, model.name, progress=False, undistort="mask" if masked else "crop"):
             log.info("extracted %s features for %s", model.name, scene.path)
         fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
+        if (fs.meta.get("undistort") == "mask") != masked:
+            have, want = ("mask", "crop") if fs.meta.get("undistort") == "mask" else ("crop", "mask")
+            raise SceneError(
+                f"the {model.name} features of {scene.path} were extracted from the images undistorted with "
+                f"data.undistort={have}, but this run uses data.undistort={want}: re-extract them (cusgs-extract "
+                f"{scene.path} --model {model.name} --undistort {want} --overwrite) or set data.undistort={have}")
+        if masked:
+            fs = mask_feature_maps(fs, scene.valid)
         _warn_on_target_norms(scene.path, model.name, fs.maps, scene.names)  # every view: held-out ones are scored
         rows = fs.maps[scene.train_indices].reshape(-1, fs.dim)
         rows = rows[np.any(rows != 0, axis=-1)]
@@ -124,6 +138,23 @@ TARGET_NORM_MAX = 1e3
 semantic, vgg16); CLIP / DINOv2 tokens (LayerNorm outputs, √D ≈ 20 with unit gains) are expected at tens, an
 estimate not measured on real weights; far larger targets make the feature loss dwarf the image
 loss (and a single stray value makes some steps' loss explode)."""
+
+
+def mask_feature_maps(fs: FeatureSet, valid: np.ndarray) -> FeatureSet:
+    """``fs`` with the vectors of feature pixels outside the valid-pixel mask set to zero ("no target").
+
+    Args:
+      fs: feature maps [V, h, w, D] of the scene's views.
+      valid: [V, H, W] bool valid-pixel masks of the images. A feature pixel (r, c) reads the image pixel
+        whose centre is nearest to its own, as the loss samples it (:func:`cusgs_jax.model.field.sampled_feature_loss`).
+    """
+    fh, fw = fs.maps.shape[1:3]
+    height, width = valid.shape[1:]
+    rows = np.minimum(((np.arange(fh) + 0.5) * height / fh).astype(np.int64), height - 1)
+    cols = np.minimum(((np.arange(fw) + 0.5) * width / fw).astype(np.int64), width - 1)
+    keep = valid[:, rows][:, :, cols]  # [V, h, w]
+    return dataclasses.replace(fs, maps=np.where(keep[..., None], fs.maps, 0).astype(fs.maps.dtype),
+                               valid=fs.valid & keep)
 
 
 def _warn_on_target_norms(scene_path, name: str, maps: np.ndarray, names) -> None:

@@ -18,11 +18,23 @@ gsplat its own equidistant remap), it is what the 3DGS / Scaffold-GS instruction
 run (so a scene undistorted here equals one undistorted by hand), and pycolmap is already a
 dependency — no OpenCV.
 
-**Crop, not mask.** COLMAP's default ``blank_pixels=0`` keeps the focal length and shrinks or
-grows the image to the largest centred rectangle in which every pixel comes from inside the
-distorted image, so no black (blank) border is left to be fitted as if it were scene content
-and no mask is needed. The undistorted image size therefore differs from the source size (larger
-for barrel, smaller for pincushion distortion).
+**Crop or mask** (``data.undistort``, :data:`MODES`):
+
+* ``crop`` (default, what ``colmap image_undistorter``, gsplat and nerfstudio do): COLMAP's
+  ``blank_pixels=0`` keeps the focal length and shrinks or grows the image to the largest centred
+  rectangle in which every pixel comes from inside the distorted image, so no black (blank)
+  border is left to be fitted as if it were scene content and no mask is needed. The undistorted
+  image size therefore differs from the source size (larger for barrel, smaller for pincushion
+  distortion), and the pixels outside that rectangle are lost.
+* ``mask``: the undistorted camera is the source camera without its distortion — same size,
+  focal lengths and principal point (``UndistortCameraOptions(blank_pixels=1, min_scale=1,
+  max_scale=1)``) — so every source pixel that lands inside the frame is kept, and a *valid-pixel
+  mask* per camera (``masks/camera_<id>.png``, 255 where the pixel's source location lies inside
+  the distorted image: COLMAP's warp of an all-255 image, which leaves 0 outside) says which of
+  the frame's pixels hold image content. :func:`undistorted_masks` reads it;
+  :class:`~cusgs_jax.data.colmap.SceneData` carries it as ``valid``, and the training loss, the
+  held-out metrics and the feature targets ignore the pixels outside it
+  (:func:`cusgs_jax.losses.image_loss`, :mod:`cusgs_jax.eval.views`).
 
 **One common size.** The project trains on images of one size, but COLMAP gives each camera its
 own undistorted size (per-image cameras, COLMAP's default, come out a few pixels apart). Every
@@ -79,15 +91,18 @@ import numpy as np
 
 from cusgs_jax.data.demo import default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.images import downscale_mask, scaled_size
 
-__all__ = ["CACHE_VERSION", "DISTORTED_MODELS", "PINHOLE_MODELS", "camera_model_name",
-           "needs_undistortion", "undistorted_cameras", "undistorted_images"]
+__all__ = ["CACHE_VERSION", "DISTORTED_MODELS", "MODES", "PINHOLE_MODELS", "camera_model_name",
+           "needs_undistortion", "undistort_options", "undistorted_cameras", "undistorted_images",
+           "undistorted_masks"]
 
 log = logging.getLogger("cusgs_jax")
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
 CACHE_VERSION = 2  # 2: images with alpha keep it (RGBA)
+MODES = ("crop", "mask")  # data.undistort (module docstring)
 _MARKER = "undistort.json"
 _STALE_TMP_SECONDS = 3600
 
@@ -110,10 +125,21 @@ def needs_undistortion(camera) -> bool:
     return bool(np.any(params[list(camera.extra_params_idxs())] != 0.0))
 
 
-def _options(options):
+def undistort_options(mode: str = "crop"):
+    """COLMAP's ``UndistortCameraOptions`` for ``data.undistort=mode`` (module docstring): its
+    defaults (``blank_pixels=0``, crop to the valid rectangle) for ``crop``; the source frame
+    kept (``blank_pixels=1``, scale fixed at 1) for ``mask``."""
     import pycolmap
 
-    return options if options is not None else pycolmap.UndistortCameraOptions()
+    if mode not in MODES:
+        raise ValueError(f"undistortion mode {mode!r}: must be one of {', '.join(MODES)}")
+    if mode == "mask":
+        return pycolmap.UndistortCameraOptions(blank_pixels=1.0, min_scale=1.0, max_scale=1.0)
+    return pycolmap.UndistortCameraOptions()
+
+
+def _options(options, mode: str = "crop"):
+    return options if options is not None else undistort_options(mode)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,10 +156,10 @@ class _Plan:
 
 
 def _plan(cameras: dict[int, Any], options) -> dict[int, _Plan]:
-    """{camera id: _Plan} for the source ``cameras`` {id: pycolmap.Camera} (all of one size)."""
+    """{camera id: _Plan} for the source ``cameras`` {id: pycolmap.Camera} (all of one size) and
+    the (resolved) ``options``."""
     import pycolmap
 
-    options = _options(options)
     full = {cid: pycolmap.undistort_camera(options, cam) for cid, cam in cameras.items()}
     width = min(int(c.width) for c in full.values())
     height = min(int(c.height) for c in full.values())
@@ -149,18 +175,19 @@ def _plan(cameras: dict[int, Any], options) -> dict[int, _Plan]:
     return plans
 
 
-def undistorted_cameras(cameras: dict[int, Any], options=None) -> dict[int, Any]:
+def undistorted_cameras(cameras: dict[int, Any], options=None, *, mode: str = "crop") -> dict[int, Any]:
     """The PINHOLE cameras that :func:`undistorted_images` undistorts to, without any I/O.
 
     Args:
       cameras: {camera id: pycolmap.Camera} of the registered images, all of one size; any of
         :data:`PINHOLE_MODELS` + :data:`DISTORTED_MODELS`.
-      options: ``pycolmap.UndistortCameraOptions`` (default: COLMAP's, blank_pixels=0).
+      options: ``pycolmap.UndistortCameraOptions``; default :func:`undistort_options` ``(mode)``.
+      mode: ``data.undistort``, "crop" or "mask" (module docstring).
     Returns:
       {camera id: pycolmap.Camera} PINHOLE, all of one common size (COLMAP's undistorted cameras,
-      centre-cropped to the smallest undistorted width and height).
+      centre-cropped to the smallest undistorted width and height; for "mask" the source size).
     """
-    return {cid: p.camera for cid, p in _plan(cameras, options).items()}
+    return {cid: p.camera for cid, p in _plan(cameras, _options(options, mode)).items()}
 
 
 # --------------------------------------------------------------------------------------------
@@ -169,7 +196,8 @@ def undistorted_cameras(cameras: dict[int, Any], options=None) -> dict[int, Any]
 
 
 def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list[tuple[str, int]],
-                       cameras: dict[int, Any], *, cache_dir=None, options=None) -> pathlib.Path:
+                       cameras: dict[int, Any], *, cache_dir=None, options=None,
+                       mode: str = "crop") -> pathlib.Path:
     """The cached folder whose ``images/`` hold the images of ``views`` undistorted to
     :func:`undistorted_cameras` ``(cameras)``, undistorting them first when not cached yet.
 
@@ -181,18 +209,20 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
       cameras: {camera id: pycolmap.Camera} source cameras of ``views``, all of one size.
       cache_dir: root of the cache (default ``$CUSGS_CACHE_DIR`` or ``~/.cache/cusgs_jax``); the
         folder is ``<cache_dir>/undistorted/<scene name>-<key>`` (see the module docstring).
-      options: ``pycolmap.UndistortCameraOptions`` (default: COLMAP's, blank_pixels=0).
+      options: ``pycolmap.UndistortCameraOptions``; default :func:`undistort_options` ``(mode)``.
+      mode: ``data.undistort``, "crop" or "mask" (module docstring).
     Returns:
       The folder; ``<folder>/images/<name>`` is [H, W, 3] uint8 RGB at the common size (W, H)
       of the undistorted cameras, or [H, W, 4] RGBA (a PNG under the source's name) when the
-      source image has an alpha channel (module docstring).
+      source image has an alpha channel (module docstring). For "mask", ``<folder>/masks/``
+      holds each camera's valid-pixel mask (:func:`undistorted_masks`).
     Raises:
       SceneError: ``images/`` or an image is missing or unreadable, or the cache cannot be
         written.
     """
     import pycolmap
 
-    options = _options(options)
+    options = _options(options, mode)
     sources = _source_files(scene, views)
     key = _cache_key(views, sources, cameras, options, pycolmap.__version__)
     root = pathlib.Path(cache_dir) if cache_dir is not None else default_cache_dir()
@@ -203,13 +233,17 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
                  scene, len(views), info["source_models"], info["width"], info["height"], final)
         return final
     plans = _plan(cameras, options)
-    _build(final, model_dir, scene, views, sources, plans, options)
+    _build(final, model_dir, scene, views, sources, plans, options, masks=mode == "mask")
     info = json.loads((final / _MARKER).read_text())
     crop = max((max(p.full.width - p.camera.width, p.full.height - p.camera.height)
                 for p in plans.values()), default=0)
-    log.info("undistorted %d images %s → PINHOLE %d×%d%s, cached in %s", len(views),
+    valid = ""
+    if info.get("masks"):
+        share = np.mean([np.asarray(_read_mask(final / m)).mean() / 255.0 for m in info["masks"].values()])
+        valid = f" ({100 * share:.1f} % of the pixels valid, masked)"
+    log.info("undistorted %d images %s → PINHOLE %d×%d%s%s, cached in %s", len(views),
              info["source_models"], info["width"], info["height"],
-             f" (cropped by up to {crop} px to one common size)" if crop else "", final)
+             f" (cropped by up to {crop} px to one common size)" if crop else "", valid, final)
     return final
 
 
@@ -254,7 +288,7 @@ def _safe_name(scene: pathlib.Path) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._")[:40] or "scene"
 
 
-def _build(final: pathlib.Path, model_dir, scene, views, sources, plans, options) -> None:
+def _build(final: pathlib.Path, model_dir, scene, views, sources, plans, options, *, masks: bool) -> None:
     """Undistort into a temporary sibling of ``final`` and rename it into place (module docstring)."""
     root = final.parent
     try:
@@ -269,7 +303,7 @@ def _build(final: pathlib.Path, model_dir, scene, views, sources, plans, options
             f"{type(e).__name__}: {e}; set CUSGS_CACHE_DIR to a writable folder with room for a "
             "copy of the images") from e
     try:
-        _undistort_into(tmp, model_dir, scene, views, sources, plans, options)
+        _undistort_into(tmp, model_dir, scene, views, sources, plans, options, masks=masks)
         try:
             os.replace(tmp, final)
         except OSError:
@@ -295,9 +329,10 @@ def _clear_stale(root: pathlib.Path, prefix: str) -> None:
             pass
 
 
-def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, options) -> None:
-    """Run COLMAP's undistorter into ``tmp``, check its output, crop to the common size and
-    write the marker; only ``tmp/images`` and ``tmp/undistort.json`` are kept."""
+def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, options, *, masks: bool) -> None:
+    """Run COLMAP's undistorter into ``tmp``, check its output, crop to the common size, write the
+    valid-pixel masks when asked, and the marker; only ``tmp/images``, ``tmp/masks`` and
+    ``tmp/undistort.json`` are kept."""
     import pycolmap
 
     names = [name for name, _ in views]
@@ -325,6 +360,12 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
         if _has_alpha(source):
             _undistort_with_alpha(tmp / "images" / name, source, plans[cid], options)
             alpha_images.append(name)
+    mask_files = {}
+    if masks:
+        (tmp / "masks").mkdir()
+        for cid, plan in plans.items():
+            mask_files[str(cid)] = f"masks/camera_{cid}.png"
+            _write_mask(tmp / mask_files[str(cid)], plan, options)
     first = next(iter(plans.values())).camera
     info = dict(
         version=CACHE_VERSION, scene=str(scene.resolve()), num_images=len(views),
@@ -335,6 +376,7 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
                                 params=[float(v) for v in p.camera.params], crop=[p.x0, p.y0])
                  for cid, p in plans.items()},
         alpha_images=alpha_images,
+        masks=mask_files,
     )
     (tmp / _MARKER).write_text(json.dumps(info, indent=1) + "\n")
 
@@ -383,7 +425,6 @@ def _undistort_with_alpha(path: pathlib.Path, source: pathlib.Path, plan: _Plan,
     of ``source``: premultiplied colour [H, W, 3] and alpha [H, W] warped with
     ``pycolmap.undistort_image`` to ``plan.full``, centre-cropped like the others, colour
     un-premultiplied (0 where alpha is 0); written as a PNG whatever the name's extension."""
-    import pycolmap
     from PIL import Image
 
     with Image.open(source) as im:
@@ -391,16 +432,68 @@ def _undistort_with_alpha(path: pathlib.Path, source: pathlib.Path, plan: _Plan,
     alpha = rgba[..., 3]
     premultiplied = np.round(rgba[..., :3] * (alpha[..., None] / 255.0)).astype(np.uint8)
 
-    def warp(img: np.ndarray) -> np.ndarray:
-        out, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(img)),
-                                          plan.source)
-        out = np.asarray(out.to_array())
-        if out.shape[:2] != (int(plan.full.height), int(plan.full.width)):  # a bug, not the user's
-            raise RuntimeError(f"COLMAP undistorted {source} to {out.shape[1]}x{out.shape[0]}, expected "
-                               f"{int(plan.full.width)}x{int(plan.full.height)}")
-        return out[plan.y0:plan.y0 + int(plan.camera.height), plan.x0:plan.x0 + int(plan.camera.width)]
-
-    colour, a = warp(premultiplied).astype(np.float64), warp(alpha)
+    colour, a = _warp(options, premultiplied, plan).astype(np.float64), _warp(options, alpha, plan)
     straight = np.where(a[..., None] > 0, colour * 255.0 / np.maximum(a[..., None], 1), 0.0)
     out = np.concatenate([np.clip(np.round(straight), 0, 255).astype(np.uint8), a[..., None]], axis=-1)
     Image.fromarray(np.ascontiguousarray(out)).save(path, format="PNG")  # [H, W, 4] uint8: RGBA
+
+
+# --------------------------------------------------------------------------------------------
+# Valid-pixel masks (data.undistort=mask)
+# --------------------------------------------------------------------------------------------
+
+
+def _warp(options, img: np.ndarray, plan: _Plan) -> np.ndarray:
+    """``img`` [h, w(, C)] uint8 at the source camera, warped with ``pycolmap.undistort_image`` to
+    ``plan.full`` and centre-cropped to ``plan.camera``."""
+    import pycolmap
+
+    out, _ = pycolmap.undistort_image(options, pycolmap.Bitmap.from_array(np.ascontiguousarray(img)), plan.source)
+    out = np.asarray(out.to_array())
+    if out.shape[:2] != (int(plan.full.height), int(plan.full.width)):  # a bug, not the user's
+        raise RuntimeError(f"COLMAP undistorted a {img.shape[1]}x{img.shape[0]} image to {out.shape[1]}x"
+                           f"{out.shape[0]}, expected {int(plan.full.width)}x{int(plan.full.height)}")
+    return out[plan.y0:plan.y0 + int(plan.camera.height), plan.x0:plan.x0 + int(plan.camera.width)]
+
+
+def _write_mask(path: pathlib.Path, plan: _Plan, options) -> None:
+    """The camera's valid-pixel mask [H, W] uint8 (255 valid, 0 not) as a PNG: COLMAP's warp of an
+    all-255 source image, 255 exactly where the whole bilinear footprint lies inside the source."""
+    from PIL import Image
+
+    full = np.full((int(plan.source.height), int(plan.source.width)), 255, np.uint8)
+    valid = _warp(options, full, plan) == 255
+    Image.fromarray(np.where(valid, 255, 0).astype(np.uint8)).save(path, format="PNG")
+
+
+def _read_mask(path: pathlib.Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("L"))
+
+
+def undistorted_masks(folder: pathlib.Path, camera_ids: list[int], downscale: int = 1) -> np.ndarray | None:
+    """The valid-pixel masks of an undistorted folder, one per view, at the loaded size.
+
+    Args:
+      folder: a folder returned by :func:`undistorted_images`.
+      camera_ids: [V] the views' camera ids (as given to :func:`undistorted_images`).
+      downscale: ``data.downscale``; the masks are downscaled like the images
+        (:func:`cusgs_jax.data.images.downscale_mask`).
+    Returns:
+      [V, H, W] bool, True where the pixel holds image content; None when the folder has no masks
+      (``mode="crop"``: every pixel is valid).
+    """
+    info = json.loads((folder / _MARKER).read_text())
+    files = info.get("masks") or {}
+    if not files:
+        return None
+    per_camera = {}
+    for cid, name in files.items():
+        mask = _read_mask(folder / name) == 255
+        if downscale > 1:
+            out_hw = (scaled_size(mask.shape[0], downscale), scaled_size(mask.shape[1], downscale))
+            mask = downscale_mask(mask, downscale, out_hw)
+        per_camera[int(cid)] = mask
+    return np.stack([per_camera[int(cid)] for cid in camera_ids])

@@ -19,7 +19,7 @@ PSNR_MAX_DB = 100.0
 """PSNR of identical images (MSE = 0), and the cap for all others."""
 
 
-def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB) -> jnp.ndarray:
+def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB, mask=None) -> jnp.ndarray:
     """Peak signal-to-noise ratio 10·log10(data_range² / MSE) in dB → 0-d array.
 
     Args:
@@ -31,6 +31,8 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB) 
         100 dB) instead of inf, so means over views stay finite; any pair whose
         PSNR would exceed the cap (RMSE < 1e-5·R at 100 dB) also reads ``max_db``.
         Below the cap the value equals ``skimage.metrics.peak_signal_noise_ratio``.
+      mask: optional [H, W] valid-pixel mask (bool or 0/1): the MSE runs over the valid pixels only
+        (``SceneData.valid``); ``max_db`` when none is valid.
     """
     pred = jnp.asarray(pred)
     target = jnp.asarray(target)
@@ -38,7 +40,12 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB) 
         raise ValueError(f"pred and target shapes differ: {pred.shape} vs {target.shape}")
     dtype = jnp.promote_types(jnp.promote_types(pred.dtype, target.dtype), jnp.float32)
     diff = pred.astype(dtype) - target.astype(dtype)
-    mse = jnp.mean(diff * diff)
+    if mask is None:
+        mse = jnp.mean(diff * diff)
+    else:
+        weights = jnp.broadcast_to(jnp.asarray(mask, dtype).reshape(jnp.shape(mask) + (1,) * (diff.ndim - jnp.ndim(mask))),
+                                   diff.shape)
+        mse = jnp.sum(weights * diff * diff) / jnp.maximum(jnp.sum(weights), 1.0)
     peak = jnp.asarray(data_range, dtype) ** 2
     floor = peak * 10.0 ** (-max_db / 10.0)  # the MSE at which PSNR = max_db
     return jnp.minimum(10.0 * jnp.log10(peak / jnp.maximum(mse, floor)), max_db)

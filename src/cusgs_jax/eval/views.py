@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from cusgs_jax.eval import metrics
+from cusgs_jax.losses import zero_invalid
 from cusgs_jax.model.anchors import AnchorState, parameter_counts
 from cusgs_jax.types import Camera
 
@@ -31,7 +32,9 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
     Args:
       render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3],)``
         (:func:`cusgs_jax.training.render.make_render_fn`, which never drops work).
-      scene: :class:`cusgs_jax.data.colmap.SceneData`.
+      scene: :class:`cusgs_jax.data.colmap.SceneData`. With a valid-pixel mask (``scene.valid``),
+        PSNR and SSIM run over the valid pixels (:func:`cusgs_jax.eval.metrics.psnr`, ``ssim``'s
+        ``mask``) and LPIPS compares the two with the invalid pixels set to 0 in both.
       out_dir: if given, writes ``<name>.png`` with render | ground truth side by side.
       time_renders: also measure the median render time (after one warm-up).
       lpips: {key: fn} with ``fn(img0 [1,H,W,3], img1) -> [1]`` on images in [0, 1], e.g.
@@ -53,10 +56,15 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
         times.append(time.perf_counter() - start)
         image = np.asarray(image)
         target = scene.images[view].astype(np.float32) / 255.0
-        row = dict(name=scene.names[view], psnr=float(metrics.psnr(image, target)),
-                   ssim=float(metrics.ssim(image, target)))
+        valid = None if scene.valid is None else scene.valid[view]
+        row = dict(name=scene.names[view], psnr=float(metrics.psnr(image, target, mask=valid)),
+                   ssim=float(metrics.ssim(image, target, mask=valid)))
+        # LPIPS has no mask: it compares the two images with their invalid pixels set to 0 in both
+        scored, reference = np.clip(image, 0, 1), target
+        if valid is not None:
+            scored, reference = (np.asarray(x) for x in zero_invalid(scored, target, valid))
         for key, fn in (lpips or {}).items():
-            row[key] = float(fn(np.clip(image, 0, 1)[None], target[None])[0])
+            row[key] = float(fn(scored[None], reference[None])[0])
         per_view.append(row)
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)

@@ -209,7 +209,7 @@ def _check_request(scene_path: str | os.PathLike, model: str,
 def extract(scene_path: str | os.PathLike, model: str, *,
             resolution: tuple[int, int] | None = None, downscale: int = 1,
             dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = "auto",
-            **options) -> ExtractSummary:
+            undistort: str = "crop", **options) -> ExtractSummary:
     """Extract dense features of ``model`` for every image of a scene and write them to
     ``<scene>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
 
@@ -220,6 +220,10 @@ def extract(scene_path: str | os.PathLike, model: str, *,
       resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
         (vgg16) or the patch grid (clip, dinov2).
       downscale: ``load_any_scene`` downscale factor of the images described.
+      undistort: ``data.undistort`` ("crop" or "mask") for a scene with distorted cameras; the features
+        describe the images undistorted that way, and a masked scene's meta records ``"undistort":
+        "mask"`` so that a run with the other mode refuses them
+        (:func:`cusgs_jax.data.run_inputs.load_feature_targets`).
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
@@ -239,9 +243,11 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     t_start = time.perf_counter()
     resolution = _check_request(scene_path, model, resolution, overwrite)
     extractor = _EXTRACTORS[model](model, dict(options))
-    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=0, num_random_points=2)
+    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=0, num_random_points=2,
+                           undistort=undistort)
 
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
+             **({"undistort": "mask"} if scene.valid is not None else {}),
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()
                          if k not in ("weights", "device")},
              "image_size": [scene.width, scene.height]}

@@ -274,7 +274,7 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tup
     if not path.is_dir():
         return None, None
     try:
-        viewmats, Ks, width, height, train = load_cameras(path, downscale=data.downscale,
+        viewmats, Ks, width, height, train = load_cameras(path, downscale=data.downscale, undistort=data.undistort,
                                                           holdout_every=data.holdout_every)
     except UserError as e:
         log.warning("the run's scene %s cannot give the training cameras (%s)", path, e)

@@ -150,7 +150,7 @@ def init_refine(model: SplatModel, settings: RefineSettings) -> tuple[dict, opta
 
 
 def refine_loss(params: dict, camera: Camera, image: jax.Array, background: jax.Array, settings: RefineSettings,
-                pair_capacity: int) -> tuple[jax.Array, tuple]:
+                pair_capacity: int, valid: jax.Array | None = None) -> tuple[jax.Array, tuple]:
     """The training loss of one view: ``l1_weight·L1 + ssim_weight·(1 − SSIM)``; pure, differentiable.
 
     Args:
@@ -159,13 +159,14 @@ def refine_loss(params: dict, camera: Camera, image: jax.Array, background: jax.
       image: [H, W, 3] float target in [0, 1].
       background: [3] RGB behind the Gaussians.
       settings: static; pair_capacity: static tile–Gaussian pair capacity.
+      valid: optional [H, W] bool valid-pixel mask (``SceneData.valid``): the loss ignores the other pixels.
     Returns:
       (loss [], (terms {"l1", "ssim", …}, overflow [] int32, needed pairs [] int32)).
     """
     out = render_splats(join_params(params), camera, background=background, sh_degree=settings.sh_degree,
                         antialiased=settings.antialiased, tile_size=settings.tile_size,
                         chunk_size=settings.chunk_size, max_pairs=pair_capacity)
-    loss, terms = losses.image_loss(out.image[..., :3], image, l1_weight=settings.l1_weight,
+    loss, terms = losses.image_loss(out.image[..., :3], image, pixel_mask=valid, l1_weight=settings.l1_weight,
                                     ssim_weight=settings.ssim_weight)
     return loss, (terms, out.overflow, out.num_pairs + out.overflow, out.image)
 
@@ -173,9 +174,10 @@ def refine_loss(params: dict, camera: Camera, image: jax.Array, background: jax.
 def make_refine_step(settings: RefineSettings, pair_capacity: int) -> Callable:
     """One jitted refinement step for a static pair capacity.
 
-    Returns ``step(params, opt_state, camera, image, background) -> (params, opt_state, metrics)``,
+    Returns ``step(params, opt_state, camera, image, background, valid=None) -> (params, opt_state, metrics)``,
     pure: ``camera`` a :class:`~cusgs_jax.types.Camera` (K [3, 3], world_to_camera [4, 4]),
-    ``image`` [H, W, 3] float32 in [0, 1], ``background`` [3]. When the render overflows the
+    ``image`` [H, W, 3] float32 in [0, 1], ``background`` [3], ``valid`` an optional [H, W] bool
+    valid-pixel mask (loss and PSNR over those pixels only). When the render overflows the
     pair capacity, or the loss or a gradient is not finite, nothing changes (parameters and
     Adam state are returned as given). ``metrics``: {"loss", "l1", "ssim", "psnr" (of the
     clipped render), "overflow" (pairs dropped; > 0: grow the capacity and replay),
@@ -184,20 +186,19 @@ def make_refine_step(settings: RefineSettings, pair_capacity: int) -> Callable:
     tx = refine_optimizer(settings)
 
     @jax.jit
-    def step(params, opt_state, camera, image, background):
+    def step(params, opt_state, camera, image, background, valid=None):
         (loss, (terms, overflow, pairs, render)), grads = jax.value_and_grad(refine_loss, has_aux=True)(
-            params, camera, image, background, settings, pair_capacity)
+            params, camera, image, background, settings, pair_capacity, valid)
         finite = jnp.isfinite(loss) & jnp.all(jnp.array([jnp.all(jnp.isfinite(g))
                                                          for g in jax.tree_util.tree_leaves(grads)]))
         apply = finite & (overflow == 0)
         updates, new_state = tx.update(grads, opt_state, params)
         new_params = optax.apply_updates(params, updates)
         keep = functools.partial(jax.tree_util.tree_map, lambda new, old: jnp.where(apply, new, old))
-        mse = jnp.mean((jnp.clip(render, 0.0, 1.0) - image) ** 2)
-        metrics = dict(loss=loss, l1=terms["l1"], ssim=terms["ssim"],
-                       psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), overflow=overflow, pairs=pairs,
-                       applied=apply)
-        return keep(new_params, params), keep(new_state, opt_state), metrics
+        psnr = metrics.psnr(jnp.clip(render[..., :3], 0.0, 1.0), image, mask=valid, max_db=120.0)
+        info = dict(loss=loss, l1=terms["l1"], ssim=terms["ssim"], psnr=psnr, overflow=overflow, pairs=pairs,
+                    applied=apply)
+        return keep(new_params, params), keep(new_state, opt_state), info
 
     return step
 
@@ -269,10 +270,11 @@ def refine_splats(model: SplatModel, scene, steps: int, *, background=None, sh_d
         view = int(train[order.pop()])
         camera = scene_camera(scene, view, shift)
         image = jnp.asarray(scene.images[view], jnp.float32) / 255.0
+        valid = None if scene.valid is None else jnp.asarray(scene.valid[view])
         while True:
             capacity = max_pairs(per, num)
             step = _cached_step(settings, capacity)
-            new_params, new_state, metrics = step(params, opt_state, camera, image, bg)
+            new_params, new_state, metrics = step(params, opt_state, camera, image, bg, valid)
             if int(metrics["overflow"]) == 0:
                 break
             per = grown_pairs_per_gaussian(per, int(metrics["pairs"]), num)  # replay the view, nothing dropped
@@ -309,5 +311,6 @@ def heldout_psnr(model: SplatModel, scene, indices=None, *, background=None, sh_
         out, pairs = render_splats_exact(moved, scene_camera(scene, int(view), shift), background=bg,
                                          sh_degree=sh_degree, pairs_per_gaussian=pairs, antialiased=antialiased)
         image = np.clip(np.asarray(out.image, np.float32), 0.0, 1.0)
-        values.append(float(metrics.psnr(image, scene.images[int(view)].astype(np.float32) / 255.0)))
+        values.append(float(metrics.psnr(image, scene.images[int(view)].astype(np.float32) / 255.0,
+                                         mask=None if scene.valid is None else scene.valid[int(view)])))
     return float(np.mean(values))

@@ -58,7 +58,7 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
                                        pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
-                                        l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
+                                        pixel_mask=batch.get("valid"), l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
                                         volume_weight=cfg.loss.volume_weight)
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
@@ -75,12 +75,20 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         delta = jnp.zeros((active_capacity, 2), jnp.float32)
         (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key)
-        mse = jnp.mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2)
+        mse = _mse(jnp.clip(out.image[..., :3], 0, 1), batch["image"], batch.get("valid"))
         parts = dict(view=view, gaussians=gaussians, render=expand_render(out, chosen),
                      grad2d=scatter_back(grad2d, chosen), terms=terms, work=work_metrics(view, chosen, out), mse=mse)
         return loss, grads, parts
 
     return one
+
+
+def _mse(pred, target, valid) -> jax.Array:
+    """Mean squared error [H, W, 3] → scalar, over the valid pixels when ``valid`` [H, W] is given."""
+    if valid is None:
+        return jnp.mean((pred - target) ** 2)
+    weights = valid.astype(pred.dtype)[..., None]
+    return jnp.sum(weights * (pred - target) ** 2) / jnp.maximum(3.0 * jnp.sum(weights), 1.0)
 
 
 def _record(parts: dict, latent_grad, capacity: int, camera, step, finite) -> ViewRecord:
@@ -106,7 +114,8 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     The returned ``step(state, batch)`` takes ``batch = {"image": [H, W, 3]
     float32 in [0, 1], "camera": Camera, "index": [] int32 (training-view index
     for the appearance embedding)}`` plus, with feature models, ``"features":
-    {model: [h, w, D]}`` and ``"banks": {model: [M, D]}``, and returns
+    {model: [h, w, D]}`` and ``"banks": {model: [M, D]}``, and for a scene with a
+    valid-pixel mask (``SceneData.valid``) ``"valid": [H, W] bool``, and returns
     ``(state, metrics)``. A non-finite loss or gradient leaves the parameters
     and optimiser state untouched and increments ``state.skipped``. Every
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
