@@ -52,3 +52,19 @@ def test_an_output_folder_that_cannot_be_created_is_refused(tmp_path, monkeypatc
     problem = check_command_line([f"hydra.run.dir={tmp_path / 'a_file' / 'run'}"])
     assert problem is not None and "a_file is a file" in problem and "hydra.run.dir=" in problem
     assert check_command_line([f"hydra.run.dir={tmp_path / 'new' / 'run'}"]) is None
+
+
+def test_our_parser_has_hydras_flags():
+    """hydra_args_parser mirrors Hydra's private get_args_parser (the oracle here, never in the library):
+    the same option strings, destinations, arities, constants and choices."""
+    from hydra._internal.utils import get_args_parser
+
+    from cusgs_jax.app.overrides import hydra_args_parser
+
+    def signature(parser):
+        return sorted((tuple(a.option_strings), a.dest, a.nargs, a.const, tuple(a.choices or ()))
+                      for a in parser._actions)
+
+    assert signature(hydra_args_parser()) == signature(get_args_parser())
+    for argv in (["-m", "a=1", "b=2"], ["--cfg", "job", "x=1"], ["-i"], ["--info", "config"], ["-cn", "c", "y=2"]):
+        assert vars(hydra_args_parser().parse_args(argv)) == vars(get_args_parser().parse_args(argv)), argv

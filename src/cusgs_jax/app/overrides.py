@@ -9,6 +9,7 @@ naming the option and the fix, or None. The caller prints it and exits 2.
 
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import pathlib
@@ -20,11 +21,37 @@ from cusgs_jax.sweep.pareto import check_sweeper_settings
 _INFO_FLAGS = ("help", "hydra_help", "cfg", "info", "shell_completion")
 
 
+def hydra_args_parser() -> argparse.ArgumentParser:
+    """The command line ``@hydra.main`` accepts: its flags and the positional overrides.
+
+    Hydra has no public API for its parser (``hydra._internal.utils.get_args_parser``), so this is
+    our own argparse with the same flags, destinations and arities as Hydra 1.3's (a test checks
+    them against Hydra's). Used only to tell the overrides from the flags before Hydra runs;
+    Hydra itself still parses the command line that runs.
+    """
+    parser = argparse.ArgumentParser(add_help=False, prog="cusgs-train")
+    parser.add_argument("--help", "-h", action="store_true")
+    parser.add_argument("--hydra-help", action="store_true")
+    parser.add_argument("--version", action="version", version="hydra")
+    parser.add_argument("overrides", nargs="*")
+    parser.add_argument("--cfg", "-c", choices=["job", "hydra", "all"])
+    parser.add_argument("--resolve", action="store_true")
+    parser.add_argument("--package", "-p")
+    parser.add_argument("--run", "-r", action="store_true")
+    parser.add_argument("--multirun", "-m", action="store_true")
+    parser.add_argument("--shell-completion", "-sc", action="store_true")
+    parser.add_argument("--config-path", "-cp")
+    parser.add_argument("--config-name", "-cn")
+    parser.add_argument("--config-dir", "-cd")
+    parser.add_argument("--experimental-rerun")
+    parser.add_argument("--info", "-i", const="all", nargs="?",
+                        choices=["all", "config", "defaults", "defaults-tree", "plugins", "searchpath"])
+    return parser
+
+
 def check_command_line(argv: list[str]) -> str | None:
     """None when ``argv`` (``cusgs-train``'s arguments) composes into valid configurations, else the problem."""
-    from hydra._internal.utils import get_args_parser
-
-    args = get_args_parser().parse_args(argv)  # argparse itself exits 2 on an unknown flag
+    args = hydra_args_parser().parse_args(argv)  # argparse itself exits 2 on an unknown flag
     if any(getattr(args, flag, None) for flag in _INFO_FLAGS):
         return None
     try:
