@@ -104,3 +104,25 @@ def test_help_does_not_import_jax():
     env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
     assert "--colmap" in out and out.strip().endswith("NOJAX")
+
+
+def test_undistort_mask_keeps_the_frame_and_scores_its_valid_pixels(scene_and_ply, tmp_path, capsys, monkeypatch):
+    """--undistort mask on the demo through a SIMPLE_RADIAL lens (same poses and points as the scene of the
+    PLY): the full 32x24 frame, scored on its valid pixels, as well as the pinhole scene is (the same
+    Gaussians, the same views); --undistort crop scores a smaller image."""
+    from cusgs_jax.data.demo_lens import lens_camera, write_lens_demo
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    scene_dir, ply = scene_and_ply
+    lens = write_lens_demo(tmp_path / "lens", *lens_camera("simple_radial", 32, 24), num_views=4, width=32,
+                           height=24, num_points=300)
+    scores = {}
+    for name, folder, mode in (("pinhole", scene_dir, "crop"), ("mask", lens, "mask"), ("crop", lens, "crop")):
+        assert main([str(ply), "--colmap", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
+        scores[name] = json.loads(capsys.readouterr().out)
+    assert (scores["mask"]["width"], scores["mask"]["height"]) == (32, 24)
+    assert scores["crop"]["width"] < 32 and scores["crop"]["height"] < 24
+    assert abs(scores["mask"]["psnr"] - scores["pinhole"]["psnr"]) < 1.5, scores
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(ply), "--colmap", str(lens), "--undistort", "blur"])
+    assert exit_info.value.code == 2

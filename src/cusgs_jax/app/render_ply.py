@@ -27,7 +27,7 @@ __all__ = ["main", "evaluate_ply"]
 PROG = "cusgs-render-ply"
 #: cusgs-train's option names in the loaders' messages → this tool's flags
 FLAGS = {"data.path": "--colmap", "data.format": "--format", "data.downscale": "--downscale",
-         "data.holdout_every": "--holdout-every", "splat.background": "--background"}
+         "data.holdout_every": "--holdout-every", "splat.background": "--background", "data.undistort": "--undistort"}
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -46,6 +46,9 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
+    ap.add_argument("--undistort", default="crop", choices=("crop", "mask"),
+                    help="distorted cameras: crop to the valid rectangle, or keep the frame and score only its "
+                         "valid pixels (data.undistort; default crop)")
     ap.add_argument("--out-dir", default=None, metavar="DIR", help="write <image>.png: render | ground truth")
     ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=None, metavar=("R", "G", "B"),
                     help="background colour in [0, 1] (also under images with alpha; default: the layout's, "
@@ -59,10 +62,13 @@ def _parser() -> argparse.ArgumentParser:
 
 def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8, all_views: bool = False,
                  out_dir=None, background=None, sh_degree: int | None = None,
-                 antialiased: bool = False, progress: bool = True, format: str = "auto") -> dict:
+                 antialiased: bool = False, progress: bool = True, format: str = "auto",
+                 undistort: str = "crop") -> dict:
     """Render ``ply`` at the scene's held-out (or every) camera; PSNR/SSIM per view and mean.
 
     ``background`` None: the layout's default (white for Blender scenes, black otherwise).
+    ``undistort``: ``data.undistort`` for distorted cameras; with "mask" PSNR and SSIM run over the
+    valid pixels only (``SceneData.valid``).
 
     Returns:
       {"ply", "scene", "dataset_format", "split", "num_gaussians", "sh_degree", "evaluated_on":
@@ -86,7 +92,7 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     model = read_ply(ply)  # before the scene: a bad PLY fails fast
     every = 0 if all_views or holdout_every <= 1 else holdout_every
     scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=every,
-                           background=None if background is None else tuple(background))
+                           background=None if background is None else tuple(background), undistort=undistort)
     require_ssim_size(scene, downscale, "--downscale")  # before any render: SSIM needs 11x11 pixels
     background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
@@ -105,8 +111,9 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
                                          sh_degree=degree, pairs_per_gaussian=pairs, antialiased=antialiased)
         image = np.clip(np.asarray(out.image, np.float32), 0.0, 1.0)
         target = scene.images[view].astype(np.float32) / 255.0
-        per_view.append(dict(name=scene.names[view], psnr=float(metrics.psnr(image, target)),
-                             ssim=float(metrics.ssim(image, target))))
+        valid = None if scene.valid is None else scene.valid[view]
+        per_view.append(dict(name=scene.names[view], psnr=float(metrics.psnr(image, target, mask=valid)),
+                             ssim=float(metrics.ssim(image, target, mask=valid))))
         if out_dir is not None:
             pair = (np.concatenate([image, target], axis=1) * 255).round().astype(np.uint8)
             # train/r_0.png → train_r_0.png: a Blender scene's train and test frames share file names
@@ -145,7 +152,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                               all_views=args.all, out_dir=args.out_dir,
                               background=None if args.background is None else tuple(args.background),
                               sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet,
-                              format=args.format)
+                              format=args.format, undistort=args.undistort)
     except UserError as e:  # a bad PLY, scene or setting: one line, exit 2 (as every CLI)
         ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(json.dumps(result, indent=2))
