@@ -233,6 +233,13 @@ def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkey
         iio.imwrite(root / "images_2" / name, np.zeros((H // 2, W // 2, 3), np.uint8))
     half = load_nerfstudio_scene(root, holdout_every=0, downscale=2)
     np.testing.assert_array_equal(half.images, load_scene(colmap_root, holdout_every=0, downscale=2).images)
+    # data.undistort=mask: the same source-frame images and valid-pixel masks as the COLMAP scene's
+    masked = load_nerfstudio_scene(root, holdout_every=0, undistort="mask")
+    reference = load_scene(colmap_root, holdout_every=0, undistort="mask")
+    assert masked.valid is not None and masked.valid.shape == reference.valid.shape
+    np.testing.assert_array_equal(masked.valid, reference.valid)
+    np.testing.assert_array_equal(masked.images, reference.images)
+    np.testing.assert_allclose(masked.Ks, reference.Ks, rtol=1e-6)
 
 
 @pytest.mark.parametrize("model, extra, stray", [("OPENCV", dict(k3=0.01), "k3=0.01"),
