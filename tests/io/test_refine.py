@@ -135,6 +135,20 @@ def test_a_step_is_jitted_pure_and_deterministic(scene):
     assert np.max(moved) == pytest.approx(1.6e-4 * scene.extent, rel=1e-3)
 
 
+def test_a_valid_pixel_mask_makes_the_target_outside_it_irrelevant(scene):
+    """data.undistort=mask: the refinement step's loss, PSNR and update ignore the target's invalid pixels."""
+    settings, params, opt_state, camera, image = _step_inputs(scene, _points_model(scene))
+    valid = np.ones(image.shape[:2], bool)
+    valid[: image.shape[0] // 4] = False
+    other = jnp.where(jnp.asarray(valid)[..., None], image, 1.0 - image)
+    step = make_refine_step(settings, 10**5)
+    outs = [step(params, opt_state, camera, target, jnp.zeros(3), mask)
+            for target, mask in ((image, jnp.asarray(valid)), (other, jnp.asarray(valid)), (other, None))]
+    for a, b in zip(jax.tree_util.tree_leaves(outs[0]), jax.tree_util.tree_leaves(outs[1])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert float(outs[2][2]["loss"]) != float(outs[1][2]["loss"])
+
+
 def test_an_overflowing_view_changes_nothing(scene):
     settings, params, opt_state, camera, image = _step_inputs(scene, _points_model(scene))
     p, s, m = make_refine_step(settings, 8)(params, opt_state, camera, image, jnp.zeros(3))
