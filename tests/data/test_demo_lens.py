@@ -159,3 +159,28 @@ def test_lens_demo_path_caches(cache_dir):
     assert (path / "scene.json").stat().st_mtime_ns == stamp
     assert not configured_demo(dataclasses.replace(demo, lens="simple_radial")).exists()  # not generated
     assert set(LENSES) == {"pinhole", "opencv", "simple_radial"}
+
+
+def test_masked_maps_line_up_with_the_images_undistorted_with_a_mask(tmp_path, room):
+    """masked/depth/ and masked/object_ids/ are the ray casts of the source-frame camera that
+    data.undistort=mask gives, and the semantic features of a masked scene are extracted from them."""
+    from cusgs_jax.extract import extract
+
+    root = write_lens_demo(tmp_path / "s", *lens_camera("simple_radial", 64, 48), **TINY)
+    scene = load_scene(root, holdout_every=0, undistort="mask")
+    assert (scene.width, scene.height) == (64, 48) and scene.valid is not None
+    K = scene.Ks[1].astype(np.float64)
+    _, depth, ids, _ = render_view(room, scene.viewmats[1][:3, :3], scene.viewmats[1][:3, 3], 64, 48,
+                                   (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), supersample=False)
+    np.testing.assert_allclose(np.load(root / "masked" / "depth" / "view_001.npy"), depth, rtol=1e-4)
+    assert np.mean(np.load(root / "masked" / "object_ids" / "view_001.npy") == ids) > 0.99
+    assert json.loads((root / "scene.json").read_text())["masked_maps_camera"]["width"] == 64
+    extract(root, "semantic", progress=False, undistort="mask")
+    from cusgs_jax.data.features import load_features
+
+    fs = load_features(root, "semantic", scene.names)
+    assert fs.meta["undistort"] == "mask" and fs.maps.shape[1:3] == (48, 64)
+    # one vector per object: the pixels of one object id share a vector, different ids differ
+    masked_ids = np.load(root / "masked" / "object_ids" / "view_001.npy")
+    vectors = {int(i): fs.maps[1][masked_ids == i] for i in np.unique(masked_ids) if i}
+    assert all(np.allclose(v, v[0]) for v in vectors.values()) and len(vectors) > 1

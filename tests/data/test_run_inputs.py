@@ -83,7 +83,7 @@ def test_demo_lens_scene_is_generated_and_undistorted(tmp_path, monkeypatch):
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
     cfg = compose_config(["data.demo.lens=opencv", "data.demo.views=3", "data.demo.width=48", "data.demo.height=36"])
     scene, _ = load_data(cfg)
-    assert (tmp_path / "demo-lens2-opencv-s0-v3-48x36" / "scene.json").is_file()
+    assert (tmp_path / "demo-lens3-opencv-s0-v3-48x36" / "scene.json").is_file()
     assert (tmp_path / "undistorted").is_dir() and scene.width < 48 and scene.height < 36
 
 

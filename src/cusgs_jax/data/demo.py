@@ -60,7 +60,7 @@ __all__ = ["FORMAT_VERSION", "cached_scene", "demo_scene_path", "generate_demo_s
 
 FORMAT_VERSION = 3  # 2: SfM points sampled from observed pixels; 3: cameras never see the ceiling
 FOCAL_FACTOR = 0.8  # fx = fy = FOCAL_FACTOR * width (horizontal FOV ~64 deg)
-_OUTPUTS = ("images", "sparse", "depth", "object_ids", "objects.json", "scene.json")
+_OUTPUTS = ("images", "sparse", "depth", "object_ids", "masked", "objects.json", "scene.json")
 
 
 def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120, num_points=6000,
@@ -158,10 +158,18 @@ def write_view_files(out: pathlib.Path, name: str, image: np.ndarray, depth: np.
     ``depth/<stem>.npy`` ([H, W] float32) and ``object_ids/<stem>.npy`` ([H, W] uint8) that annotate it."""
     import imageio.v3 as iio
 
-    stem = name[:-4]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         iio.imwrite(out / "images" / name, image)
+    write_view_maps(out, name, depth, obj)
+
+
+def write_view_maps(out: pathlib.Path, name: str, depth: np.ndarray, obj: np.ndarray) -> None:
+    """``out/depth/<stem>.npy`` ([H, W] float32) and ``out/object_ids/<stem>.npy`` ([H, W] uint8) of the
+    view ``name`` (folders made when missing)."""
+    stem = name[:-4]
+    for sub in ("depth", "object_ids"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
     np.save(out / "depth" / f"{stem}.npy", depth)
     np.save(out / "object_ids" / f"{stem}.npy", obj)
 

@@ -43,6 +43,7 @@ from cusgs_jax.data.demo import (
     demo_scene_folder,
     demo_scene_path,
     write_view_files,
+    write_view_maps,
 )
 from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, mean_colour, render_view
@@ -52,7 +53,8 @@ __all__ = ["LENSES", "configured_demo", "lens_camera", "lens_demo_folder", "lens
            "write_lens_demo"]
 
 LENSES = ("pinhole", "opencv", "simple_radial")
-LENS_FORMAT_VERSION = 2  # 2: depth and object ids in the undistorted frame
+LENS_FORMAT_VERSION = 3  # 2: depth and object ids in the undistorted frame; 3: also in the masked frame
+MASKED_MAPS = "masked"  # <scene>/masked/{depth,object_ids}/: the maps in the frame of data.undistort=mask
 _SUBSAMPLES = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
 
 
@@ -130,9 +132,12 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         raise ValueError(f"camera model {model!r} with params {params}: {e}") from e
     if not camera.verify_params():
         raise ValueError(f"camera model {model} takes the params {camera.params_info}, got {params}")
-    # the camera the loader undistorts to: the frame of the depth and object-id maps
-    loaded = undistorted_cameras({1: camera})[1] if needs_undistortion(camera) else camera
-    K_loaded = (loaded.focal_length_x, loaded.focal_length_y, loaded.principal_point_x, loaded.principal_point_y)
+    # the cameras the loader undistorts to (data.undistort=crop, and =mask): the frames of the depth and
+    # object-id maps in depth/ and object_ids/, and in masked/depth/ and masked/object_ids/
+    distorted = needs_undistortion(camera)
+    loaded = undistorted_cameras({1: camera})[1] if distorted else camera
+    masked = undistorted_cameras({1: camera}, mode="mask")[1] if distorted else None
+    K_loaded = _intrinsics(loaded)
     out = pathlib.Path(out_dir)
     _clear_outputs(out, overwrite)
 
@@ -149,6 +154,10 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         _, depth, obj, _ = render_view(scene, R, t, int(loaded.width), int(loaded.height), K_loaded,
                                        supersample=False)
         write_view_files(out, names[v], image, depth, obj)
+        if masked is not None:
+            _, depth, obj, _ = render_view(scene, R, t, int(masked.width), int(masked.height), _intrinsics(masked),
+                                           supersample=False)
+            write_view_maps(out / MASKED_MAPS, names[v], depth, obj)
         # the pinhole demo's depth and faces (centre rays only): its SfM points, unchanged
         _, pin_depth, _, faces = render_view(scene, R, t, width, height, K, supersample=False)
         pin_depths.append(pin_depth)
@@ -169,10 +178,19 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         "maps_camera": {"model": "PINHOLE", "width": int(loaded.width), "height": int(loaded.height),
                         "params": [float(k) for k in K_loaded],
                         "note": "depth/ and object_ids/ are in the frame of the undistorted images"},
+        **({"masked_maps_camera": {"model": "PINHOLE", "width": int(masked.width), "height": int(masked.height),
+                                   "params": [float(k) for k in _intrinsics(masked)],
+                                   "note": "masked/depth/ and masked/object_ids/ are in the frame of the images "
+                                           "undistorted with data.undistort=mask"}} if masked is not None else {}),
         "images": names, "generation_seconds": round(time.perf_counter() - t0, 3),
     }
     (out / "scene.json").write_text(json.dumps(info, indent=1) + "\n")
     return out
+
+
+def _intrinsics(camera) -> tuple[float, float, float, float]:
+    """(fx, fy, cx, cy) of a pycolmap camera."""
+    return (camera.focal_length_x, camera.focal_length_y, camera.principal_point_x, camera.principal_point_y)
 
 
 def lens_demo_folder(cache_dir=None, *, lens="pinhole", seed=0, num_views=30, width=160,

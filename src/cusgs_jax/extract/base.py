@@ -23,11 +23,17 @@ MODELS = BUILT_IN_EXTRACTORS + ("clip", "dinov2")
 
 @dataclasses.dataclass(frozen=True)
 class View:
-    """One image handed to an extractor: its scene folder, COLMAP name and pixels."""
+    """One image handed to an extractor: its scene folder, COLMAP name and pixels, and the folder of the
+    demo scene's per-pixel maps (``object_ids/``) in the frame of those pixels."""
 
     scene: pathlib.Path
     name: str
     image: np.ndarray  # [H, W, 3] uint8 at the loaded resolution
+    maps: pathlib.Path | None = None  # default: ``scene`` (the lens demo's masked/ for data.undistort=mask)
+
+    @property
+    def maps_folder(self) -> pathlib.Path:
+        return self.scene if self.maps is None else self.maps
 
 
 def resized_image(image: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:

@@ -51,6 +51,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.demo_lens import MASKED_MAPS  # the lens demo's maps in the masked frame
 from cusgs_jax.data.features import (
     META_FILE,
     FeatureError,
@@ -112,7 +113,7 @@ class _Semantic:
 
     def __call__(self, view: View, size):
         """→ [h, w, dim] float32; ids resized to ``size`` = (w, h) by nearest neighbour."""
-        folder = view.scene / "object_ids"
+        folder = view.maps_folder / "object_ids"
         if not folder.is_dir():
             raise FeatureError(
                 f"model 'semantic' needs per-pixel object ids in {folder}, which does not exist: "
@@ -246,6 +247,8 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=0, num_random_points=2,
                            undistort=undistort)
 
+    # the demo's object ids in the frame of these images: the lens demo keeps the masked frame's apart
+    maps = scene.path / MASKED_MAPS if scene.valid is not None else None
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
              **({"undistort": "mask"} if scene.valid is not None else {}),
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()
@@ -257,7 +260,7 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     with writer:
         for i in tqdm(range(scene.num_images), desc=f"cusgs-extract {model}", unit="view",
                       disable=not progress, file=sys.stderr):
-            view = View(scene.path, scene.names[i], scene.images[i])
+            view = View(scene.path, scene.names[i], scene.images[i], maps=maps)
             t0 = time.perf_counter()
             fmap = extractor(view, resolution)
             busy += time.perf_counter() - t0
