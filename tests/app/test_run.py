@@ -28,9 +28,13 @@ TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=fals
 
 
 @pytest.fixture(scope="module")
-def tiny_scene(tmp_path_factory):
-    return generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_views=9, width=40, height=30,
-                               num_points=1500)
+def tiny_scene(build_once):
+    """The 9-view 40×30 demo scene, generated once per session (tests/conftest.py built_once; the runs below
+    record its path, so every xdist worker resumes them on the same folder). The feature tests extract into its
+    features/ folder, which the library serialises across processes (extract.scene.ensure_extracted)."""
+    _, scene = build_once("run_scene", lambda root: generate_demo_scene(
+        root / "demo", num_views=9, width=40, height=30, num_points=1500))
+    return scene
 
 
 def _cfg(scene, *extra):
@@ -38,10 +42,10 @@ def _cfg(scene, *extra):
 
 
 @pytest.fixture(scope="module")
-def straight(tiny_scene, tmp_path_factory):
-    """One uninterrupted 30-step run (read only by the tests): (folder, returned eval dict)."""
-    out = tmp_path_factory.mktemp("straight")
-    return out, run(_cfg(tiny_scene), out)
+def straight(tiny_scene, build_once):
+    """One uninterrupted 30-step run (read only by the tests; trained once per session): (folder, returned eval
+    dict)."""
+    return build_once("straight", lambda out: run(_cfg(tiny_scene), out))
 
 
 def _jsonl(path):
