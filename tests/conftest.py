@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import os
 import pickle
 import shutil
@@ -69,6 +70,40 @@ def build_once(tmp_path_factory):
 
 TINY_DEMO = dict(width=40, height=30, num_views=4, num_points=1500)
 """The tiny demo scene of the ``demo`` fixture (W, H, V as the extract tests use them)."""
+
+
+@pytest.fixture(scope="session", autouse=True)
+def compilation_cache(tmp_path_factory):
+    """JAX's persistent compilation cache, in a folder new to this test session and shared by its xdist workers.
+
+    Most of the suite's time is XLA compiling: each run, step or renderer a test builds is a new jitted function,
+    and under xdist both workers compile what the other already has (a module split over the two, the shared
+    fixtures of conftest). With the cache, a program compiled once in the session (same canonical HLO, options
+    and devices) is loaded instead of compiled again: the same executable, so the same numbers. It starts
+    empty every session, so every program is compiled once per session and nothing is carried between runs;
+    the jit caches the tests inspect (``_cache_size()``) are per function and unaffected. Writes are locked
+    (filelock, when installed) so that one worker never reads an entry the other is still writing.
+    CUSGS_TEST_COMPILATION_CACHE=0 turns it off (every program compiled in the process that runs it).
+    """
+    import jax
+
+    if os.environ.get("CUSGS_TEST_COMPILATION_CACHE", "1") == "0":
+        yield None
+        return
+
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    base = tmp_path_factory.getbasetemp()
+    folder = (base.parent if worker else base) / "jax_compilation_cache"  # pytest-N/: common to the workers
+    folder.mkdir(exist_ok=True)
+    before = {name: getattr(jax.config, name) for name in (
+        "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs", "jax_compilation_cache_max_size")}
+    jax.config.update("jax_compilation_cache_dir", str(folder))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    if importlib.util.find_spec("filelock") is not None:  # a size limit turns on the cache's file lock
+        jax.config.update("jax_compilation_cache_max_size", 16 * 2**30)
+    yield folder
+    for name, value in before.items():
+        jax.config.update(name, value)
 
 
 @pytest.fixture
