@@ -10,18 +10,24 @@ from cusgs_jax.app.run import run
 from cusgs_jax.config import compose_config
 from cusgs_jax.testing.transforms_scenes import write_blender_scene
 
-TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=3",
+# eval.every=6: the held-out curve is evaluated once, at the last step (no test reads a mid-run point, and one at
+# step 3 compiles a renderer for that step's anchor capacity: 9 of this module's 32 s)
+TINY = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false", "eval.every=6",
         "eval.save_renders=false", "grow.stats_start=1", "grow.start=2", "grow.stop=6", "grow.interval=2",
         "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
         "prune.start=2", "prune.interval=2", "prune.ratio=0.05", "data.random_points=1500"]
 
 
 @pytest.fixture(scope="module")
-def blender_run(tmp_path_factory):
-    """(scene truth, run folder, run result) of a 6-step run on a tiny Blender scene (voxel size and format auto)."""
-    root = tmp_path_factory.mktemp("blender")
-    truth = write_blender_scene(root / "lego", train=6, test=2, width=40, height=30)
-    result = run(compose_config([f"data.path={truth['root']}", *TINY]), root / "run")
+def blender_run(build_once):
+    """(scene truth, run folder, run result) of a 6-step run on a tiny Blender scene (voxel size and format auto);
+    trained once per session (tests/conftest.py built_once): read only."""
+
+    def build(root):
+        truth = write_blender_scene(root / "lego", train=6, test=2, width=40, height=30)
+        return truth, run(compose_config([f"data.path={truth['root']}", *TINY]), root / "run")
+
+    root, (truth, result) = build_once("blender", build)
     return truth, root / "run", result
 
 
