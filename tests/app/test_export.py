@@ -135,6 +135,7 @@ def test_export_help_does_not_import_jax():
     assert out.returncode == 0 and out.stdout.strip().endswith("ok") and "RUN_DIR" in out.stdout, out.stderr
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_a_run_in_the_principal_frame_exports_to_the_colmap_frame(trained, tmp_path):
     """data.align=principal trains in a rotated frame; the export undoes the rotation, so the PLY rendered at the
     COLMAP scene's held-out views scores as the run does. (This 30-step model is too blobby for its Gaussian

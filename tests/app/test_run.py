@@ -330,6 +330,7 @@ def test_an_output_folder_that_cannot_be_written_is_refused(tiny_scene, tmp_path
         setup(_cfg(tiny_scene), tmp_path / "a_file" / "run")
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, tiny_scene, tmp_path, caplog):
     out = tmp_path / "run"
     shutil.copytree(straight[0], out)  # checkpoints 20 and 30
@@ -402,6 +403,7 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
     assert f"step {10 * cfg.train.log_every}: the loss term l1 is nan" in caplog.text
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path):
     result = run(_cfg(tiny_scene, "train.batch_size=2", "train.iterations=10", "eval.every=10", "grow.start=4",
                       "grow.interval=4", "grow.stop=10", "prune.start=6", "prune.interval=6"), tmp_path)

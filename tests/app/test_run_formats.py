@@ -31,6 +31,7 @@ def blender_run(build_once):
     return truth, root / "run", result
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_blender_scene_trains_and_evaluates_on_its_test_split(blender_run):
     truth, out, result = blender_run
 
@@ -72,6 +73,7 @@ def test_render_ply_on_a_blender_scene(tmp_path, capsys):
                                                      "train_r_1.png", "train_r_2.png"]
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_blender_run_exports_to_the_scenes_own_frame(blender_run, tmp_path):
     """cusgs-export writes the PLY in the frame of transforms_*.json: the Blender-frame cameras (as the loader
     reads them) see every exported Gaussian at the pixel where the training cameras saw it in the normalised

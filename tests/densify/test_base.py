@@ -8,6 +8,7 @@ import json
 
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from cusgs_jax.app import run as run_module
 from cusgs_jax.config import compose_config
@@ -79,6 +80,7 @@ def test_the_built_in_strategies_are_strategies_and_the_shell_names_none_of_them
         assert type(strategy).__name__ not in source and f'"{strategy.name}"' not in source
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_a_strategy_defined_outside_the_package_is_trained_and_recorded(tmp_path):
     scene = generate_demo_scene(tmp_path / "scene", width=40, height=30, num_views=4, num_points=1500)
     cfg = compose_config([f"data.path={scene}", "train.iterations=4", "train.log_every=1", "train.progress=false",

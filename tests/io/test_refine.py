@@ -157,6 +157,7 @@ def test_an_overflowing_view_changes_nothing(scene):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_refine_grows_the_pair_capacity_and_replays(scene, monkeypatch):
     """With no slack in the capacity, views overflow; the replays give exactly the unconstrained result."""
     model = _points_model(scene)

@@ -71,6 +71,7 @@ def test_nothing_is_rendered_without_a_browser(monkeypatch):
     assert viewer.rendered == 0 and live.spent_s == 0 and snapshot.calls == 0  # nothing compacted for nobody
 
 
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_a_training_run_shows_view_models_of_its_steps_and_stops_its_server(tmp_path, caplog, monkeypatch):
     pytest.importorskip("viser", reason="the viewer extra is not installed")
     from cusgs_jax.app.run import run
