@@ -2,12 +2,11 @@
 
 from __future__ import annotations
 
-import contextlib
-import importlib.util
 import os
 import pickle
 import shutil
 
+import filelock
 import pytest
 
 # Two virtual CPU devices in every test process (set before JAX starts), so the tests of views
@@ -15,22 +14,6 @@ import pytest
 # code runs on the first of them, as before.
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
-
-
-@contextlib.contextmanager
-def _exclusive(lock_file):
-    """An exclusive inter-process lock (``flock``) on ``lock_file`` (POSIX; elsewhere no lock)."""
-    try:
-        import fcntl
-    except ImportError:  # pragma: no cover - not POSIX
-        yield
-        return
-    with open(lock_file, "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def built_once(tmp_path_factory, name: str, build):
@@ -51,7 +34,7 @@ def built_once(tmp_path_factory, name: str, build):
     root = tmp_path_factory.getbasetemp().parent / "built_once"  # pytest-N/: common to this session's workers
     root.mkdir(exist_ok=True)
     folder, done = root / name, root / f"{name}.pickle"
-    with _exclusive(root / f"{name}.lock"):
+    with filelock.FileLock(root / f"{name}.lock"):  # one builder; the other workers wait here
         if not done.is_file():
             if folder.exists():  # left by a build that failed
                 shutil.rmtree(folder)
@@ -99,8 +82,7 @@ def compilation_cache(tmp_path_factory):
         "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs", "jax_compilation_cache_max_size")}
     jax.config.update("jax_compilation_cache_dir", str(folder))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    if importlib.util.find_spec("filelock") is not None:  # a size limit turns on the cache's file lock
-        jax.config.update("jax_compilation_cache_max_size", 16 * 2**30)
+    jax.config.update("jax_compilation_cache_max_size", 16 * 2**30)  # a size limit turns on the cache's file lock
     yield folder
     for name, value in before.items():
         jax.config.update(name, value)
