@@ -16,7 +16,7 @@ loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in CO
 Camera models (:data:`SUPPORTED_CAMERA_MODELS`, those gsplat accepts): PINHOLE and SIMPLE_PINHOLE
 are loaded as they are; SIMPLE_RADIAL, RADIAL, OPENCV and OPENCV_FISHEYE are undistorted to
 PINHOLE once per scene with COLMAP's own undistorter into the project's cache, never into the
-scene folder (:mod:`.undistort`: crop, not mask; one common size; ``images_d/`` folders are
+scene folder (:mod:`.undistort`: cropped, or masked with ``data.undistort=mask``; one common size; ``images_d/`` folders are
 not used, the undistorted images are downscaled on load). A perspective model whose distortion
 parameters are all zero is loaded as the pinhole it is. Any other model (FULL_OPENCV, FOV,
 THIN_PRISM_FISHEYE, ...) is refused with a SceneError saying to run ``colmap image_undistorter``.
@@ -148,19 +148,18 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
     background = check_background(background)
-    mode = undistort
-    scene, files, rec, entries, cameras, undistort = _read_model(path, downscale, mode)
+    scene, files, rec, entries, cameras, undistorted = _read_model(path, downscale, undistort)
     names, viewmats = _poses(entries, files)
     points, point_colors = _points(rec, files["points3D"])
 
     # The image folder (the scene's, or its undistorted copy in the cache) and the expected
     # loaded size of every image.
-    image_root = scene if undistort is None else undistort()
+    image_root = scene if undistorted is None else undistorted()
     folder, from_prescaled = image_dir(image_root, downscale)
     images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
                          cameras, downscale, from_prescaled, scene, background=background)
     height, width = images.shape[1:3]
-    valid = None if undistort is None else undistorted_masks(image_root, [image.camera_id for _, _, image in entries],
+    valid = None if undistorted is None else undistorted_masks(image_root, [image.camera_id for _, _, image in entries],
                                                              downscale)
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
     train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
