@@ -214,9 +214,10 @@ def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp
     assert _latest_checkpoint(out) == 45
 
 
-# per_gaussian drives the refilled-slot query reset through growing end to end (slow; the
-# per-anchor variant runs by default)
-@pytest.mark.parametrize("granularity", ["per_anchor", pytest.param("per_gaussian", marks=pytest.mark.slow)])
+# both ~30 s end to end, so both run in .ci/run's -m slow pass (per_gaussian drives the refilled-slot query
+# reset through growing); the default run keeps test_view_render's feature renders and test_field's feature step
+@pytest.mark.parametrize("granularity", [pytest.param("per_anchor", marks=pytest.mark.slow),
+                                         pytest.param("per_gaussian", marks=pytest.mark.slow)])
 def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, granularity):
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)

@@ -290,6 +290,8 @@ def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)
 
 
+@pytest.mark.slow  # ~36 s (seven step compiles): in .ci/run's -m slow pass; the default run keeps the
+# batched overflow test below and test_view_render's pair-growth test
 def test_a_step_that_would_drop_work_changes_nothing_and_the_grown_replay_is_exact(monkeypatch):
     """Too few visible slots, active Gaussians and tile pairs: the step reports the shortfall and leaves the
     state as it was; replayed with the capacities grown by the shell's rule it equals a step that never
