@@ -179,6 +179,7 @@ def test_resize_capacity_moves_the_alive_rows_of_every_per_anchor_array_to_the_f
         ops.resize_capacity(state, tx, len(keep) - 1)
 
 
+@pytest.mark.slow  # ~20 s end to end (trains, shrinks, steps): in .ci/run's -m slow pass; the shrink itself is tested above
 def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_path):
     """Dead slots contribute nothing: the step on the compacted capacity gives the alive anchors the
     same loss and the same new parameters (float32 tolerance: the gathers' padding differs)."""

@@ -61,6 +61,7 @@ def test_foundation_models_without_packages_say_how_to_install(demo, model, tmp_
     assert _INSTALL_HINT[model] in str(e.value)
 
 
+@pytest.mark.slow  # ~14 s: a whole ViT-B/16 on the CPU; in .ci/run's -m slow pass (dinov2's random-weight test stays)
 def test_clip_vit_b16_with_random_weights(demo, names):
     """open_clip's ViT-B-16, randomly initialised, through the extractor: token grid → maps."""
     torch, open_clip = _modules("clip")
