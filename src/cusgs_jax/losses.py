@@ -37,6 +37,7 @@ __all__ = [
     "gaussian_window",
     "image_loss",
     "l1",
+    "masked_mean",
     "ssim",
     "ssim_loss",
     "ssim_map",
@@ -169,10 +170,8 @@ def ssim(pred, target, *, data_range: float = 1.0, sigma: float = SSIM_SIGMA, ma
     pred, target = zero_invalid(pred, target, mask)
     values = ssim_map(pred, target, data_range=data_range, sigma=sigma)
     r = (gaussian_window(sigma).shape[0] - 1) // 2
-    weights = jnp.asarray(mask, values.dtype)[r:pred.shape[0] - r, r:pred.shape[1] - r]
-    weights = jnp.broadcast_to(weights[..., None], values.shape)
-    total = jnp.sum(weights)
-    return jnp.where(total > 0, jnp.sum(weights * values) / jnp.where(total > 0, total, 1.0), 1.0)
+    cropped = jnp.asarray(mask, values.dtype)[r:pred.shape[0] - r, r:pred.shape[1] - r]  # the map's grid
+    return jnp.where(jnp.any(cropped > 0), masked_mean(values, cropped), 1.0)
 
 
 def zero_invalid(pred, target, mask) -> tuple[jnp.ndarray, jnp.ndarray]:
@@ -185,9 +184,7 @@ def zero_invalid(pred, target, mask) -> tuple[jnp.ndarray, jnp.ndarray]:
     statistic (SSIM, LPIPS) at the valid pixels next to them.
     """
     pred, target = _float_pair(pred, target)
-    keep = jnp.asarray(mask).astype(bool)
-    if keep.ndim == pred.ndim - 1:
-        keep = keep[..., None]
+    keep = _broadcast_mask(jnp.asarray(mask).astype(bool), pred)
     zero = jnp.zeros((), pred.dtype)
     return jnp.where(keep, pred, zero), jnp.where(keep, target, zero)
 
@@ -204,18 +201,37 @@ def l1(pred, target, mask=None) -> jnp.ndarray:
       pred, target: [H, W, C] images (any equal shapes work).
       mask: optional per-pixel weights, [H, W] (broadcast over C) or broadcastable
         to pred's shape; bool or float. With a mask the result is the weighted mean
-        Σ m·|pred − target| / Σ m (over all broadcast elements), and 0 if Σ m = 0.
+        Σ m·|pred − target| / Σ m (over all broadcast elements), and 0 if Σ m = 0
+        (:func:`masked_mean`).
     """
     pred, target = _float_pair(pred, target)
-    err = jnp.abs(pred - target)
+    return masked_mean(jnp.abs(pred - target), mask)
+
+
+def masked_mean(values, mask=None) -> jnp.ndarray:
+    """Σ m·values / Σ m over all elements → scalar; the plain mean without a mask.
+
+    Args:
+      values: [H, W, C] (any shape) floating array.
+      mask: optional weights, [H, W] (broadcast over the last axis) or broadcastable to
+        ``values``; bool or float (e.g. a valid-pixel mask, ``SceneData.valid``). The result is 0
+        when Σ m = 0. What :func:`l1`, the masked PSNR (:func:`cusgs_jax.eval.metrics.psnr`) and
+        the training step's MSE average with.
+    """
+    values = jnp.asarray(values)
     if mask is None:
-        return jnp.mean(err)
+        return jnp.mean(values)
+    weights = _broadcast_mask(mask, values).astype(values.dtype)
+    total = jnp.sum(weights)
+    return jnp.sum(weights * values) / jnp.where(total > 0, total, 1.0)
+
+
+def _broadcast_mask(mask, like: jnp.ndarray) -> jnp.ndarray:
+    """A per-pixel ``mask`` ([H, W] for an [H, W, C] ``like``, or broadcastable) broadcast to ``like``'s shape."""
     mask = jnp.asarray(mask)
-    if mask.ndim == pred.ndim - 1:
+    if mask.ndim == like.ndim - 1:
         mask = mask[..., None]
-    mask = jnp.broadcast_to(mask, pred.shape).astype(pred.dtype)
-    total = jnp.sum(mask)
-    return jnp.sum(mask * err) / jnp.where(total > 0, total, 1.0)
+    return jnp.broadcast_to(mask, like.shape)
 
 
 def volume_regularizer(scales, mask=None) -> jnp.ndarray:

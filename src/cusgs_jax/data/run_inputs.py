@@ -24,6 +24,7 @@ from cusgs_jax.data.normalize import WorldTransform, normalize_scene
 from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
 from cusgs_jax.losses import gaussian_window
 from cusgs_jax.memory import psc
+from cusgs_jax.model.field import image_pixel_of
 
 log = logging.getLogger("cusgs_jax")
 
@@ -146,12 +147,10 @@ def mask_feature_maps(fs: FeatureSet, valid: np.ndarray) -> FeatureSet:
     Args:
       fs: feature maps [V, h, w, D] of the scene's views.
       valid: [V, H, W] bool valid-pixel masks of the images. A feature pixel (r, c) reads the image pixel
-        whose centre is nearest to its own, as the loss samples it (:func:`cusgs_jax.model.field.sampled_feature_loss`).
+        whose centre is nearest to its own, as the loss samples it (:func:`cusgs_jax.model.field.image_pixel_of`).
     """
     fh, fw = fs.maps.shape[1:3]
-    height, width = valid.shape[1:]
-    rows = np.minimum(((np.arange(fh) + 0.5) * height / fh).astype(np.int64), height - 1)
-    cols = np.minimum(((np.arange(fw) + 0.5) * width / fw).astype(np.int64), width - 1)
+    rows, cols = (np.asarray(i) for i in image_pixel_of(np.arange(fh), np.arange(fw), (fh, fw), valid.shape[1:]))
     keep = valid[:, rows][:, :, cols]  # [V, h, w]
     return dataclasses.replace(fs, maps=np.where(keep[..., None], fs.maps, 0).astype(fs.maps.dtype),
                                valid=fs.valid & keep)

@@ -237,10 +237,7 @@ def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list
     info = json.loads((final / _MARKER).read_text())
     crop = max((max(p.full.width - p.camera.width, p.full.height - p.camera.height)
                 for p in plans.values()), default=0)
-    valid = ""
-    if info.get("masks"):
-        share = np.mean([np.asarray(_read_mask(final / m)).mean() / 255.0 for m in info["masks"].values()])
-        valid = f" ({100 * share:.1f} % of the pixels valid, masked)"
+    valid = f" ({100 * info['valid_share']:.1f} % of the pixels valid, masked)" if info.get("masks") else ""
     log.info("undistorted %d images %s → PINHOLE %d×%d%s%s, cached in %s", len(views),
              info["source_models"], info["width"], info["height"],
              f" (cropped by up to {crop} px to one common size)" if crop else "", valid, final)
@@ -360,12 +357,12 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
         if _has_alpha(source):
             _undistort_with_alpha(tmp / "images" / name, source, plans[cid], options)
             alpha_images.append(name)
-    mask_files = {}
+    mask_files, shares = {}, []
     if masks:
         (tmp / "masks").mkdir()
         for cid, plan in plans.items():
             mask_files[str(cid)] = f"masks/camera_{cid}.png"
-            _write_mask(tmp / mask_files[str(cid)], plan, options)
+            shares.append(_write_mask(tmp / mask_files[str(cid)], plan, options))
     first = next(iter(plans.values())).camera
     info = dict(
         version=CACHE_VERSION, scene=str(scene.resolve()), num_images=len(views),
@@ -377,6 +374,7 @@ def _undistort_into(tmp: pathlib.Path, model_dir, scene, views, sources, plans, 
                  for cid, p in plans.items()},
         alpha_images=alpha_images,
         masks=mask_files,
+        **({"valid_share": float(np.mean(shares))} if shares else {}),  # mean over the cameras
     )
     (tmp / _MARKER).write_text(json.dumps(info, indent=1) + "\n")
 
@@ -456,14 +454,16 @@ def _warp(options, img: np.ndarray, plan: _Plan) -> np.ndarray:
     return out[plan.y0:plan.y0 + int(plan.camera.height), plan.x0:plan.x0 + int(plan.camera.width)]
 
 
-def _write_mask(path: pathlib.Path, plan: _Plan, options) -> None:
-    """The camera's valid-pixel mask [H, W] uint8 (255 valid, 0 not) as a PNG: COLMAP's warp of an
-    all-255 source image, 255 exactly where the whole bilinear footprint lies inside the source."""
+def _write_mask(path: pathlib.Path, plan: _Plan, options) -> float:
+    """Write the camera's valid-pixel mask [H, W] uint8 (255 valid, 0 not) as a PNG: COLMAP's warp of an
+    all-255 source image, 255 exactly where the whole bilinear footprint lies inside the source.
+    Returns the share of valid pixels."""
     from PIL import Image
 
     full = np.full((int(plan.source.height), int(plan.source.width)), 255, np.uint8)
     valid = _warp(options, full, plan) == 255
     Image.fromarray(np.where(valid, 255, 0).astype(np.uint8)).save(path, format="PNG")
+    return float(valid.mean())
 
 
 def _read_mask(path: pathlib.Path) -> np.ndarray:

@@ -11,7 +11,7 @@ from collections.abc import Callable, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.losses import ssim
+from cusgs_jax.losses import masked_mean, ssim
 
 __all__ = ["PSNR_MAX_DB", "mean_and_per_view", "psnr", "ssim"]
 
@@ -40,12 +40,7 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB, 
         raise ValueError(f"pred and target shapes differ: {pred.shape} vs {target.shape}")
     dtype = jnp.promote_types(jnp.promote_types(pred.dtype, target.dtype), jnp.float32)
     diff = pred.astype(dtype) - target.astype(dtype)
-    if mask is None:
-        mse = jnp.mean(diff * diff)
-    else:
-        weights = jnp.broadcast_to(jnp.asarray(mask, dtype).reshape(jnp.shape(mask) + (1,) * (diff.ndim - jnp.ndim(mask))),
-                                   diff.shape)
-        mse = jnp.sum(weights * diff * diff) / jnp.maximum(jnp.sum(weights), 1.0)
+    mse = masked_mean(diff * diff, mask)
     peak = jnp.asarray(data_range, dtype) ** 2
     floor = peak * 10.0 ** (-max_db / 10.0)  # the MSE at which PSNR = max_db
     return jnp.minimum(10.0 * jnp.log10(peak / jnp.maximum(mse, floor)), max_db)

@@ -74,6 +74,22 @@ def stratified_pixels(key: jax.Array, total: int, count: int) -> jax.Array:
     return units // count
 
 
+def image_pixel_of(row, col, feature_hw: tuple[int, int], image_hw: tuple[int, int]) -> tuple[jax.Array, jax.Array]:
+    """The image pixel a feature-map pixel reads: the one whose centre is nearest to its own.
+
+    Args:
+      row, col: [P] int feature-map pixel indices of an h×w map (``feature_hw`` = (h, w)).
+      image_hw: (H, W) of the image.
+    Returns:
+      ([P] int32 image rows, [P] int32 image columns). What :func:`sampled_feature_loss` samples and
+      what :func:`cusgs_jax.data.run_inputs.mask_feature_maps` masks by.
+    """
+    (fh, fw), (height, width) = feature_hw, image_hw
+    img_row = jnp.minimum(((jnp.asarray(row) + 0.5) * height / fh).astype(jnp.int32), height - 1)
+    img_col = jnp.minimum(((jnp.asarray(col) + 0.5) * width / fw).astype(jnp.int32), width - 1)
+    return img_row, img_col
+
+
 def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: dict, key: jax.Array,
                          cfg: FeatureConfig) -> tuple[jax.Array, dict]:
     """Σ over models of :func:`feature_loss` on ``cfg.sample_pixels`` pixels drawn per model.
@@ -98,9 +114,7 @@ def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: 
             pick = stratified_pixels(jax.random.fold_in(key, model_index), fh * fw, count)
         else:
             pick = jnp.arange(fh * fw)
-        row, col = pick // fw, pick % fw
-        img_row = jnp.minimum(((row + 0.5) * height / fh).astype(jnp.int32), height - 1)
-        img_col = jnp.minimum(((col + 0.5) * width / fw).astype(jnp.int32), width - 1)
+        img_row, img_col = image_pixel_of(pick // fw, pick % fw, (fh, fw), (height, width))
         q = queries[img_row, img_col][:, channels]
         head, bank = heads[name], banks[name]
         predicted = attend(head, q, precompute_keys(head, bank), bank)  # keys once per step

@@ -58,8 +58,8 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
                                        pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
-                                        pixel_mask=batch.get("valid"), l1_weight=cfg.loss.l1_weight, ssim_weight=cfg.loss.ssim_weight,
-                                        volume_weight=cfg.loss.volume_weight)
+                                        pixel_mask=batch.get("valid"), l1_weight=cfg.loss.l1_weight,
+                                        ssim_weight=cfg.loss.ssim_weight, volume_weight=cfg.loss.volume_weight)
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
                                                                 local["memory"], batch["banks"], key, features)
@@ -75,20 +75,12 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         delta = jnp.zeros((active_capacity, 2), jnp.float32)
         (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key)
-        mse = _mse(jnp.clip(out.image[..., :3], 0, 1), batch["image"], batch.get("valid"))
+        mse = losses.masked_mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2, batch.get("valid"))
         parts = dict(view=view, gaussians=gaussians, render=expand_render(out, chosen),
                      grad2d=scatter_back(grad2d, chosen), terms=terms, work=work_metrics(view, chosen, out), mse=mse)
         return loss, grads, parts
 
     return one
-
-
-def _mse(pred, target, valid) -> jax.Array:
-    """Mean squared error [H, W, 3] → scalar, over the valid pixels when ``valid`` [H, W] is given."""
-    if valid is None:
-        return jnp.mean((pred - target) ** 2)
-    weights = valid.astype(pred.dtype)[..., None]
-    return jnp.sum(weights * (pred - target) ** 2) / jnp.maximum(3.0 * jnp.sum(weights), 1.0)
 
 
 def _record(parts: dict, latent_grad, capacity: int, camera, step, finite) -> ViewRecord:
