@@ -351,5 +351,5 @@ def test_data_demo_lens_validation():
 def test_data_undistort_validation():
     assert compose_config([]).data.undistort == "crop"
     assert compose_config(["data.undistort=mask"]).data.undistort == "mask"
-    with pytest.raises(ConfigError, match="data.undistort='blur': must be crop .* or mask"):
+    with pytest.raises(ConfigError, match="data.undistort=.blur.: must be crop .* or lens"):
         compose_config(["data.undistort=blur"])

@@ -73,8 +73,9 @@ class DataConfig:
     align: str = "none"
     random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
     # Distorted cameras (data/undistort.py): "crop" to the largest valid rectangle (COLMAP's
-    # image_undistorter default), or "mask": keep the source frame and leave its invalid pixels out of
-    # the loss, the metrics and the feature targets.
+    # image_undistorter default), "mask": keep the source frame and leave its invalid pixels out of
+    # the loss, the metrics and the feature targets, or "lens": keep the images as captured and
+    # rasterise through the lens model itself (splat/lens.py; no resampling, every pixel scored).
     undistort: str = "crop"
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
@@ -88,9 +89,9 @@ class DataConfig:
                 f"must be auto or one of {', '.join(DATASET_FORMATS)} (the layout of data.path)",
                 "e.g. data.format=auto to detect it from the files present")
         _at_least(self, "data", 2, "random_points")
-        require(self.undistort in ("crop", "mask"), "data.undistort", self.undistort,
-                "must be crop (keep the largest valid rectangle) or mask (keep the frame, mask its invalid pixels)",
-                "e.g. data.undistort=mask")
+        require(self.undistort in ("crop", "mask", "lens"), "data.undistort", self.undistort,
+                "must be crop (keep the largest valid rectangle), mask (keep the frame, mask its invalid pixels) "
+                "or lens (keep the images, render through the lens)", "e.g. data.undistort=lens")
 
 
 @dataclasses.dataclass(frozen=True)

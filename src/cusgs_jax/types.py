@@ -25,6 +25,7 @@ Every public docstring writes shapes with these letters:
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -33,18 +34,22 @@ import jax.numpy as jnp
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Camera:
-    """A pinhole camera: OpenCV axes (+z forward, +y down), gsplat conventions (docs/rasterizer.md#projection).
+    """A perspective camera: OpenCV axes (+z forward, +y down), gsplat conventions (docs/rasterizer.md#projection).
 
     Attributes:
       K: [3, 3] intrinsics.
       world_to_camera: [4, 4] world→camera matrix.
       width, height: image size in pixels (static: part of the tree structure, never traced).
+      lens: the lens distortion (:class:`cusgs_jax.splat.lens.Lens`) the camera renders through, or
+        None for a pinhole camera (``data.undistort=lens`` keeps it; the other modes undistort the
+        images to pinholes instead).
     """
 
     K: jax.Array
     world_to_camera: jax.Array
     width: int = dataclasses.field(metadata=dict(static=True))
     height: int = dataclasses.field(metadata=dict(static=True))
+    lens: Any = None
 
     @property
     def center(self) -> jax.Array:
@@ -54,4 +59,5 @@ class Camera:
     @staticmethod
     def of_scene(scene, view: int) -> Camera:
         """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.colmap.SceneData`)."""
-        return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height)
+        lens = None if getattr(scene, "lens", None) is None else jax.tree.map(lambda a: jnp.asarray(a[view]), scene.lens)
+        return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height, lens)

@@ -344,13 +344,16 @@ def _batches(session: Session):
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     valid = None if scene.valid is None else jnp.asarray(scene.valid[idx])  # [V, H, W] bool
     viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
+    lens = None if scene.lens is None else jax.tree.map(lambda a: jnp.asarray(a[idx]), scene.lens)  # [V] lenses
 
     def batch(step: int) -> dict:
         if size == 1:
             view = view_order(session.cfg.train.seed, len(idx), step)
         else:
             view = jnp.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)])
-        out = dict(image=images[view], camera=Camera(Ks[view], viewmats[view], scene.width, scene.height),
+        camera = Camera(Ks[view], viewmats[view], scene.width, scene.height,
+                        None if lens is None else jax.tree.map(lambda a: a[view], lens))
+        out = dict(image=images[view], camera=camera,
                    index=jnp.int32(view) if size == 1 else view.astype(jnp.int32))
         if valid is not None:
             out["valid"] = valid[view]

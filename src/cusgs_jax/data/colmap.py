@@ -38,6 +38,7 @@ from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
+from cusgs_jax.data.lens import scene_lens
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -91,6 +92,9 @@ class SceneData:
         distorted cameras undistorted with ``data.undistort=mask`` (:mod:`.undistort`); None when
         every pixel is valid. The loss, the held-out metrics and the feature targets ignore the
         others.
+      lens: the per-view lens distortion (:class:`cusgs_jax.splat.lens.Lens`, numpy leaves
+        coeffs [V, 6] and bounds [V, 4]) the images were captured through, kept with
+        ``data.undistort=lens`` (:mod:`.lens`); None when the images are pinhole images.
     """
 
     path: pathlib.Path
@@ -110,6 +114,7 @@ class SceneData:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     random_points: bool = False
     valid: np.ndarray | None = None
+    lens: Any = None
 
     @property
     def camera_centers(self) -> np.ndarray:
@@ -148,7 +153,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
     background = check_background(background)
-    scene, files, rec, entries, cameras, undistorted = _read_model(path, downscale, undistort)
+    scene, files, rec, entries, cameras, undistorted, lens = _read_model(path, downscale, undistort)
     names, viewmats = _poses(entries, files)
     points, point_colors = _points(rec, files["points3D"])
 
@@ -180,6 +185,7 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
         test_indices=test_indices,
         extent=extent,
         valid=valid,
+        lens=lens,
     )
 
 
@@ -199,7 +205,7 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = 1, undistort: str 
       SceneError: as :func:`load_scene` for the model and these settings.
     """
     downscale, holdout_every = _check_settings(downscale, holdout_every)
-    scene, files, _, entries, cameras, _ = _read_model(path, downscale, undistort)
+    scene, files, _, entries, cameras, _, _ = _read_model(path, downscale, undistort)
     _, viewmats = _poses(entries, files)
     first = cameras[entries[0][2].camera_id]
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
@@ -218,6 +224,7 @@ class _Model(NamedTuple):
     cameras: dict  # {camera id: intrinsics dict} (undistorted PINHOLE for distorted cameras)
     undistort: Any  # None, or (for distorted cameras) a function () -> folder whose images/ hold
     #                 the undistorted images (undistorting and caching them on first use)
+    lens: Any  # data.undistort=lens with a distorted camera: the per-view Lens (data/lens.py); else None
 
 
 def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
@@ -234,7 +241,14 @@ def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
         if image.camera_id not in used:
             used[image.camera_id] = _check_camera_model(rec.cameras[image.camera_id],
                                                         image.camera_id, files["cameras"])
-    undistort = None
+    undistort = lens = None
+    if mode == "lens" and any(needs_undistortion(cam) for cam in used.values()):
+        lens = scene_lens([used[image.camera_id] for _, _, image in entries],
+                          [f"camera {image.camera_id} in {files['cameras']}" for _, _, image in entries])
+        cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"], keep_distortion=True)
+                   for cid, cam in used.items()}
+        _check_common_size(entries, cameras, downscale, files)
+        return _Model(scene, files, rec, entries, cameras, None, lens)
     if any(needs_undistortion(cam) for cam in used.values()):
         sizes = {cid: dict(width=int(cam.width), height=int(cam.height))
                  for cid, cam in used.items()}
@@ -248,7 +262,7 @@ def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
         used = undistorted_cameras(source, mode=mode)
     cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"]) for cid, cam in used.items()}
     _check_common_size(entries, cameras, downscale, files)
-    return _Model(scene, files, rec, entries, cameras, undistort)
+    return _Model(scene, files, rec, entries, cameras, undistort, lens)
 
 
 def _check_settings(downscale, holdout_every) -> tuple[int, int]:
@@ -486,10 +500,11 @@ def _check_camera_model(camera, camera_id: int, cameras_file: pathlib.Path):
     return camera
 
 
-def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path) -> dict:
+def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path, *, keep_distortion: bool = False) -> dict:
     """The pinhole intrinsics dict (fx, fy, cx, cy, width, height, model) of a PINHOLE or
     SIMPLE_PINHOLE camera, or of a perspective model without distortion (all its distortion
-    parameters zero); SceneError for invalid values."""
+    parameters zero) — or, with ``keep_distortion`` (``data.undistort=lens``), the focal lengths and
+    principal point of any distorted model; SceneError for invalid values."""
     model = camera_model_name(camera)
     params = np.asarray(camera.params, dtype=np.float64)
     if model == "PINHOLE":
@@ -497,7 +512,7 @@ def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path) -> di
     elif model == "SIMPLE_PINHOLE":
         f, cx, cy = params[:3]
         fx = fy = f
-    elif model in DISTORTED_MODELS and not needs_undistortion(camera):  # zero distortion
+    elif model in DISTORTED_MODELS and (keep_distortion or not needs_undistortion(camera)):
         fx, fy = camera.focal_length_x, camera.focal_length_y
         cx, cy = camera.principal_point_x, camera.principal_point_y
     else:  # pragma: no cover - _read_model undistorts or refuses every other camera

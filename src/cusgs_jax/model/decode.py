@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from cusgs_jax.config import DecoderConfig
 from cusgs_jax.model.anchors import AnchorParams, AnchorState
 from cusgs_jax.nn import apply_mlp, init_mlp
+from cusgs_jax.splat.lens import Lens, distort, inside_bounds
 from cusgs_jax.types import Camera
 
 
@@ -78,21 +79,31 @@ class VisibleSlots:
 
 
 def frustum_mask(centers: jax.Array, viewmat: jax.Array, K: jax.Array, width: int, height: int,
-                 *, near: float = 0.01, margin: float = 0.15) -> jax.Array:
+                 *, near: float = 0.01, margin: float = 0.15, lens: Lens | None = None) -> jax.Array:
     """Anchors whose centre projects into the image widened by ``margin`` on each side.
 
     Args:
       centers: [A, 3]; viewmat: [4, 4] world→camera; K: [3, 3].
+      lens: the camera's distortion, or None (pinhole). With a lens the centre is projected
+        through it, and a centre outside the lens's trusted box (:mod:`cusgs_jax.splat.lens`) is
+        never visible.
     Returns:
       [A] bool.
     """
     cam = centers @ viewmat[:3, :3].T + viewmat[:3, 3]
     z = cam[:, 2]
     zs = jnp.where(z > near, z, 1.0)
-    u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
-    v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    front = z > near
+    if lens is None:
+        u = K[0, 0] * cam[:, 0] / zs + K[0, 2]
+        v = K[1, 1] * cam[:, 1] / zs + K[1, 2]
+    else:
+        uv = cam[:, :2] / zs[:, None]
+        front = front & inside_bounds(lens, uv)
+        uv = distort(lens, jnp.where(front[:, None], uv, 0.0))
+        u, v = K[0, 0] * uv[:, 0] + K[0, 2], K[1, 1] * uv[:, 1] + K[1, 2]
     mx, my = margin * width, margin * height
-    return (z > near) & (u > -mx) & (u < width + mx) & (v > -my) & (v < height + my)
+    return front & (u > -mx) & (u < width + mx) & (v > -my) & (v < height + my)
 
 
 def num_visible_slots(capacity: int, visible_fraction: float) -> int:
@@ -104,7 +115,7 @@ def visible_slots(anchors: AnchorState, camera: Camera, *, num_slots: int, margi
     """Slots of the alive anchors in the camera's frustum, compacted to S = ``num_slots`` entries (static)."""
     capacity = anchors.capacity
     visible = frustum_mask(anchors.centers, camera.world_to_camera, camera.K, camera.width, camera.height,
-                           margin=margin) & anchors.alive
+                           margin=margin, lens=camera.lens) & anchors.alive
     if num_slots >= capacity:
         return VisibleSlots(jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0))
     (slots,) = jnp.nonzero(visible, size=num_slots, fill_value=0)

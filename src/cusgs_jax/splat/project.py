@@ -22,6 +22,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from cusgs_jax.splat.lens import Lens, distort_with_jacobian, inside_bounds
+
 ALPHA_THRESHOLD = 1.0 / 255.0
 
 
@@ -172,6 +174,7 @@ def project_gaussians(
     far: float = 1e10,
     eps2d: float = 0.3,
     antialiased: bool = False,
+    lens: Lens | None = None,
 ) -> Projection:
     """Project Gaussians to the image plane (gsplat ``fully_fused_projection``).
 
@@ -186,6 +189,9 @@ def project_gaussians(
       near, far: depth culling planes (camera z).
       eps2d: low-pass variance added to the 2D covariance.
       antialiased: multiply opacities by ``sqrt(det Σ / det Σ')``.
+      lens: the camera's distortion (:mod:`cusgs_jax.splat.lens`), or None for a pinhole. With a
+        lens the centre goes through the lens model and the EWA Jacobian through its derivative
+        (no frustum clamp: Gaussians centred outside the lens's trusted box are culled instead).
     Returns:
       A :class:`Projection`.
     """
@@ -196,23 +202,11 @@ def project_gaussians(
     z_safe = jnp.where(in_depth, z, 1.0)
 
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    tan_fovx = 0.5 * width / fx
-    tan_fovy = 0.5 * height / fy
-    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
-    lim_x_neg = cx / fx + 0.3 * tan_fovx
-    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
-    lim_y_neg = cy / fy + 0.3 * tan_fovy
-    rz = 1.0 / z_safe
-    tx = z_safe * jnp.clip(x * rz, -lim_x_neg, lim_x_pos)
-    ty = z_safe * jnp.clip(y * rz, -lim_y_neg, lim_y_pos)
-    zeros = jnp.zeros_like(rz)
-    jac = jnp.stack(
-        [
-            jnp.stack([fx * rz, zeros, -fx * tx * rz * rz], axis=-1),
-            jnp.stack([zeros, fy * rz, -fy * ty * rz * rz], axis=-1),
-        ],
-        axis=-2,
-    )  # [G, 2, 3]
+    if lens is None:
+        jac, means2d = _pinhole_jacobian(x, y, z_safe, fx, fy, cx, cy, width, height)
+    else:
+        jac, means2d, trusted = _lens_jacobian(lens, x, y, z_safe, fx, fy, cx, cy)
+        in_depth = in_depth & trusted
 
     # Σ2d = A Aᵀ with A = J R_view R_q S  (2×3). Cauchy–Binet gives det(A Aᵀ)
     # as the sum of squared 2×2 minors of A: non-negative and free of the
@@ -238,8 +232,6 @@ def project_gaussians(
 
     if antialiased:
         opacities = opacities * _safe_sqrt(det_orig / det_safe)
-
-    means2d = jnp.stack([fx * x * rz + cx, fy * y * rz + cy], axis=-1)
 
     # Footprint (not differentiable): opacity-aware 3.33-sigma box.
     o_ng = jax.lax.stop_gradient(opacities)
@@ -270,3 +262,42 @@ def project_gaussians(
     conics = jnp.where(visible[:, None], conics, 0.0)
     opacities = jnp.where(visible, opacities, 0.0)
     return Projection(means2d, conics, z, opacities, radii, visible)
+
+
+def _pinhole_jacobian(x, y, z_safe, fx, fy, cx, cy, width, height):
+    """(EWA Jacobian [G, 2, 3] with x/z, y/z clamped to the frustum widened by 30 %, pixel centres [G, 2])."""
+    tan_fovx = 0.5 * width / fx
+    tan_fovy = 0.5 * height / fy
+    lim_x_pos = (width - cx) / fx + 0.3 * tan_fovx
+    lim_x_neg = cx / fx + 0.3 * tan_fovx
+    lim_y_pos = (height - cy) / fy + 0.3 * tan_fovy
+    lim_y_neg = cy / fy + 0.3 * tan_fovy
+    rz = 1.0 / z_safe
+    tx = z_safe * jnp.clip(x * rz, -lim_x_neg, lim_x_pos)
+    ty = z_safe * jnp.clip(y * rz, -lim_y_neg, lim_y_pos)
+    zeros = jnp.zeros_like(rz)
+    jac = jnp.stack(
+        [
+            jnp.stack([fx * rz, zeros, -fx * tx * rz * rz], axis=-1),
+            jnp.stack([zeros, fy * rz, -fy * ty * rz * rz], axis=-1),
+        ],
+        axis=-2,
+    )  # [G, 2, 3]
+    return jac, jnp.stack([fx * x * rz + cx, fy * y * rz + cy], axis=-1)
+
+
+def _lens_jacobian(lens: Lens, x, y, z_safe, fx, fy, cx, cy):
+    """(Jacobian of π(p) = f ⊙ D(x/z, y/z) + c [G, 2, 3], pixel centres [G, 2], [G] bool centre in the
+    lens's trusted box) — :mod:`cusgs_jax.splat.lens`. Untrusted centres get the axis as a finite
+    placeholder (they are culled, so their gradient is zero)."""
+    rz = 1.0 / z_safe
+    uv = jnp.stack([x * rz, y * rz], axis=-1)
+    trusted = inside_bounds(lens, uv)
+    uv = jnp.where(trusted[:, None], uv, 0.0)
+    distorted, d_lens = distort_with_jacobian(lens, uv)  # [G, 2], [G, 2, 2]
+    zeros = jnp.zeros_like(rz)
+    d_persp = jnp.stack([jnp.stack([rz, zeros, -uv[:, 0] * rz], axis=-1),
+                         jnp.stack([zeros, rz, -uv[:, 1] * rz], axis=-1)], axis=-2)  # ∂(u, v)/∂p [G, 2, 3]
+    focal = jnp.stack([fx, fy])
+    jac = focal[None, :, None] * jnp.einsum("gij,gjk->gik", d_lens, d_persp)
+    return jac, focal * distorted + jnp.stack([cx, cy]), trusted

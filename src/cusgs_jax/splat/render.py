@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.splat.composite import composite_tiles, default_lanes
+from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
 
@@ -102,6 +103,7 @@ def rasterize(
     chunk_size: int = 16,
     means2d_delta: jax.Array | None = None,
     lanes: int | None = None,
+    lens: Lens | None = None,
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (docs/rasterizer.md).
 
@@ -131,6 +133,8 @@ def rasterize(
       lanes: static number of tiles composited side by side; a lane that
         finishes its tile (list exhausted or every pixel terminated) takes the
         next one. ``None`` uses :func:`~cusgs_jax.splat.composite.default_lanes`.
+      lens: the camera's lens distortion (:class:`~cusgs_jax.splat.lens.Lens`, one camera), or
+        None for a pinhole camera; the image is then the distorted camera's picture.
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
@@ -140,14 +144,14 @@ def rasterize(
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
                                   far=far, background=background, antialiased=antialiased, eps2d=eps2d,
                                   tile_size=tile_size, max_pairs=max_pairs, chunk_size=chunk_size,
-                                  means2d_delta=means2d_delta, lanes=lanes)
+                                  means2d_delta=means2d_delta, lanes=lanes, lens=lens)
     grid = TileGrid(int(width), int(height), int(tile_size))
     if max_pairs is None:
         max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
     dtype = means.dtype
     proj = project_gaussians(
         means, quats, scales, opacities, viewmat.astype(dtype), K.astype(dtype),
-        width, height, near=near, far=far, eps2d=eps2d, antialiased=antialiased,
+        width, height, near=near, far=far, eps2d=eps2d, antialiased=antialiased, lens=lens,
     )
     isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs)
     order = isect.order

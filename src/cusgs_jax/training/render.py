@@ -56,7 +56,7 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
     out = rasterize(compact.means, compact.quats, compact.scales, compact.opacities, colors,
                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta)
+                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta, lens=camera.lens)
     return out, chosen
 
 
@@ -108,7 +108,7 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     splat = cfg.splat
     g, view = decode_view(nets, anchors, camera, appearance_index, cfg.model, anchors.capacity)
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
-                             camera.width, camera.height, antialiased=splat.antialiased)
+                             camera.width, camera.height, antialiased=splat.antialiased, lens=camera.lens)
     box = tile_bounds(proj.means2d, proj.radii, TileGrid(camera.width, camera.height, splat.tile_size))
     area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
     return dict(visible_anchors=jnp.sum(view.valid).astype(jnp.int32),

@@ -1,0 +1,118 @@
+"""The lens of a distorted COLMAP camera, for rasterising through it (``data.undistort=lens``).
+
+:func:`lens_of_camera` turns a pycolmap camera into the coefficients and the trusted box of
+:class:`cusgs_jax.splat.lens.Lens`; :func:`scene_lens` stacks them per view. The box is computed
+with COLMAP's own projection functions (``Camera.cam_from_img`` / ``img_from_cam``), independent of
+the JAX lens code, so a mistake in either shows up as a disagreement in the tests.
+
+**The trusted box.** The image border is unprojected to the undistorted plane (``cam_from_img``),
+giving the box the image covers; it is widened on every side by a share of its half-size — 100 %,
+or the largest of 50 / 25 / 10 / 0 % for which the lens is still one-to-one there, checked as a
+positive Jacobian determinant of COLMAP's projection on a 97×97 grid over the box. Gaussians centred
+outside it are culled and anchors outside it are invisible (:mod:`cusgs_jax.splat.lens`), which
+plays the part of the pinhole projection's 30 % frustum clamp. A lens that is not one-to-one even
+over the image itself (a calibration that folds the frame) is refused. Fisheye boxes are capped at
+``|u|, |v| ≤`` :data:`MAX_TAN` (84° off the axis): the rest of a wider fisheye is not rendered.
+
+Shapes: V views.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.undistort import camera_model_name
+from cusgs_jax.splat.lens import Lens
+
+__all__ = ["LENS_MODELS", "MAX_TAN", "WIDENINGS", "lens_coefficients", "lens_of_camera", "scene_lens"]
+
+# COLMAP models the lens mode renders through: {model: (fisheye, names of its distortion params)}.
+LENS_MODELS = {
+    "SIMPLE_PINHOLE": (False, ()), "PINHOLE": (False, ()),
+    "SIMPLE_RADIAL": (False, ("k1",)), "RADIAL": (False, ("k1", "k2")),
+    "OPENCV": (False, ("k1", "k2", "p1", "p2")), "OPENCV_FISHEYE": (True, ("k1", "k2", "k3", "k4")),
+}
+WIDENINGS = (1.0, 0.5, 0.25, 0.1, 0.0)  # tried in order (module docstring)
+MAX_TAN = 10.0
+_ORDER = ("k1", "k2", "k3", "k4", "p1", "p2")  # cusgs_jax.splat.lens.COEFFICIENTS
+
+
+def lens_coefficients(camera) -> tuple[np.ndarray, bool]:
+    """([6] float64 (k1, k2, k3, k4, p1, p2), fisheye) of a pycolmap camera of :data:`LENS_MODELS`."""
+    model = camera_model_name(camera)
+    fisheye, names = LENS_MODELS[model]
+    params = np.asarray(camera.params, np.float64)
+    extra = dict(zip(names, params[len(params) - len(names):])) if names else {}
+    return np.array([extra.get(k, 0.0) for k in _ORDER]), fisheye
+
+
+def _border(width: int, height: int, samples: int = 65) -> np.ndarray:
+    """[4·samples, 2] pixel positions along the image's outer edge (COLMAP pixel coordinates)."""
+    xs, ys = np.linspace(0.0, width, samples), np.linspace(0.0, height, samples)
+    return np.concatenate([np.stack([xs, np.zeros_like(xs)], -1), np.stack([xs, np.full_like(xs, height)], -1),
+                           np.stack([np.zeros_like(ys), ys], -1), np.stack([np.full_like(ys, width), ys], -1)])
+
+
+def _one_to_one(camera, box: np.ndarray, samples: int = 97) -> bool:
+    """COLMAP's projection has a positive Jacobian determinant all over ``box`` (u0, u1, v0, v1)."""
+    u, v = np.meshgrid(np.linspace(box[0], box[1], samples), np.linspace(box[2], box[3], samples))
+    uv = np.stack([u.ravel(), v.ravel()], -1)
+    step = 1e-6 * max(1.0, float(np.max(np.abs(box))))
+
+    def project(points):
+        return camera.img_from_cam(np.concatenate([points, np.ones((len(points), 1))], -1))
+
+    du = (project(uv + [step, 0.0]) - project(uv - [step, 0.0])) / (2 * step)
+    dv = (project(uv + [0.0, step]) - project(uv - [0.0, step])) / (2 * step)
+    det = du[:, 0] * dv[:, 1] - du[:, 1] * dv[:, 0]
+    return bool(np.all(np.isfinite(det)) and np.all(det > 0))
+
+
+def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
+    """(coeffs [6], bounds [4] (u_min, u_max, v_min, v_max), fisheye) of a pycolmap camera.
+
+    Args:
+      camera: a pycolmap Camera of one of :data:`LENS_MODELS`.
+      where: how a message names the camera, e.g. "camera 1 in sparse/0/cameras.bin".
+    Raises:
+      SceneError: when the lens folds the image itself (not one-to-one over the frame).
+    """
+    coeffs, fisheye = lens_coefficients(camera)
+    width, height = int(camera.width), int(camera.height)
+    uv = np.asarray(camera.cam_from_img(_border(width, height)), np.float64)
+    uv = np.clip(np.nan_to_num(uv, nan=MAX_TAN, posinf=MAX_TAN, neginf=-MAX_TAN), -MAX_TAN, MAX_TAN)
+    image_box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
+    half = np.repeat([(image_box[1] - image_box[0]) / 2, (image_box[3] - image_box[2]) / 2], 2)
+    for widen in WIDENINGS:
+        box = np.clip(image_box + np.array([-1, 1, -1, 1]) * widen * half, -MAX_TAN, MAX_TAN)
+        if _one_to_one(camera, box):
+            return coeffs, box, fisheye
+    raise SceneError(
+        f"{where}: its {camera_model_name(camera)} lens {np.asarray(camera.params).tolist()} is not one-to-one over "
+        "the image (the distortion folds the frame back on itself), so nothing can be rendered through it — check "
+        "the calibration, or undistort the images instead with data.undistort=crop")
+
+
+def scene_lens(cameras: list, wheres: list[str]) -> Lens:
+    """The per-view :class:`~cusgs_jax.splat.lens.Lens` (numpy leaves: coeffs [V, 6], bounds [V, 4]
+    float32) of the views' pycolmap cameras ``cameras`` [V] (one lens per distinct camera).
+
+    Raises:
+      SceneError: for a lens :func:`lens_of_camera` refuses, or when fisheye and perspective
+        cameras are mixed (one render cannot use both models).
+    """
+    lenses, per_view = {}, []
+    for camera, where in zip(cameras, wheres):
+        key = (camera_model_name(camera), tuple(np.asarray(camera.params).tolist()), int(camera.width),
+               int(camera.height))
+        if key not in lenses:
+            lenses[key] = lens_of_camera(camera, where)
+        per_view.append(lenses[key])
+    kinds = {fisheye for _, _, fisheye in per_view}
+    if len(kinds) > 1:
+        raise SceneError(
+            f"{wheres[0]} and others mix OPENCV_FISHEYE cameras with perspective ones, which data.undistort=lens cannot "
+            "render in one model; use data.undistort=crop (or mask) to undistort them all to pinholes")
+    return Lens(np.stack([c for c, _, _ in per_view]).astype(np.float32),
+                np.stack([b for _, b, _ in per_view]).astype(np.float32), fisheye=kinds.pop())
