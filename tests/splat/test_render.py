@@ -76,29 +76,40 @@ def _loss_weights(scene, seed=3):
     return rng.normal(size=(h, w, c)), rng.normal(size=(h, w)), rng.normal(size=(h, w))
 
 
-def _jax_loss(scene, weights, antialiased=False):
+def _jax_loss(scene, weights, antialiased=False, lens=None):
     wi, wa, wd = weights
 
     def loss(means, quats, scales, opacities, colors, background):
         out = rasterize(means, quats, scales, opacities, colors, jnp.asarray(scene["viewmat"]),
                         jnp.asarray(scene["K"]), scene["width"], scene["height"],
-                        background=background, antialiased=antialiased)
+                        background=background, antialiased=antialiased, lens=lens)
         return (jnp.sum(out.image * wi) + jnp.sum(out.alpha * wa) + jnp.sum(out.depth * wd))
 
     return loss
 
 
-@pytest.mark.parametrize("antialiased", [False, True])
-def test_gradients_match_finite_differences_float64(x64, antialiased):
+# A strong OPENCV lens and an OPENCV_FISHEYE lens, with trusted boxes wide enough for the scene.
+LENSES = {"OPENCV": ([-0.12, 0.02, 0.0, 0.0, 0.004, -0.006], False),
+          "OPENCV_FISHEYE": ([0.05, -0.01, 0.003, -0.001, 0.0, 0.0], True)}
+
+
+@pytest.mark.parametrize("antialiased,lens", [(False, None), (True, None), (False, "OPENCV"),
+                                              (True, "OPENCV_FISHEYE")])
+def test_gradients_match_finite_differences_float64(x64, antialiased, lens):
+    from cusgs_jax.splat.lens import Lens
+
     scene = make_scene(11, num=40, width=24, height=20, channels=2, behind=2, opaque=3)
     weights = _loss_weights(scene)
+    ref_lens = None if lens is None else (np.asarray(LENSES[lens][0]), np.array([-0.9, 0.9, -0.9, 0.9]),
+                                          LENSES[lens][1])
+    jax_lens = None if lens is None else Lens(jnp.asarray(ref_lens[0]), jnp.asarray(ref_lens[1]), ref_lens[2])
     args = [jnp.asarray(scene[k]) for k in KEYS] + [jnp.asarray(scene["background"])]
-    grads = jax.grad(_jax_loss(scene, weights, antialiased), argnums=tuple(range(6)))(*args)
+    grads = jax.grad(_jax_loss(scene, weights, antialiased, jax_lens), argnums=tuple(range(6)))(*args)
     wi, wa, wd = weights
 
     def ref_loss(arrays):
         r = rasterize_reference(*arrays[:5], scene["viewmat"], scene["K"], scene["width"], scene["height"],
-                                background=arrays[5], antialiased=antialiased)
+                                background=arrays[5], antialiased=antialiased, lens=ref_lens)
         return np.sum(r["image"] * wi) + np.sum(r["alpha"] * wa) + np.sum(r["depth"] * wd)
 
     base = [np.asarray(scene[k], np.float64).copy() for k in KEYS] + [scene["background"].copy()]
@@ -115,6 +126,24 @@ def test_gradients_match_finite_differences_float64(x64, antialiased):
             fd = (ref_loss(plus) - ref_loss(minus)) / (2 * eps)
             # Central differences: truncation O(eps²·f''') plus rounding 1e-16/eps.
             assert abs(fd - grad[index]) <= 1e-6 + 1e-5 * abs(fd), (KEYS + ("background",))[which]
+
+
+@pytest.mark.parametrize("lens", sorted(LENSES))
+def test_forward_through_a_lens_matches_reference(lens):
+    from cusgs_jax.splat.lens import Lens
+
+    scene = as_dtype(make_scene(12, num=150, channels=3, behind=4, offscreen=4, opaque=4), np.float32)
+    coeffs, fisheye = LENSES[lens]
+    bounds = [-0.8, 0.8, -0.6, 0.6]
+    out = _render(scene, background=jnp.asarray(scene["background"]),
+                  lens=Lens(jnp.asarray(coeffs, jnp.float32), jnp.asarray(bounds, jnp.float32), fisheye))
+    ref = _reference(scene, background=scene["background"].astype(np.float64),
+                     lens=(np.asarray(coeffs), np.asarray(bounds), fisheye))
+    plain = _reference(scene, background=scene["background"].astype(np.float64))
+    assert np.abs(ref["image"] - plain["image"]).max() > 0.1  # the lens changes the picture
+    np.testing.assert_allclose(out.image, ref["image"], atol=2e-5)
+    np.testing.assert_allclose(out.alpha, ref["alpha"], atol=2e-5)
+    np.testing.assert_array_equal(out.visible, ref["visible"])
 
 
 def test_float32_gradients_match_float64():

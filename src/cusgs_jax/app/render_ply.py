@@ -46,9 +46,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
-    ap.add_argument("--undistort", default="crop", choices=("crop", "mask"),
-                    help="distorted cameras: crop to the valid rectangle, or keep the frame and score only its "
-                         "valid pixels (data.undistort; default crop)")
+    ap.add_argument("--undistort", default="crop", choices=("crop", "mask", "lens"),
+                    help="distorted cameras: crop to the valid rectangle, keep the frame and score only its "
+                         "valid pixels, or keep the images and render through the lens (data.undistort; "
+                         "default crop)")
     ap.add_argument("--out-dir", default=None, metavar="DIR", help="write <image>.png: render | ground truth")
     ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=None, metavar=("R", "G", "B"),
                     help="background colour in [0, 1] (also under images with alpha; default: the layout's, "

@@ -38,7 +38,7 @@ from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
-from cusgs_jax.data.lens import scene_lens
+from cusgs_jax.data.lenses import scene_lens
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -224,7 +224,7 @@ class _Model(NamedTuple):
     cameras: dict  # {camera id: intrinsics dict} (undistorted PINHOLE for distorted cameras)
     undistort: Any  # None, or (for distorted cameras) a function () -> folder whose images/ hold
     #                 the undistorted images (undistorting and caching them on first use)
-    lens: Any  # data.undistort=lens with a distorted camera: the per-view Lens (data/lens.py); else None
+    lens: Any  # data.undistort=lens with a distorted camera: the per-view Lens (data/lenses.py); else None
 
 
 def _read_model(path, downscale: int, mode: str = "crop") -> _Model:

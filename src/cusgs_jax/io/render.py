@@ -71,7 +71,7 @@ def render_splats(model: SplatModel, camera: Camera, *, background, sh_degree: i
     colors = splat_colors(model, camera.center, sh_degree)
     return rasterize(jnp.asarray(model.means), jnp.asarray(model.quats), model.scales, model.opacities, colors,
                      camera.world_to_camera, camera.K, camera.width, camera.height,
-                     background=jnp.asarray(background, colors.dtype), **kwargs)
+                     background=jnp.asarray(background, colors.dtype), lens=camera.lens, **kwargs)
 
 
 @functools.partial(jax.jit, static_argnames=("sh_degree", "options"))
@@ -116,9 +116,11 @@ def recentre_splats(model: SplatModel, centre) -> tuple[SplatModel, np.ndarray]:
 def scene_camera(scene, view: int, shift) -> Camera:
     """The scene's camera ``view`` in the frame moved by −``shift`` [3]: x_cam = R(x + shift) + t (float64).
 
-    ``scene``: a :class:`~cusgs_jax.data.colmap.SceneData` (``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3]).
+    ``scene``: a :class:`~cusgs_jax.data.colmap.SceneData` (``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3],
+    ``lens``: the view's lens is kept, so a ``data.undistort=lens`` scene renders through it).
     """
     viewmat = np.array(scene.viewmats[view], np.float64)
     viewmat[:3, 3] += viewmat[:3, :3] @ np.asarray(shift, np.float64)
-    return Camera(jnp.asarray(scene.Ks[view], jnp.float32), jnp.asarray(viewmat, jnp.float32),
-                  scene.width, scene.height)
+    camera = Camera.of_scene(scene, view)
+    return dataclasses.replace(camera, K=jnp.asarray(scene.Ks[view], jnp.float32),
+                               world_to_camera=jnp.asarray(viewmat, jnp.float32))

@@ -22,7 +22,7 @@ undistorted coordinates ``(u, v) = (x/z, y/z)``, ``r² = u² + v²``:
 A polynomial lens is only a valid model near the image: far outside it the distorted radius stops
 growing and folds back, so a point far outside the field of view could land inside the image. Each
 lens therefore carries ``bounds``, a box of the undistorted plane (the image's own, widened where
-the model is still one-to-one; :func:`cusgs_jax.data.lens.lens_of_camera`): Gaussians whose
+the model is still one-to-one; :func:`cusgs_jax.data.lenses.lens_of_camera`): Gaussians whose
 centre lies outside it are culled, and anchors outside it are not visible.
 
 Shapes: G Gaussians (or points).

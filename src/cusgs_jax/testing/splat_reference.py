@@ -81,8 +81,47 @@ def quat_to_rotmat_reference(quats):
     return R
 
 
+def distort_reference(coeffs, fisheye, uv):
+    """COLMAP's lens models (cusgs_jax.splat.lens) and their analytic Jacobian, float64.
+
+    Args:
+        coeffs: [6] (k1, k2, k3, k4, p1, p2).
+        fisheye: the equidistant fisheye model instead of the radial-tangential one.
+        uv: [G, 2] normalised undistorted coordinates (x/z, y/z); r > 0 for the fisheye.
+    Returns:
+        (distorted [G, 2], Jacobian d distorted / d uv [G, 2, 2]).
+    """
+    k1, k2, k3, k4, p1, p2 = (float(c) for c in np.asarray(coeffs, np.float64))
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    u, v = uv[:, 0], uv[:, 1]
+    r2 = u * u + v * v
+    jac = np.zeros((len(uv), 2, 2))
+    if fisheye:
+        r = np.sqrt(r2)
+        theta = np.arctan(r)
+        t2 = theta * theta
+        poly = 1 + k1 * t2 + k2 * t2**2 + k3 * t2**3 + k4 * t2**4
+        dpoly = k1 + 2 * k2 * t2 + 3 * k3 * t2**2 + 4 * k4 * t2**3  # d poly / d theta^2
+        s = theta * poly / r
+        ds_dr = (poly + 2 * t2 * dpoly) / (1 + r2) / r - theta * poly / r2
+        out = np.stack([u * s, v * s], -1)
+        jac[:, 0, 0] = s + u * u / r * ds_dr
+        jac[:, 0, 1] = jac[:, 1, 0] = u * v / r * ds_dr
+        jac[:, 1, 1] = s + v * v / r * ds_dr
+        return out, jac
+    rho = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
+    drho = k1 + 2 * k2 * r2 + 3 * k3 * r2**2  # d rho / d r^2
+    out = np.stack([u * rho + 2 * p1 * u * v + p2 * (r2 + 2 * u * u),
+                    v * rho + 2 * p2 * u * v + p1 * (r2 + 2 * v * v)], -1)
+    jac[:, 0, 0] = rho + 2 * u * u * drho + 2 * p1 * v + 6 * p2 * u
+    jac[:, 0, 1] = 2 * u * v * drho + 2 * p1 * u + 2 * p2 * v
+    jac[:, 1, 0] = 2 * u * v * drho + 2 * p2 * v + 2 * p1 * u
+    jac[:, 1, 1] = rho + 2 * v * v * drho + 2 * p2 * u + 6 * p1 * v
+    return out, jac
+
+
 def project_reference(means, quats, scales, opacities, viewmat, K, width, height, *,
-                      near=0.01, far=1e10, antialiased=False, eps2d=0.3):
+                      near=0.01, far=1e10, antialiased=False, eps2d=0.3, lens=None):
     """Step 1: project every Gaussian to the image plane (gsplat 1.5.3 conventions).
 
     Args:
@@ -97,6 +136,9 @@ def project_reference(means, quats, scales, opacities, viewmat, K, width, height
         near, far: depth clipping planes (camera z).
         antialiased: if True, scale opacity by sqrt(det_orig / det).
         eps2d: isotropic low-pass term added to the 2D covariance.
+        lens: None (pinhole), or (coeffs [6], bounds [4], fisheye) of a distorted camera: the
+            centre goes through distort_reference, the Jacobian through its derivative (no clamp),
+            and centres whose x/z, y/z lie outside bounds (u0, u1, v0, v1) are culled.
 
     Returns:
         dict with
@@ -152,8 +194,20 @@ def project_reference(means, quats, scales, opacities, viewmat, K, width, height
     J[:, 0, 2] = -fx * tx / (z_safe * z_safe)
     J[:, 1, 1] = fy / z_safe
     J[:, 1, 2] = -fy * ty / (z_safe * z_safe)
-    cov2d = J @ cov_cam @ np.swapaxes(J, 1, 2)    # [G,2,2]
     means2d = np.stack([fx * x / z_safe + cx, fy * y / z_safe + cy], axis=-1)
+    if lens is not None:
+        coeffs, bounds, fisheye = lens
+        u, v = x / z_safe, y / z_safe
+        trusted = (u >= bounds[0]) & (u <= bounds[1]) & (v >= bounds[2]) & (v <= bounds[3])
+        in_range = in_range & trusted
+        uv = np.where(in_range[:, None], np.stack([u, v], -1), 0.5)
+        distorted, d_lens = distort_reference(coeffs, fisheye, uv)
+        d_persp = np.zeros((G, 2, 3))
+        d_persp[:, 0, 0] = d_persp[:, 1, 1] = 1 / z_safe
+        d_persp[:, 0, 2], d_persp[:, 1, 2] = -uv[:, 0] / z_safe, -uv[:, 1] / z_safe
+        J = np.array([fx, fy])[None, :, None] * (d_lens @ d_persp)
+        means2d = distorted * [fx, fy] + [cx, cy]
+    cov2d = J @ cov_cam @ np.swapaxes(J, 1, 2)    # [G,2,2]
 
     # Low-pass filter (+ eps2d * I) and anti-aliasing compensation.
     det_orig = cov2d[:, 0, 0] * cov2d[:, 1, 1] - cov2d[:, 0, 1] * cov2d[:, 1, 0]
@@ -207,7 +261,7 @@ def project_reference(means, quats, scales, opacities, viewmat, K, width, height
 
 
 def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, width, height, *,
-                        near=0.01, far=1e10, background=None, antialiased=False, eps2d=0.3):
+                        near=0.01, far=1e10, background=None, antialiased=False, eps2d=0.3, lens=None):
     """Project and alpha-composite Gaussians front to back (slow oracle).
 
     Args:
@@ -223,6 +277,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, wid
         background: [C] background colour, or None for zeros.
         antialiased: gsplat "antialiased" mode (opacity * compensation).
         eps2d: low-pass term added to the 2D covariance diagonal.
+        lens: None or (coeffs, bounds, fisheye), as project_reference.
 
     Returns:
         dict with
@@ -248,7 +303,7 @@ def rasterize_reference(means, quats, scales, opacities, colors, viewmat, K, wid
     background = np.asarray(background, dtype=np.float64).reshape(C)
 
     proj = project_reference(means, quats, scales, opacities, viewmat, K, width, height,
-                             near=near, far=far, antialiased=antialiased, eps2d=eps2d)
+                             near=near, far=far, antialiased=antialiased, eps2d=eps2d, lens=lens)
     means2d = proj["means2d"]
     conics = proj["conics"]
     depths = proj["depths"]

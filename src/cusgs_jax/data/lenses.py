@@ -80,11 +80,20 @@ def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
     """
     coeffs, fisheye = lens_coefficients(camera)
     width, height = int(camera.width), int(camera.height)
-    uv = np.asarray(camera.cam_from_img(_border(width, height)), np.float64)
-    uv = np.clip(np.nan_to_num(uv, nan=MAX_TAN, posinf=MAX_TAN, neginf=-MAX_TAN), -MAX_TAN, MAX_TAN)
+    border = _border(width, height)
+    uv = np.asarray(camera.cam_from_img(border), np.float64)
+    lost = ~np.all(np.isfinite(uv), axis=-1)  # COLMAP found no direction for these border pixels
+    if fisheye:  # past 90° off the axis: take the pixel's direction at the cap (not rendered beyond it)
+        direction = (border - [camera.principal_point_x, camera.principal_point_y]) * MAX_TAN
+        uv = np.where(lost[:, None], direction, uv)
+    uv = np.clip(uv, -MAX_TAN, MAX_TAN)
+    back = camera.img_from_cam(np.concatenate([uv, np.ones((len(uv), 1))], -1))
+    # a border pixel no direction maps to comes back elsewhere (or not at all); at the fisheye cap it may
+    capped = np.any(np.abs(uv) >= MAX_TAN, axis=-1)
+    reached = (np.all(np.abs(back - border) < 1e-3 * max(width, height), axis=-1) | capped) & (fisheye | ~lost)
     image_box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
     half = np.repeat([(image_box[1] - image_box[0]) / 2, (image_box[3] - image_box[2]) / 2], 2)
-    for widen in WIDENINGS:
+    for widen in WIDENINGS if np.all(reached) else ():
         box = np.clip(image_box + np.array([-1, 1, -1, 1]) * widen * half, -MAX_TAN, MAX_TAN)
         if _one_to_one(camera, box):
             return coeffs, box, fisheye
