@@ -10,8 +10,8 @@ set -euo pipefail
 OUT=${1:-experiments/results/lens_demo}
 PY=${PY:-.venv/bin/python}
 CACHE=${CUSGS_CACHE_DIR:-$HOME/.cache/cusgs_jax}
-declare -A SCENE=([pinhole]=$CACHE/demo3-s0-v30-160x120 [opencv]=$CACHE/demo-lens3-opencv-s0-v30-160x120
-  [simple_radial]=$CACHE/demo-lens3-simple_radial-s0-v30-160x120 [sharp_opencv]=$OUT/control/sharp_opencv
+declare -A SCENE=([pinhole]=$CACHE/demo3-s0-v30-160x120 [opencv]=$CACHE/demo-lens4-opencv-s0-v30-160x120
+  [simple_radial]=$CACHE/demo-lens4-simple_radial-s0-v30-160x120 [sharp_opencv]=$OUT/control/sharp_opencv
   [sharp_simple_radial]=$OUT/control/sharp_simple_radial)
 mkdir -p "$OUT/ply"
 echo "{" > "$OUT/cross_eval.json.tmp"

@@ -25,10 +25,11 @@ Every public docstring writes shapes with these letters:
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
 
 import jax
 import jax.numpy as jnp
+
+from cusgs_jax.splat.lens import Lens
 
 
 @jax.tree_util.register_dataclass
@@ -49,7 +50,7 @@ class Camera:
     world_to_camera: jax.Array
     width: int = dataclasses.field(metadata=dict(static=True))
     height: int = dataclasses.field(metadata=dict(static=True))
-    lens: Any = None
+    lens: Lens | None = None
 
     @property
     def center(self) -> jax.Array:
@@ -59,5 +60,5 @@ class Camera:
     @staticmethod
     def of_scene(scene, view: int) -> Camera:
         """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.colmap.SceneData`)."""
-        lens = None if getattr(scene, "lens", None) is None else jax.tree.map(lambda a: jnp.asarray(a[view]), scene.lens)
+        lens = None if getattr(scene, "lens", None) is None else Lens.of_views(scene.lens, view)
         return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height, lens)

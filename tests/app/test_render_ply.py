@@ -126,3 +126,23 @@ def test_undistort_mask_keeps_the_frame_and_scores_its_valid_pixels(scene_and_pl
     with pytest.raises(SystemExit) as exit_info:
         main([str(ply), "--colmap", str(lens), "--undistort", "blur"])
     assert exit_info.value.code == 2
+
+
+def test_undistort_lens_renders_through_the_lens_over_the_whole_frame(scene_and_ply, tmp_path, capsys, monkeypatch):
+    """--undistort lens on the demo through an OPENCV lens: the PLY (fitted to the pinhole scene) is drawn
+    through the lens itself and scored on every pixel of the images as captured, about as well as on the
+    pinhole scene."""
+    from cusgs_jax.data.demo_lens import lens_camera, write_lens_demo
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    scene_dir, ply = scene_and_ply
+    model, params = lens_camera("opencv", 32, 24)
+    params = list(params)
+    params[4:6] = [0.3, 0.1]  # a strong lens, so ignoring it would show
+    lens = write_lens_demo(tmp_path / "lens", model, params, num_views=4, width=32, height=24, num_points=300)
+    scores = {}
+    for name, folder, mode in (("pinhole", scene_dir, "crop"), ("lens", lens, "lens")):
+        assert main([str(ply), "--colmap", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
+        scores[name] = json.loads(capsys.readouterr().out)
+    assert (scores["lens"]["width"], scores["lens"]["height"]) == (32, 24)
+    assert abs(scores["lens"]["psnr"] - scores["pinhole"]["psnr"]) < 1.0, scores

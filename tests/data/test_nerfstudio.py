@@ -240,6 +240,16 @@ def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkey
     np.testing.assert_array_equal(masked.valid, reference.valid)
     np.testing.assert_array_equal(masked.images, reference.images)
     np.testing.assert_allclose(masked.Ks, reference.Ks, rtol=1e-6)
+    # data.undistort=lens: the images as captured with the same lenses as the COLMAP scene's
+    kept = load_nerfstudio_scene(root, holdout_every=0, undistort="lens")
+    reference = load_scene(colmap_root, holdout_every=0, undistort="lens")
+    assert kept.valid is None and (kept.lens is None) == (reference.lens is None)
+    np.testing.assert_array_equal(kept.images, reference.images)
+    np.testing.assert_allclose(kept.Ks, reference.Ks, rtol=1e-6)
+    if reference.lens is not None:
+        assert kept.lens.fisheye == reference.lens.fisheye
+        np.testing.assert_allclose(kept.lens.coeffs, reference.lens.coeffs, rtol=1e-6)
+        np.testing.assert_allclose(kept.lens.bounds, reference.lens.bounds, rtol=1e-5)
 
 
 @pytest.mark.parametrize("model, extra, stray", [("OPENCV", dict(k3=0.01), "k3=0.01"),

@@ -83,7 +83,8 @@ def test_demo_lens_scene_is_generated_and_undistorted(tmp_path, monkeypatch):
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
     cfg = compose_config(["data.demo.lens=opencv", "data.demo.views=3", "data.demo.width=48", "data.demo.height=36"])
     scene, _ = load_data(cfg)
-    assert (tmp_path / "demo-lens3-opencv-s0-v3-48x36" / "scene.json").is_file()
+    assert (tmp_path / "demo-lens4-opencv-s0-v3-48x36" / "scene.json").is_file()
+    assert (tmp_path / "demo-lens4-opencv-s0-v3-48x36" / "lens" / "object_ids").is_dir()  # maps for data.undistort=lens
     assert (tmp_path / "undistorted").is_dir() and scene.width < 48 and scene.height < 36
 
 
@@ -146,3 +147,24 @@ def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_
     with pytest.raises(SceneError, match=r"daisy features .* data\.undistort=mask, but this run uses "
                                          r"data\.undistort=crop: re-extract them \(cusgs-extract .* --undistort crop"):
         load_feature_targets(crop.features, crop_scene, 0)
+
+
+def test_a_lens_scene_takes_features_of_its_images_as_captured_and_refuses_the_others(tmp_path, monkeypatch):
+    from cusgs_jax.extract import extract
+    from cusgs_jax.testing.distorted_scenes import CAMERAS, distorted_colmap_scene
+
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    root = tmp_path / "s"
+    distorted_colmap_scene(root, [("OPENCV", CAMERAS["OPENCV"])])
+    cfg = compose_config([f"data.path={root}", "data.undistort=lens", "data.holdout_every=0",
+                          "features.models=[{name: daisy}]"])
+    scene, _ = load_data(cfg)
+    assert scene.lens is not None and scene.valid is None
+    maps, _ = load_feature_targets(cfg.features, scene, 0)  # auto-extracted from the images as captured
+    fs = maps["daisy"]
+    assert fs.meta["undistort"] == "lens" and fs.maps.shape[1:3] == (scene.height, scene.width)
+    direct = extract(root, "daisy", undistort="crop", overwrite=True, progress=False)  # crop-frame features
+    assert direct.num_views == scene.num_images
+    with pytest.raises(SceneError, match=r"daisy features .* data\.undistort=crop, but this run uses "
+                                         r"data\.undistort=lens: re-extract them \(cusgs-extract .* --undistort lens"):
+        load_feature_targets(cfg.features, scene, 0)

@@ -190,3 +190,22 @@ def test_visible_slots_jits_once_over_alive_masks():
         assert int(np.sum(view.valid)) == min(len(left), 4)
         np.testing.assert_array_equal(np.asarray(view.slots)[:len(left)], left[:4])
     assert run._cache_size() == 1
+
+
+def test_frustum_mask_through_a_lens():
+    from cusgs_jax.splat.lens import Lens
+
+    K = jnp.asarray([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
+    # pincushion k1 = 0.5: the point at u = 0.6 lands at u_d = 0.6·(1 + 0.5·0.36) = 0.708 → x = 67.4 px,
+    # off a 64-px image with no margin, though its pinhole projection (62 px) is inside
+    lens = Lens(jnp.asarray([0.5, 0, 0, 0, 0, 0.0]), jnp.asarray([-0.9, 0.9, -0.9, 0.9]))
+    centers = jnp.asarray([[0.6, 0.0, 1.0], [0.2, 0.1, 1.0], [0.95, 0.0, 1.0], [0.0, 0.0, -1.0]])
+    np.testing.assert_array_equal(frustum_mask(centers, jnp.eye(4), K, 64, 48, margin=0.0),
+                                  [True, True, False, False])
+    np.testing.assert_array_equal(frustum_mask(centers, jnp.eye(4), K, 64, 48, margin=0.0, lens=lens),
+                                  [False, True, False, False])
+    wide = Lens(lens.coeffs, jnp.asarray([-2.0, 2.0, -2.0, 2.0]))  # u = 0.95 → u_d = 1.379, 101 px: in a 70 % margin
+    np.testing.assert_array_equal(frustum_mask(centers, jnp.eye(4), K, 64, 48, margin=0.7, lens=wide),
+                                  [True, True, True, False])
+    np.testing.assert_array_equal(frustum_mask(centers, jnp.eye(4), K, 64, 48, margin=0.7, lens=lens),
+                                  [True, True, False, False])  # beyond the trusted box: never visible

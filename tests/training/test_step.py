@@ -3,6 +3,8 @@ compiles once, deterministic, skips non-finite updates, feature-aware pruning st
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -439,3 +441,22 @@ def test_a_valid_pixel_mask_makes_the_invalid_target_pixels_irrelevant(setup):
     for a, b in zip(jax.tree_util.tree_leaves(results[0][0]), jax.tree_util.tree_leaves(results[1][0])):
         np.testing.assert_array_equal(a, b)
     assert results[2][1]["loss"] != results[1][1]["loss"]
+
+
+def test_a_camera_with_a_lens_renders_through_it_and_a_zero_lens_is_the_pinhole(setup):
+    """data.undistort=lens: a lens with zero coefficients (and a box around the whole view) gives the
+    pinhole step's loss and update up to float rounding; a real lens changes them."""
+    from cusgs_jax.splat.lens import Lens
+
+    cfg, tx, strategies, step, state0 = setup
+    base = _batch(2)
+    box = jnp.asarray([-50.0, 50.0, -50.0, 50.0])
+    results = []
+    for lens in (None, Lens(jnp.zeros(6), box), Lens(jnp.asarray([0.2, 0.05, 0, 0, 0.01, 0.0]), box)):
+        camera = dataclasses.replace(base["camera"], lens=lens)
+        state, metrics = step(_copy(state0), dict(base, camera=camera))
+        results.append((jax.device_get(state.trainable), float(metrics["loss"])))
+    assert abs(results[1][1] - results[0][1]) < 1e-5 * abs(results[0][1])
+    for a, b in zip(jax.tree_util.tree_leaves(results[0][0]), jax.tree_util.tree_leaves(results[1][0])):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    assert abs(results[2][1] - results[0][1]) > 1e-3 * abs(results[0][1])

@@ -73,6 +73,7 @@ from cusgs_jax.training.parallel import resolve_devices
 from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
+from cusgs_jax.splat.lens import Lens
 from cusgs_jax.types import Camera
 from cusgs_jax.view.live import live_view
 from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_model
@@ -344,7 +345,7 @@ def _batches(session: Session):
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     valid = None if scene.valid is None else jnp.asarray(scene.valid[idx])  # [V, H, W] bool
     viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
-    lens = None if scene.lens is None else jax.tree.map(lambda a: jnp.asarray(a[idx]), scene.lens)  # [V] lenses
+    lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
 
     def batch(step: int) -> dict:
         if size == 1:

@@ -94,7 +94,7 @@ class SceneData:
         others.
       lens: the per-view lens distortion (:class:`cusgs_jax.splat.lens.Lens`, numpy leaves
         coeffs [V, 6] and bounds [V, 4]) the images were captured through, kept with
-        ``data.undistort=lens`` (:mod:`.lens`); None when the images are pinhole images.
+        ``data.undistort=lens`` (:mod:`.lenses`); None when the images are pinhole images.
     """
 
     path: pathlib.Path

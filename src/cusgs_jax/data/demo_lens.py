@@ -8,7 +8,9 @@ exactly what that lens sees — no image is warped). The depth and object-id map
 annotations of the images *as loaded*, so they are ray cast (pixel centres) through the PINHOLE
 camera the loader undistorts the images to (:func:`cusgs_jax.data.undistort.undistorted_cameras`,
 e.g. 149×112 for ``opencv`` at 160×120): the ``semantic`` feature model and the retrieval metrics
-then line up with the undistorted images. The SfM points and their tracks are the pinhole
+then line up with the undistorted images. The maps of the other two loading modes are kept beside them:
+``masked/`` (:data:`MASKED_MAPS`, the frame of ``data.undistort=mask``) and ``lens/`` (:data:`LENS_MAPS`,
+the images as captured, for ``data.undistort=lens``: the pixel-centre rays of the lens itself). The SfM points and their tracks are the pinhole
 demo's (same seed → the same points), with every keypoint the lens's projection of its point
 (:func:`cusgs_jax.data.demo_colmap.write_sfm_model`). The folder is the demo's layout
 (:mod:`cusgs_jax.data.demo`) with ``sparse/0/cameras.bin`` holding the lens's model, so the COLMAP
@@ -49,12 +51,13 @@ from cusgs_jax.data.demo_colmap import write_sfm_model
 from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, mean_colour, render_view
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras
 
-__all__ = ["LENSES", "configured_demo", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
+__all__ = ["LENSES", "LENS_MAPS", "MASKED_MAPS", "configured_demo", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
            "write_lens_demo"]
 
 LENSES = ("pinhole", "opencv", "simple_radial")
-LENS_FORMAT_VERSION = 3  # 2: depth and object ids in the undistorted frame; 3: also in the masked frame
+LENS_FORMAT_VERSION = 4  # 2: depth and object ids in the undistorted frame; 3: also in the masked frame; 4: and the lens's
 MASKED_MAPS = "masked"  # <scene>/masked/{depth,object_ids}/: the maps in the frame of data.undistort=mask
+LENS_MAPS = "lens"  # <scene>/lens/{depth,object_ids}/: the maps of the images as captured (data.undistort=lens)
 _SUBSAMPLES = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
 
 
@@ -150,11 +153,12 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         (out / sub).mkdir(parents=True, exist_ok=True)
     pin_depths, pin_faces = [], []
     for v, (R, t) in enumerate(poses):
-        image, *_ = render_lens_view(scene, R, t, camera)
+        image, lens_depth, lens_obj, _ = render_lens_view(scene, R, t, camera)
         _, depth, obj, _ = render_view(scene, R, t, int(loaded.width), int(loaded.height), K_loaded,
                                        supersample=False)
         write_view_files(out, names[v], image, depth, obj)
         if masked is not None:
+            write_view_maps(out / LENS_MAPS, names[v], lens_depth, lens_obj)
             _, depth, obj, _ = render_view(scene, R, t, int(masked.width), int(masked.height), _intrinsics(masked),
                                            supersample=False)
             write_view_maps(out / MASKED_MAPS, names[v], depth, obj)
@@ -181,7 +185,11 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
         **({"masked_maps_camera": {"model": "PINHOLE", "width": int(masked.width), "height": int(masked.height),
                                    "params": [float(k) for k in _intrinsics(masked)],
                                    "note": "masked/depth/ and masked/object_ids/ are in the frame of the images "
-                                           "undistorted with data.undistort=mask"}} if masked is not None else {}),
+                                           "undistorted with data.undistort=mask"},
+            "lens_maps_camera": {"model": model, "width": width, "height": height, "params": params,
+                                 "note": "lens/depth/ and lens/object_ids/ are in the frame of the images as captured "
+                                         "(data.undistort=lens), ray cast through the lens at pixel centres"}}
+           if masked is not None else {}),
         "images": names, "generation_seconds": round(time.perf_counter() - t0, 3),
     }
     (out / "scene.json").write_text(json.dumps(info, indent=1) + "\n")

@@ -21,11 +21,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from typing import NamedTuple
+
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.undistort import camera_model_name
-from cusgs_jax.splat.lens import Lens
 
-__all__ = ["LENS_MODELS", "MAX_TAN", "WIDENINGS", "lens_coefficients", "lens_of_camera", "scene_lens"]
+__all__ = ["LENS_MODELS", "MAX_TAN", "WIDENINGS", "SceneLens", "lens_coefficients", "lens_of_camera", "scene_lens"]
 
 # COLMAP models the lens mode renders through: {model: (fisheye, names of its distortion params)}.
 LENS_MODELS = {
@@ -36,6 +37,21 @@ LENS_MODELS = {
 WIDENINGS = (1.0, 0.5, 0.25, 0.1, 0.0)  # tried in order (module docstring)
 MAX_TAN = 10.0
 _ORDER = ("k1", "k2", "k3", "k4", "p1", "p2")  # cusgs_jax.splat.lens.COEFFICIENTS
+
+
+class SceneLens(NamedTuple):
+    """The lenses of a scene's views, on the host (``SceneData.lens``; one camera's
+    :class:`cusgs_jax.splat.lens.Lens` is ``Lens.of_views(table, view)``).
+
+    Attributes:
+      coeffs: [V, 6] float32 (k1, k2, k3, k4, p1, p2).
+      bounds: [V, 4] float32 trusted box (u_min, u_max, v_min, v_max) (module docstring).
+      fisheye: the OPENCV_FISHEYE model (all views) instead of the radial–tangential one.
+    """
+
+    coeffs: np.ndarray
+    bounds: np.ndarray
+    fisheye: bool
 
 
 def lens_coefficients(camera) -> tuple[np.ndarray, bool]:
@@ -103,9 +119,8 @@ def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
         "the calibration, or undistort the images instead with data.undistort=crop")
 
 
-def scene_lens(cameras: list, wheres: list[str]) -> Lens:
-    """The per-view :class:`~cusgs_jax.splat.lens.Lens` (numpy leaves: coeffs [V, 6], bounds [V, 4]
-    float32) of the views' pycolmap cameras ``cameras`` [V] (one lens per distinct camera).
+def scene_lens(cameras: list, wheres: list[str]) -> SceneLens:
+    """The :class:`SceneLens` of the views' pycolmap cameras ``cameras`` [V] (one lens per distinct camera).
 
     Raises:
       SceneError: for a lens :func:`lens_of_camera` refuses, or when fisheye and perspective
@@ -123,5 +138,5 @@ def scene_lens(cameras: list, wheres: list[str]) -> Lens:
         raise SceneError(
             f"{wheres[0]} and others mix OPENCV_FISHEYE cameras with perspective ones, which data.undistort=lens cannot "
             "render in one model; use data.undistort=crop (or mask) to undistort them all to pinholes")
-    return Lens(np.stack([c for c, _, _ in per_view]).astype(np.float32),
-                np.stack([b for _, b, _ in per_view]).astype(np.float32), fisheye=kinds.pop())
+    return SceneLens(np.stack([c for c, _, _ in per_view]).astype(np.float32),
+                     np.stack([b for _, b, _ in per_view]).astype(np.float32), fisheye=kinds.pop())

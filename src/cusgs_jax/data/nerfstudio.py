@@ -51,6 +51,7 @@ import numpy as np
 
 from cusgs_jax.data.colmap import SceneData, _check_int_setting, _holdout_split
 from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.lenses import SceneLens, scene_lens
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
@@ -165,17 +166,19 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
 
 
 def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode: str = "crop"
-               ) -> tuple[list, tuple[pathlib.Path, list[int]] | None]:
-    """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are.
+               ) -> tuple[list, tuple[pathlib.Path, list[int]] | None, SceneLens | None]:
+    """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are
+    (and with ``mode="lens"`` always as they are, with their lenses).
 
     Args:
       frames: [(name, image path, FrameCamera)] in view order.
-      mode: ``data.undistort``, "crop" or "mask" (:mod:`cusgs_jax.data.undistort`).
+      mode: ``data.undistort``, "crop", "mask" or "lens" (:mod:`cusgs_jax.data.undistort`, :mod:`.lenses`).
     Returns:
-      ([(image path, FrameCamera, prescaled usable)], masks) — undistorted frames read their image from the
-      cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common size;
-      ``masks`` is (that folder, [V] camera ids) for :func:`~cusgs_jax.data.undistort.undistorted_masks`, None
-      when nothing was undistorted.
+      ([(image path, FrameCamera, prescaled usable)], masks, lens) — undistorted frames read their image from
+      the cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common
+      size; ``masks`` is (that folder, [V] camera ids) for :func:`~cusgs_jax.data.undistort.undistorted_masks`,
+      None when nothing was undistorted; ``lens`` the per-view :class:`~cusgs_jax.data.lenses.SceneLens` of
+      distorted frames kept as captured (``mode="lens"``), else None.
     """
     import tempfile
 
@@ -189,8 +192,12 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode:
             ids[key] = len(ids) + 1
             cameras[ids[key]] = _colmap_camera(camera, ids[key], name, json_path)
         views.append(ids[key])
+    as_captured = [(image, camera, True) for _, image, camera in frames]
     if not any(needs_undistortion(c) for c in cameras.values()):
-        return [(image, camera, True) for _, image, camera in frames], None
+        return as_captured, None, None
+    if mode == "lens":
+        return as_captured, None, scene_lens([cameras[cid] for cid in views],
+                                             [f"frame {name!r} of {json_path}" for name, _, _ in frames])
     images_dir = scene / "images"
     names = []
     for name, image, _ in frames:
@@ -211,7 +218,7 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode:
         folder = undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras, mode=mode)
     pinhole = {cid: FrameCamera("PINHOLE", *(float(v) for v in cam.params), int(cam.width), int(cam.height), {})
                for cid, cam in undistorted_cameras(cameras, mode=mode).items()}
-    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)], (folder, views)
+    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)], (folder, views), None
 
 
 def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -260,7 +267,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
       holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
       background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
       num_random_points, seed: the initial points when the scene has no ``ply_file_path``.
-      undistort: ``data.undistort`` for distorted frames: "crop" or "mask" (:mod:`cusgs_jax.data.undistort`).
+      undistort: ``data.undistort`` for distorted frames: "crop", "mask" (:mod:`cusgs_jax.data.undistort`) or
+        "lens" (kept as captured, rendered through their lens: :mod:`cusgs_jax.data.lenses`).
 
     Returns:
       SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
@@ -294,7 +302,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         viewmats.append(opengl_c2w_to_viewmat(frame["transform_matrix"], f"frames[{i}]", json_path))
         names.append(name)
     images_in, cameras = [], []
-    undistorted, masks = _undistort(scene, frames_in, json_path, undistort)
+    undistorted, masks, lens = _undistort(scene, frames_in, json_path, undistort)
     for name, (image, camera, prescaled_ok) in zip(names, undistorted):
         prescaled = scene / f"images_{downscale}" / image.name
         use_prescaled = prescaled_ok and downscale > 1 and prescaled.is_file()
@@ -325,7 +333,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
-        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None, valid=valid)
+        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None, valid=valid,
+        lens=lens)
 
 
 def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,

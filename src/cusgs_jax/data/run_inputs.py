@@ -22,6 +22,7 @@ from cusgs_jax.data.images import scaled_size
 from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.data.normalize import WorldTransform, normalize_scene
 from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
+from cusgs_jax.extract.scene import feature_frame
 from cusgs_jax.losses import gaussian_window
 from cusgs_jax.memory import psc
 from cusgs_jax.model.field import image_pixel_of
@@ -97,27 +98,30 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
     training pixels (``psc_rows``) in random order, so the ``max_bank_entries``
     cap samples the whole scene rather than its first views.
 
-    A scene with a valid-pixel mask (``data.undistort=mask``) needs features extracted from the masked
-    images (their ``meta.json`` says ``"undistort": "mask"``; SceneError otherwise), and the target
-    vectors whose pixel lies outside the mask are zeroed — "no target" (:func:`mask_feature_maps`).
+    A scene with distorted cameras needs features extracted from its images as this run loads them
+    (their ``meta.json`` says ``"undistort": "mask"`` or ``"lens"``, nothing for crop:
+    :func:`cusgs_jax.extract.scene.feature_frame`; SceneError otherwise); with a valid-pixel mask
+    (``data.undistort=mask``) the target vectors whose pixel lies outside it are zeroed — "no target"
+    (:func:`mask_feature_maps`).
 
     Returns:
       (maps {model: FeatureSet}, banks {model: [M, D] float32 numpy}).
     """
     maps, banks = {}, {}
     masked = scene.valid is not None
+    frame = feature_frame(scene)
     for index, model in enumerate(fcfg.model_list):
         # locked: the jobs of a parallel sweep share the demo scene's cache
         if fcfg.auto_extract and model.name in BUILT_IN_EXTRACTORS and ensure_extracted(
-                scene.path, model.name, progress=False, undistort="mask" if masked else "crop"):
+                scene.path, model.name, progress=False, undistort=frame):
             log.info("extracted %s features for %s", model.name, scene.path)
         fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
-        if (fs.meta.get("undistort") == "mask") != masked:
-            have, want = ("mask", "crop") if fs.meta.get("undistort") == "mask" else ("crop", "mask")
+        have = fs.meta.get("undistort", "crop")
+        if have != frame:
             raise SceneError(
-                f"the {model.name} features of {scene.path} were extracted from the images undistorted with "
-                f"data.undistort={have}, but this run uses data.undistort={want}: re-extract them (cusgs-extract "
-                f"{scene.path} --model {model.name} --undistort {want} --overwrite) or set data.undistort={have}")
+                f"the {model.name} features of {scene.path} were extracted from the images loaded with "
+                f"data.undistort={have}, but this run uses data.undistort={frame}: re-extract them (cusgs-extract "
+                f"{scene.path} --model {model.name} --undistort {frame} --overwrite) or set data.undistort={have}")
         if masked:
             fs = mask_feature_maps(fs, scene.valid)
         _warn_on_target_norms(scene.path, model.name, fs.maps, scene.names)  # every view: held-out ones are scored

@@ -51,7 +51,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from cusgs_jax.data.layouts import load_any_scene
-from cusgs_jax.data.demo_lens import MASKED_MAPS  # the lens demo's maps in the masked frame
+from cusgs_jax.data.demo_lens import LENS_MAPS, MASKED_MAPS  # the lens demo's maps in the masked / lens frame
 from cusgs_jax.data.features import (
     META_FILE,
     FeatureError,
@@ -207,6 +207,15 @@ def _check_request(scene_path: str | os.PathLike, model: str,
     return resolution
 
 
+def feature_frame(scene) -> str:
+    """The frame a scene's images were loaded in, as features record it: "mask" (``data.undistort=mask``
+    of distorted cameras), "lens" (``data.undistort=lens`` of distorted cameras) or "crop" (pinhole
+    cameras in any mode, or distorted ones cropped)."""
+    if scene.valid is not None:
+        return "mask"
+    return "lens" if getattr(scene, "lens", None) is not None else "crop"
+
+
 def extract(scene_path: str | os.PathLike, model: str, *,
             resolution: tuple[int, int] | None = None, downscale: int = 1,
             dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = "auto",
@@ -221,9 +230,9 @@ def extract(scene_path: str | os.PathLike, model: str, *,
       resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
         (vgg16) or the patch grid (clip, dinov2).
       downscale: ``load_any_scene`` downscale factor of the images described.
-      undistort: ``data.undistort`` ("crop" or "mask") for a scene with distorted cameras; the features
-        describe the images undistorted that way, and a masked scene's meta records ``"undistort":
-        "mask"`` so that a run with the other mode refuses them
+      undistort: ``data.undistort`` ("crop", "mask" or "lens") for a scene with distorted cameras; the
+        features describe the images loaded that way, and the meta of a masked or lens scene records
+        ``"undistort": "mask"`` / ``"lens"`` (:func:`feature_frame`) so that a run with another mode refuses them
         (:func:`cusgs_jax.data.run_inputs.load_feature_targets`).
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
@@ -248,9 +257,10 @@ def extract(scene_path: str | os.PathLike, model: str, *,
                            undistort=undistort)
 
     # the demo's object ids in the frame of these images: the lens demo keeps the masked frame's apart
-    maps = scene.path / MASKED_MAPS if scene.valid is not None else None
+    mode = feature_frame(scene)
+    maps = {"mask": scene.path / MASKED_MAPS, "lens": scene.path / LENS_MAPS}.get(mode)
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
-             **({"undistort": "mask"} if scene.valid is not None else {}),
+             **({"undistort": mode} if mode != "crop" else {}),
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()
                          if k not in ("weights", "device")},
              "image_size": [scene.width, scene.height]}

@@ -57,6 +57,14 @@ class Lens:
     bounds: jax.Array
     fisheye: bool = dataclasses.field(default=False, metadata=dict(static=True))
 
+    @staticmethod
+    def of_views(table, index) -> Lens:
+        """The lenses of views ``index`` (an int, or an index array for a batch) of a per-view table
+        with ``coeffs`` [V, 6], ``bounds`` [V, 4] and ``fisheye`` (e.g.
+        :class:`cusgs_jax.data.lenses.SceneLens`)."""
+        return Lens(jnp.asarray(table.coeffs[index], jnp.float32), jnp.asarray(table.bounds[index], jnp.float32),
+                    bool(table.fisheye))
+
 
 def _distort_point(coeffs: jax.Array, uv: jax.Array, fisheye: bool) -> jax.Array:
     """D(u, v) of one point: [2] → [2] (module docstring)."""
