@@ -108,3 +108,18 @@ def test_blender_run_exports_to_the_scenes_own_frame(blender_run, tmp_path):
     print(f"run {saved['psnr']:.2f} dB, PLY in the scene frame {right['psnr']:.2f} dB")
     assert right["dataset_format"] == "blender" and right["background"] == [1.0, 1.0, 1.0]
     assert right["psnr"] > saved["psnr"] - 1.5  # the export tolerance of tests/app/test_export.py
+
+
+@pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass
+def test_a_lens_demo_trains_through_its_lens_on_the_whole_frame(tmp_path, monkeypatch):
+    """data.undistort=lens on the demo through the OPENCV lens: nothing undistorted, the full frame trained
+    and scored through the lens (eval.json camera_frame "lens", every pixel)."""
+    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
+    overrides = ["data.demo.lens=opencv", "data.demo.views=6", "data.demo.width=48", "data.demo.height=36",
+                 "data.holdout_every=3", "features=none", *TINY[:-1]]
+    result = run(compose_config([*overrides, "data.undistort=lens"]), tmp_path / "lens")
+    assert (result["width"], result["height"]) == (48, 36) and result["camera_frame"] == "lens"
+    assert result["valid_pixels"] == 1.0 and result["psnr"] > 8
+    assert not (tmp_path / "cache" / "undistorted").exists()
+    cropped = run(compose_config([*overrides, "data.undistort=crop"]), tmp_path / "crop")
+    assert cropped["camera_frame"] == "pinhole" and cropped["width"] < 48

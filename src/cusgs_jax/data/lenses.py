@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
+import logging
 from typing import NamedTuple
 
 from cusgs_jax.data.errors import SceneError
@@ -37,6 +38,7 @@ LENS_MODELS = {
 WIDENINGS = (1.0, 0.5, 0.25, 0.1, 0.0)  # tried in order (module docstring)
 MAX_TAN = 10.0
 _ORDER = ("k1", "k2", "k3", "k4", "p1", "p2")  # cusgs_jax.splat.lens.COEFFICIENTS
+log = logging.getLogger("cusgs_jax")
 
 
 class SceneLens(NamedTuple):
@@ -138,5 +140,8 @@ def scene_lens(cameras: list, wheres: list[str]) -> SceneLens:
         raise SceneError(
             f"{wheres[0]} and others mix OPENCV_FISHEYE cameras with perspective ones, which data.undistort=lens cannot "
             "render in one model; use data.undistort=crop (or mask) to undistort them all to pinholes")
+    models = sorted({key[0] for key in lenses})
+    log.info("keeping %d images %s as captured (data.undistort=lens): rendered through %d lens model(s), nothing "
+             "undistorted", len(per_view), "/".join(models), len(lenses))
     return SceneLens(np.stack([c for c, _, _ in per_view]).astype(np.float32),
                      np.stack([b for _, b, _ in per_view]).astype(np.float32), fisheye=kinds.pop())
