@@ -130,3 +130,12 @@ def test_lens_mode_on_pinhole_cameras_is_the_plain_scene(tmp_path):
     assert lens.lens is None
     np.testing.assert_array_equal(lens.images, plain.images)
     np.testing.assert_array_equal(lens.Ks, plain.Ks)
+
+
+def test_a_fisheye_wider_than_the_cap_is_kept_within_it_with_a_warning(caplog):
+    # f = 10 px on a 64-px image: the border is ~73° (|u| = 3.2 / 2.4 before the lens) — the corners past 84°
+    camera = _camera("OPENCV_FISHEYE", (8.0, 8.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0))
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        _, box, fisheye = lens_of_camera(camera, "camera 3")
+    assert fisheye and np.all(np.abs(box) <= 10.0) and np.max(np.abs(box)) == 10.0
+    assert "camera 3" in caplog.text and "within it" in caplog.text and "data.undistort=crop" in caplog.text

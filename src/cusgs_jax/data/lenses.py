@@ -100,15 +100,25 @@ def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
     width, height = int(camera.width), int(camera.height)
     border = _border(width, height)
     uv = np.asarray(camera.cam_from_img(border), np.float64)
-    lost = ~np.all(np.isfinite(uv), axis=-1)  # COLMAP found no direction for these border pixels
-    if fisheye:  # past 90° off the axis: take the pixel's direction at the cap (not rendered beyond it)
-        direction = (border - [camera.principal_point_x, camera.principal_point_y]) * MAX_TAN
-        uv = np.where(lost[:, None], direction, uv)
-    uv = np.clip(uv, -MAX_TAN, MAX_TAN)
-    back = camera.img_from_cam(np.concatenate([uv, np.ones((len(uv), 1))], -1))
-    # a border pixel no direction maps to comes back elsewhere (or not at all); at the fisheye cap it may
-    capped = np.any(np.abs(uv) >= MAX_TAN, axis=-1)
-    reached = (np.all(np.abs(back - border) < 1e-3 * max(width, height), axis=-1) | capped) & (fisheye | ~lost)
+
+    def reaches(points):  # COLMAP's projection of the directions `points` gives the border pixels back
+        back = camera.img_from_cam(np.concatenate([points, np.ones((len(points), 1))], -1))
+        return np.all(np.isfinite(points), -1) & np.all(np.abs(back - border) < 1e-3 * max(width, height), -1)
+
+    lost = ~reaches(uv)  # no direction in front of the camera maps to these border pixels
+    capped = np.zeros(len(uv), bool)
+    if fisheye:  # past MAX_TAN (or 90°) off the axis: the pixel's direction at the cap (not rendered beyond it)
+        direction = (border - [camera.principal_point_x, camera.principal_point_y]) / [camera.focal_length_x,
+                                                                                        camera.focal_length_y]
+        norm = np.maximum(np.abs(direction).max(-1, keepdims=True), 1e-12)
+        capped = lost | np.any(np.abs(uv) > MAX_TAN, -1)
+        uv = np.where(capped[:, None], direction / norm * MAX_TAN, uv)
+        lost = np.zeros_like(lost)
+    reached = ~lost
+    if np.any(capped):
+        log.warning("%s: its %s lens sees more than %.0f° off the axis; data.undistort=lens renders only the part "
+                    "within it (the rest of each image stays background) — use data.undistort=crop to undistort "
+                    "instead", where, camera_model_name(camera), np.degrees(np.arctan(MAX_TAN)))
     image_box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
     half = np.repeat([(image_box[1] - image_box[0]) / 2, (image_box[3] - image_box[2]) / 2], 2)
     for widen in WIDENINGS if np.all(reached) else ():
