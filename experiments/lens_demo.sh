@@ -9,7 +9,7 @@ PY=${PY:-.venv/bin/python}
 mkdir -p "$OUT"
 run() {  # lens, seed
   local name=$1_s$2
-  PYTHONPATH=src $PY -c "from cusgs_jax.app.train import main; main()" data.demo.lens=$1 train.seed=$2 \
+  PYTHONPATH=src $PY -c "from cusgs_jax.app.train import main; main()" data.demo.lens=$1 data.undistort=crop train.seed=$2 \
     train.iterations=1500 features=none train.progress=false eval.save_renders=false hydra.run.dir="$OUT/$name" \
     > "$OUT/$name.log" 2>&1
   $PY -c "import json; d=json.load(open('$OUT/$name/eval.json')); print(json.dumps(dict(run='$name', psnr=d['psnr'], ssim=d['ssim'], per_view=[round(v['psnr'], 3) for v in d['per_view']], train_wall_s=d['train_wall_s'], alive_anchors=d['alive_anchors'])))" >> "$OUT/summary.jsonl"

@@ -349,7 +349,7 @@ def test_data_demo_lens_validation():
 
 
 def test_data_undistort_validation():
-    assert compose_config([]).data.undistort == "crop"
+    assert compose_config([]).data.undistort == "lens"
     assert compose_config(["data.undistort=mask"]).data.undistort == "mask"
     with pytest.raises(ConfigError, match="data.undistort=.blur.: must be crop .* or lens"):
         compose_config(["data.undistort=blur"])

@@ -81,7 +81,8 @@ def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at
 def test_demo_lens_scene_is_generated_and_undistorted(tmp_path, monkeypatch):
     """data.demo.lens=opencv: the demo through the lens, generated into the cache and undistorted on load."""
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
-    cfg = compose_config(["data.demo.lens=opencv", "data.demo.views=3", "data.demo.width=48", "data.demo.height=36"])
+    cfg = compose_config(["data.demo.lens=opencv", "data.demo.views=3", "data.demo.width=48", "data.demo.height=36",
+                          "data.undistort=crop"])
     scene, _ = load_data(cfg)
     assert (tmp_path / "demo-lens4-opencv-s0-v3-48x36" / "scene.json").is_file()
     assert (tmp_path / "demo-lens4-opencv-s0-v3-48x36" / "lens" / "object_ids").is_dir()  # maps for data.undistort=lens
@@ -142,7 +143,8 @@ def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_
     assert fs.meta["undistort"] == "mask"
     assert fs.maps.shape[1:3] == scene.valid.shape[1:]  # daisy: one vector per image pixel
     assert np.all(fs.maps[~scene.valid] == 0) and np.all(np.any(fs.maps[scene.valid] != 0, axis=-1))
-    crop = compose_config([f"data.path={root}", "data.holdout_every=0", "features.models=[{name: daisy}]"])
+    crop = compose_config([f"data.path={root}", "data.undistort=crop", "data.holdout_every=0",
+                           "features.models=[{name: daisy}]"])
     crop_scene, _ = load_data(crop)
     with pytest.raises(SceneError, match=r"daisy features .* data\.undistort=mask, but this run uses "
                                          r"data\.undistort=crop: re-extract them \(cusgs-extract .* --undistort crop"):

@@ -27,7 +27,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--lens", choices=LENSES, default="pinhole",
                     help="ray cast through this lens: pinhole (the demo), opencv or simple_radial "
-                         "(a distorted COLMAP camera; cusgs-train undistorts it on load)")
+                         "(a distorted COLMAP camera; cusgs-train renders through it, or undistorts it with data.undistort=crop|mask)")
     ap.add_argument("--overwrite", action="store_true")
     args = ap.parse_args(argv)
     t0 = time.perf_counter()

@@ -20,6 +20,7 @@ from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
 from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
@@ -46,10 +47,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
-    ap.add_argument("--undistort", default="crop", choices=("crop", "mask", "lens"),
+    ap.add_argument("--undistort", default=DataConfig.undistort, choices=("crop", "mask", "lens"),
                     help="distorted cameras: crop to the valid rectangle, keep the frame and score only its "
                          "valid pixels, or keep the images and render through the lens (data.undistort; "
-                         "default crop)")
+                         "default %(default)s)")
     ap.add_argument("--out-dir", default=None, metavar="DIR", help="write <image>.png: render | ground truth")
     ap.add_argument("--background", type=number_in(0.0, 1.0), nargs=3, default=None, metavar=("R", "G", "B"),
                     help="background colour in [0, 1] (also under images with alpha; default: the layout's, "
@@ -64,7 +65,7 @@ def _parser() -> argparse.ArgumentParser:
 def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8, all_views: bool = False,
                  out_dir=None, background=None, sh_degree: int | None = None,
                  antialiased: bool = False, progress: bool = True, format: str = "auto",
-                 undistort: str = "crop") -> dict:
+                 undistort: str = DataConfig.undistort) -> dict:
     """Render ``ply`` at the scene's held-out (or every) camera; PSNR/SSIM per view and mean.
 
     ``background`` None: the layout's default (white for Blender scenes, black otherwise).

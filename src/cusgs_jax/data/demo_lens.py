@@ -14,7 +14,8 @@ the images as captured, for ``data.undistort=lens``: the pixel-centre rays of th
 demo's (same seed → the same points), with every keypoint the lens's projection of its point
 (:func:`cusgs_jax.data.demo_colmap.write_sfm_model`). The folder is the demo's layout
 (:mod:`cusgs_jax.data.demo`) with ``sparse/0/cameras.bin`` holding the lens's model, so the COLMAP
-loader undistorts it (:mod:`cusgs_jax.data.undistort`) like any distorted capture.
+loader treats it like any distorted capture: rendered through the lens (``data.undistort=lens``, the
+default) or undistorted (:mod:`cusgs_jax.data.undistort`).
 
 Ready lenses (:data:`LENSES`, :func:`lens_camera`) for a W×H image, ``f = 0.8·W`` (the demo's):
 
