@@ -14,6 +14,9 @@ run() {  # lens, undistort mode, seed
     hydra.run.dir="$OUT/$name" > "$OUT/$name.log" 2>&1
   $PY -c "import json; d=json.load(open('$OUT/$name/eval.json')); print(json.dumps(dict(run='$name', psnr=d['psnr'], ssim=d['ssim'], valid_pixels=d['valid_pixels'], size=[d['width'], d['height']], per_view=[round(v['psnr'], 3) for v in d['per_view']], train_wall_s=d['train_wall_s'], alive_anchors=d['alive_anchors'])))" >> "$OUT/summary.jsonl"
 }
-for spec in "opencv mask 0" "simple_radial mask 0" "pinhole crop 0" "opencv mask 1" "pinhole crop 1"; do
+# SPECS: "lens mode seed" triples, one run each (lens_demo_lens.sh sets its own)
+SPECS=${SPECS:-"opencv mask 0;simple_radial mask 0;pinhole crop 0;opencv mask 1;pinhole crop 1"}
+IFS=';' read -ra SPEC_LIST <<< "$SPECS"
+for spec in "${SPEC_LIST[@]}"; do
   run $spec
 done

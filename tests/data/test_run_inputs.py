@@ -128,15 +128,20 @@ def test_mask_feature_maps_zeroes_the_vectors_of_invalid_pixels():
     assert np.array_equal(out.valid, ~zero)
 
 
-def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_of_the_other_mode(tmp_path, monkeypatch):
+def _distorted_daisy_run(tmp_path, monkeypatch, model, mode):
+    """(scene folder, config, loaded scene) of a tiny distorted scene with daisy features, data.undistort=mode."""
     from cusgs_jax.testing.distorted_scenes import CAMERAS, distorted_colmap_scene
 
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
     root = tmp_path / "s"
-    distorted_colmap_scene(root, [("SIMPLE_RADIAL", CAMERAS["SIMPLE_RADIAL"])])
-    cfg = compose_config([f"data.path={root}", "data.undistort=mask", "data.holdout_every=0",
+    distorted_colmap_scene(root, [(model, CAMERAS[model])])
+    cfg = compose_config([f"data.path={root}", f"data.undistort={mode}", "data.holdout_every=0",
                           "features.models=[{name: daisy}]"])
-    scene, _ = load_data(cfg)
+    return root, cfg, load_data(cfg)[0]
+
+
+def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_of_the_other_mode(tmp_path, monkeypatch):
+    root, cfg, scene = _distorted_daisy_run(tmp_path, monkeypatch, "SIMPLE_RADIAL", "mask")
     assert scene.valid is not None and 0 < (~scene.valid).mean() < 0.3
     maps, banks = load_feature_targets(cfg.features, scene, 0)  # extracts from the masked images
     fs = maps["daisy"]
@@ -153,14 +158,8 @@ def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_
 
 def test_a_lens_scene_takes_features_of_its_images_as_captured_and_refuses_the_others(tmp_path, monkeypatch):
     from cusgs_jax.extract import extract
-    from cusgs_jax.testing.distorted_scenes import CAMERAS, distorted_colmap_scene
 
-    monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
-    root = tmp_path / "s"
-    distorted_colmap_scene(root, [("OPENCV", CAMERAS["OPENCV"])])
-    cfg = compose_config([f"data.path={root}", "data.undistort=lens", "data.holdout_every=0",
-                          "features.models=[{name: daisy}]"])
-    scene, _ = load_data(cfg)
+    root, cfg, scene = _distorted_daisy_run(tmp_path, monkeypatch, "OPENCV", "lens")
     assert scene.lens is not None and scene.valid is None
     maps, _ = load_feature_targets(cfg.features, scene, 0)  # auto-extracted from the images as captured
     fs = maps["daisy"]
