@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -200,6 +201,19 @@ def test_with_cameras_opacity_and_shape_average_the_cameras_that_see_the_anchor(
     # max_cameras keeps an evenly spread subset
     _, summary = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16, cameras=cams, max_cameras=1)
     assert summary.cameras == 1
+    # a data.undistort=lens run's cameras: "sees" is the frustum through the lens. A trusted box that excludes the
+    # anchors (0.5 ≤ x/z ≤ 0.6 while they sit within 0.1/3 of the axis) leaves every anchor seen by none: both count
+    from cusgs_jax.splat.lens import Lens
+
+    tight = Lens(jnp.zeros((2, 6)), jnp.tile(jnp.asarray([0.5, 0.6, 0.5, 0.6]), (2, 1)))
+    blind, _ = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16,
+                           cameras=dataclasses.replace(cams, lens=tight))
+    both = 0.5 * (on(positions[0]) + on(positions[1]))
+    np.testing.assert_allclose(np.asarray(blind.opacities).reshape(num, N), np.repeat(both[:, None], N, 1),
+                               rtol=1e-4)
+    wide = Lens(jnp.zeros((2, 6)), jnp.tile(jnp.asarray([-5.0, 5.0, -5.0, 5.0]), (2, 1)))
+    through, _ = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16, cameras=dataclasses.replace(cams, lens=wide))
+    np.testing.assert_allclose(np.asarray(through.opacities), np.asarray(model.opacities), rtol=1e-6)
 
 
 def test_constant_colour_bakes_to_dc_only_with_the_mean_appearance():

@@ -534,10 +534,16 @@ def _save(session: Session, step: int) -> None:
 
 
 def _cameras(session: Session, idx) -> dict:
-    """Views ``idx`` in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}."""
+    """Views ``idx`` in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}, and
+    with ``data.undistort=lens`` of distorted cameras "lens": {"coeffs": [V][6], "bounds": [V][4], "fisheye"}."""
     scene = session.scene
-    return dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
-                Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
+    out = dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
+               Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
+    if scene.lens is not None:
+        out["lens"] = dict(coeffs=np.asarray(scene.lens.coeffs, np.float64)[idx].tolist(),
+                           bounds=np.asarray(scene.lens.bounds, np.float64)[idx].tolist(),
+                           fisheye=bool(scene.lens.fisheye))
+    return out
 
 
 # --- finalise -------------------------------------------------------------------------------

@@ -48,6 +48,7 @@ from cusgs_jax.data.demo_lens import configured_demo
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
 from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
+from cusgs_jax.splat.lens import Lens
 from cusgs_jax.training.checkpoint import read_arrays
 from cusgs_jax.types import Camera
 
@@ -80,7 +81,8 @@ class TrainedModel:
       evaluation: the run's ``eval.json`` as a dict, or None (unfinished run).
       cameras: the V training cameras in the normalised frame as one batched
         :class:`~cusgs_jax.types.Camera` (K [V, 3, 3], world_to_camera [V, 4, 4], static
-        width/height), or None when neither the checkpoint nor the scene gives them.
+        width/height, and for a ``data.undistort=lens`` run of distorted cameras their ``lens``), or None when
+        neither the checkpoint nor the scene gives them.
       cameras_from: "checkpoint", the scene folder they were read from, or None.
       held_out_cameras: the held-out cameras (batched Camera) as the checkpoint records them
         (``held_out_cameras``, written since the viewer exists), or None (none held out, or an older run).
@@ -284,13 +286,20 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tup
 
 
 def _stored_cameras(stored: Any) -> Camera | None:
-    """A batched Camera from the checkpoint metadata's {"viewmats", "Ks", "width", "height"}, or None."""
+    """A batched Camera from the checkpoint metadata's {"viewmats", "Ks", "width", "height"} (and "lens":
+    {"coeffs", "bounds", "fisheye"} for a ``data.undistort=lens`` run), or None."""
     if not isinstance(stored, dict):
         return None
     try:
         viewmats, Ks = np.asarray(stored["viewmats"], np.float32), np.asarray(stored["Ks"], np.float32)
+        lens = stored.get("lens")
+        if lens is not None:
+            lens = Lens(jnp.asarray(lens["coeffs"], jnp.float32), jnp.asarray(lens["bounds"], jnp.float32),
+                        bool(lens["fisheye"]))
+            if lens.coeffs.shape != (len(viewmats), 6) or lens.bounds.shape != (len(viewmats), 4):
+                return None
         if viewmats.ndim == 3 and viewmats.shape[1:] == (4, 4) and Ks.shape == (len(viewmats), 3, 3) and len(Ks):
-            return Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"]))
+            return Camera(jnp.asarray(Ks), jnp.asarray(viewmats), int(stored["width"]), int(stored["height"]), lens)
     except (KeyError, TypeError, ValueError):
         pass
     return None

@@ -79,6 +79,7 @@ import numpy as np
 from cusgs_jax.config import DecoderConfig
 from cusgs_jax.model.anchors import AnchorParams
 from cusgs_jax.model.decode import decode_gaussians, frustum_mask
+from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
 from cusgs_jax.io.ply import SplatModel
 from cusgs_jax.splat.sh import MAX_SH_DEGREE, num_sh_coeffs, sh_basis, sh_degree
@@ -221,7 +222,7 @@ class BakedGaussians:
 def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array, alive: jax.Array,
                  appearance: jax.Array | None, dirs: jax.Array, fit: jax.Array, cfg: DecoderConfig,
                  viewmats: jax.Array | None = None, Ks: jax.Array | None = None, width: int = 0, height: int = 0,
-                 margin: float = 0.15) -> BakedGaussians:
+                 margin: float = 0.15, lenses: Lens | None = None) -> BakedGaussians:
     """Decode a chunk of anchors from every direction (and training camera) and bake each Gaussian.
 
     Args:
@@ -237,6 +238,8 @@ def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array,
         cameras (static ``width``, ``height``): opacity and shape are then averaged over
         the cameras whose frustum (widened by ``margin``, as in training) holds the
         anchor — every camera for an anchor that none holds. None: over ``dirs``.
+      lenses: the cameras' lenses (a batched :class:`~cusgs_jax.splat.lens.Lens`, coeffs [V, 6]) of a
+        ``data.undistort=lens`` run, so that "holds" is the frustum through the lens as in training; or None.
     Returns:
       :class:`BakedGaussians` with G = A·N (anchor-major, as the decoder orders them).
     """
@@ -253,14 +256,14 @@ def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array,
     if viewmats is None:
         seen = jnp.ones_like(opacity)
     else:
-        def one_camera(view_and_k):
-            view, K = view_and_k
+        def one_camera(view_k_lens):
+            view, K, lens = view_k_lens
             camera_center = -view[:3, :3].T @ view[:3, 3]
             g = decode_gaussians(decoder, anchor_params, centers, alive, camera_center, appearance, cfg)
-            inside = frustum_mask(centers, view, K, width, height, margin=margin)
+            inside = frustum_mask(centers, view, K, width, height, margin=margin, lens=lens)
             return g.opacities, g.scales, g.quats, jnp.repeat(inside, n)
 
-        opacity, scales, quats, inside = jax.lax.map(one_camera, (viewmats, Ks))  # [V, G], …
+        opacity, scales, quats, inside = jax.lax.map(one_camera, (viewmats, Ks, lenses))  # [V, G], …
         seen = jnp.where(jnp.any(inside, axis=0), inside, True).astype(opacity.dtype)
     # decode_gaussians zeroes switched-off Gaussians (tanh ≤ 0) and dead anchors: opacity = max(o, 0)
     views = jnp.sum(seen, axis=0)
@@ -392,7 +395,8 @@ def bake_splats(anchors, nets: dict, cfg: DecoderConfig, *, sh_degree: int = 3, 
         pick = np.unique(np.linspace(0, count - 1, min(count, max_cameras)).round().astype(int))
         views = dict(viewmats=jnp.asarray(cameras.world_to_camera, jnp.float32)[pick],
                      Ks=jnp.asarray(cameras.K, jnp.float32)[pick], width=int(cameras.width),
-                     height=int(cameras.height), margin=float(frustum_margin))
+                     height=int(cameras.height), margin=float(frustum_margin),
+                     lenses=None if cameras.lens is None else jax.tree.map(lambda a: a[pick], cameras.lens))
     alive_rows = np.flatnonzero(np.asarray(anchors.alive))
     n = cfg.n_offsets
     chunk_anchors = max(1, min(int(chunk_anchors), len(alive_rows) or 1))
