@@ -121,7 +121,7 @@ def test_a_lens_demo_trains_through_its_lens_on_the_whole_frame(tmp_path, monkey
     assert (result["width"], result["height"]) == (48, 36) and result["camera_frame"] == "lens"
     assert result["valid_pixels"] == 1.0 and result["psnr"] > 8
     assert not (tmp_path / "cache" / "undistorted").exists()
-    from cusgs_jax.io import load_trained
+    from cusgs_jax import load_trained
 
     trained = load_trained(tmp_path / "lens")  # the recorded training cameras keep their lens
     assert trained.cameras.lens is not None and trained.cameras.lens.coeffs.shape == (len(trained.cameras.K), 6)
