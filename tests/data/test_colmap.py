@@ -176,8 +176,8 @@ def test_load_cameras_matches_load_scene_without_reading_images(tmp_path):
 
 
 @pytest.mark.parametrize("model,params", [  # distorted models that are not undistorted for the user
-    ("FULL_OPENCV", (30.0, 31.0, 16.0, 12.0, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
     ("FOV", (30.0, 31.0, 16.0, 12.0, 0.1)),
+    ("THIN_PRISM_FISHEYE", (30.0, 31.0, 16.0, 12.0, 0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)),
 ])
 def test_unsupported_camera_rejected(tmp_path, model, params):
     make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), (model, params, W, H)])

@@ -38,7 +38,8 @@ def test_coefficients_in_colmap_order(model):
     params = CAMERAS[model]
     expected = {"SIMPLE_RADIAL": lambda p: [p[3], 0, 0, 0, 0, 0], "RADIAL": lambda p: [p[3], p[4], 0, 0, 0, 0],
                 "OPENCV": lambda p: [p[4], p[5], 0, 0, p[6], p[7]],
-                "OPENCV_FISHEYE": lambda p: [p[4], p[5], p[6], p[7], 0, 0]}[model](params)
+                "OPENCV_FISHEYE": lambda p: [p[4], p[5], p[6], p[7], 0, 0],
+                "FULL_OPENCV": lambda p: [p[4], p[5], p[8], 0, p[6], p[7]]}[model](params)
     np.testing.assert_array_equal(coeffs, expected)
     assert fisheye == (model == "OPENCV_FISHEYE")
 
@@ -68,6 +69,13 @@ def test_strong_barrel_lens_gets_a_narrower_box_and_a_folding_one_is_refused():
     with pytest.raises(SceneError, match=r"camera 7: .*not one-to-one over the image.*data.undistort=crop"):
         lens_of_camera(_camera("SIMPLE_RADIAL", (50.0, 32.0, 24.0, -2.0)), "camera 7")
     assert WIDENINGS[-1] == 0.0
+
+
+def test_a_full_opencv_lens_with_a_rational_part_is_refused():
+    params = list(CAMERAS["FULL_OPENCV"])
+    params[9] = 0.01  # k4 of FULL_OPENCV: the rational denominator's r² term
+    with pytest.raises(SceneError, match=r"camera 2: its FULL_OPENCV lens .* rational part .* data.undistort=crop"):
+        lens_of_camera(_camera("FULL_OPENCV", params), "camera 2")
 
 
 def test_fisheye_and_perspective_cannot_be_mixed():

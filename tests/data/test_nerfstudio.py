@@ -208,8 +208,9 @@ def test_error_no_transforms_json(tmp_path):
 
 
 @pytest.mark.parametrize("cameras", [[("OPENCV", CAMERAS["OPENCV"])], [("OPENCV_FISHEYE", CAMERAS["OPENCV_FISHEYE"])],
-                                     [("OPENCV", CAMERAS["OPENCV"]), ("PINHOLE", (50.0, 50.0, 32.0, 24.0))]],
-                         ids=["opencv", "fisheye", "opencv_and_pinhole"])
+                                     [("OPENCV", CAMERAS["OPENCV"]), ("PINHOLE", (50.0, 50.0, 32.0, 24.0))],
+                                     [("FULL_OPENCV", CAMERAS["FULL_OPENCV"])]],
+                         ids=["opencv", "fisheye", "opencv_and_pinhole", "opencv_with_k3"])
 def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkeypatch, cameras):
     """A distorted capture in nerfstudio's layout loads as the same capture in COLMAP's does: the same
     pinhole intrinsics, the same undistorted pixels and poses, and every marker on its point's pinhole
@@ -252,7 +253,7 @@ def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkey
         np.testing.assert_allclose(kept.lens.bounds, reference.lens.bounds, rtol=1e-5)
 
 
-@pytest.mark.parametrize("model, extra, stray", [("OPENCV", dict(k3=0.01), "k3=0.01"),
+@pytest.mark.parametrize("model, extra, stray", [("OPENCV", dict(k4=0.01), "k4=0.01"),
                                                  ("OPENCV_FISHEYE", dict(p1=0.002), "p1=0.002")])
 def test_error_distortion_colmaps_model_does_not_have(tmp_path, model, extra, stray):
     truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=-0.05, **extra))

@@ -151,7 +151,6 @@ def test_read_only_scene(tmp_path, cache_dir):
 
 
 @pytest.mark.parametrize("model,params", [
-    ("FULL_OPENCV", (50, 50, 32, 24, 0.01, 0, 0, 0, 0, 0, 0, 0)),
     ("FOV", (50, 50, 32, 24, 0.1)),
     ("THIN_PRISM_FISHEYE", (50, 50, 32, 24, 0, 0, 0, 0, 0, 0, 0, 0)),
     ("SIMPLE_RADIAL_FISHEYE", (50, 32, 24, 0.01)),

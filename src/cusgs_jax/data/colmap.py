@@ -13,13 +13,15 @@ Conventions: ``viewmats`` are world→camera 4×4 matrices with OpenCV axes (x r
 forward), i.e. COLMAP's ``cam_from_world``; ``Ks`` are pinhole intrinsics in pixels for the
 loaded resolution, where the centre of the top-left pixel is (0.5, 0.5) as in COLMAP.
 
-Camera models (:data:`SUPPORTED_CAMERA_MODELS`, those gsplat accepts): PINHOLE and SIMPLE_PINHOLE
-are loaded as they are; SIMPLE_RADIAL, RADIAL, OPENCV and OPENCV_FISHEYE are undistorted to
-PINHOLE once per scene with COLMAP's own undistorter into the project's cache, never into the
-scene folder (:mod:`.undistort`: cropped, or masked with ``data.undistort=mask``; one common size; ``images_d/`` folders are
-not used, the undistorted images are downscaled on load). A perspective model whose distortion
-parameters are all zero is loaded as the pinhole it is. Any other model (FULL_OPENCV, FOV,
-THIN_PRISM_FISHEYE, ...) is refused with a SceneError saying to run ``colmap image_undistorter``.
+Camera models (:data:`SUPPORTED_CAMERA_MODELS`: those gsplat accepts, and FULL_OPENCV): PINHOLE and
+SIMPLE_PINHOLE are loaded as they are; SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE and FULL_OPENCV are
+kept as captured and rendered through their lens (``data.undistort=lens``, the default; :mod:`.lenses`;
+FULL_OPENCV only with its rational part zero), or undistorted to PINHOLE once per scene with COLMAP's own
+undistorter into the project's cache, never into the scene folder (:mod:`.undistort`: cropped with
+``data.undistort=crop``, or masked with ``mask``; one common size; ``images_d/`` folders are not used, the
+undistorted images are downscaled on load). A perspective model whose distortion parameters are all zero
+is loaded as the pinhole it is. Any other model (FOV, THIN_PRISM_FISHEYE, ...) is refused with a
+SceneError saying to run ``colmap image_undistorter``.
 
 Every problem with the user's data raises :class:`SceneError`, whose message names the
 offending file and what to do about it. The image files are read by :mod:`.images`.

@@ -34,6 +34,8 @@ LENS_MODELS = {
     "SIMPLE_PINHOLE": (False, ()), "PINHOLE": (False, ()),
     "SIMPLE_RADIAL": (False, ("k1",)), "RADIAL": (False, ("k1", "k2")),
     "OPENCV": (False, ("k1", "k2", "p1", "p2")), "OPENCV_FISHEYE": (True, ("k1", "k2", "k3", "k4")),
+    # the polynomial part only: its rational denominator (k4, k5, k6) must be zero (lens_of_camera)
+    "FULL_OPENCV": (False, ("k1", "k2", "p1", "p2", "k3", "k4_rational", "k5_rational", "k6_rational")),
 }
 WIDENINGS = (1.0, 0.5, 0.25, 0.1, 0.0)  # tried in order (module docstring)
 MAX_TAN = 10.0
@@ -61,7 +63,7 @@ def lens_coefficients(camera) -> tuple[np.ndarray, bool]:
     model = camera_model_name(camera)
     fisheye, names = LENS_MODELS[model]
     params = np.asarray(camera.params, np.float64)
-    extra = dict(zip(names, params[len(params) - len(names):])) if names else {}
+    extra = dict(zip(names, params[len(params) - len(names):])) if names else {}  # names not in _ORDER: ignored
     return np.array([extra.get(k, 0.0) for k in _ORDER]), fisheye
 
 
@@ -96,6 +98,11 @@ def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
     Raises:
       SceneError: when the lens folds the image itself (not one-to-one over the frame).
     """
+    model = camera_model_name(camera)
+    if model == "FULL_OPENCV" and np.any(np.asarray(camera.params, np.float64)[9:12] != 0):
+        raise SceneError(
+            f"{where}: its FULL_OPENCV lens {np.asarray(camera.params).tolist()} has a rational part (k4, k5, k6 ≠ 0), "
+            "which data.undistort=lens does not model; use data.undistort=crop (or mask) to undistort it with COLMAP")
     coeffs, fisheye = lens_coefficients(camera)
     width, height = int(camera.width), int(camera.height)
     border = _border(width, height)

@@ -17,13 +17,15 @@ Layout (``data.path``), as ``ns-process-data`` writes it::
   ``file_path`` reduced with the anti-aliased filter. All frames must load at one size.
 * ``camera_model`` (top level or per frame, default ``OPENCV``): perspective cameras
   (``OPENCV``, ``PINHOLE``, ``SIMPLE_PINHOLE``) with every distortion coefficient zero or absent
-  load directly. Frames with lens distortion — ``OPENCV`` with non-zero ``k1 k2 p1 p2`` (COLMAP's
-  OPENCV model) or ``OPENCV_FISHEYE`` with ``k1 k2 k3 k4`` — are undistorted to pinhole exactly as
-  distorted COLMAP scenes are (:mod:`cusgs_jax.data.undistort`: COLMAP's undistorter, cached outside
-  the scene, cropped to valid pixels, ``images_{d}/`` not used): the frames' cameras are written as a
-  temporary COLMAP model for it, so their images must lie under ``images/``. ``OPENCV`` with non-zero
-  ``k3``/``k4``, a fisheye with ``p1``/``p2``, ``EQUIRECTANGULAR`` and nerfstudio's other models raise
-  :class:`SceneError` saying what to do.
+  load directly. Frames with lens distortion — ``OPENCV`` with non-zero ``k1 k2 k3 p1 p2`` (COLMAP's
+  OPENCV model, or FULL_OPENCV with its rational part zero when ``k3`` is set) or ``OPENCV_FISHEYE`` with
+  ``k1 k2 k3 k4`` — load as distorted COLMAP scenes do (``data.undistort``): kept as captured and rendered
+  through their lens (:mod:`cusgs_jax.data.lenses`, the default), or undistorted to pinhole
+  (:mod:`cusgs_jax.data.undistort`: COLMAP's undistorter, cached outside the scene, cropped or masked,
+  ``images_{d}/`` not used; the frames' cameras are written as a temporary COLMAP model for it, so their
+  images must lie under ``images/``). ``OPENCV`` with non-zero ``k4`` (nerfstudio's r⁸ term), a fisheye
+  with ``p1``/``p2``, ``EQUIRECTANGULAR`` and nerfstudio's other models raise :class:`SceneError` saying
+  what to do.
 * ``transform_matrix``: camera-to-world with OpenGL camera axes (as Blender), converted by
   :func:`cusgs_jax.data.frames.opengl_c2w_to_viewmat`.
 * ``applied_transform`` (3×4) is informational: it records the transform ``ns-process-data``
@@ -139,8 +141,10 @@ def _frame_camera(meta: dict, frame: dict, index: int, json_path: pathlib.Path) 
 
 
 def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pathlib.Path):
-    """The pycolmap Camera of a frame's camera (PINHOLE, OPENCV or OPENCV_FISHEYE), or SceneError
-    for a model or distortion coefficient COLMAP's matching model does not have."""
+    """The pycolmap Camera of a frame's camera (PINHOLE, OPENCV, FULL_OPENCV for an OPENCV frame with k3 — its
+    rational part zero, so the radial polynomial is nerfstudio's 1 + k1 r² + k2 r⁴ + k3 r⁶ — or OPENCV_FISHEYE),
+    or SceneError for a model or distortion coefficient COLMAP's matching model does not have (k4 of a
+    perspective frame: nerfstudio's r⁸ term; p1, p2 of a fisheye)."""
     import pycolmap
 
     if camera.model in UNSUPPORTED_MODELS:
@@ -148,7 +152,7 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
         raise SceneError(f"frame {name!r} of {json_path} uses camera_model {camera.model}, but only perspective "
                          f"(OPENCV, PINHOLE, SIMPLE_PINHOLE) and OPENCV_FISHEYE cameras are supported; {hint}")
     coeff = {k: camera.distortion.get(k, 0.0) for k in DISTORTION_KEYS}
-    extra = ("p1", "p2") if camera.model == FISHEYE_MODEL else ("k3", "k4")
+    extra = ("p1", "p2") if camera.model == FISHEYE_MODEL else ("k4",)
     stray = {k: coeff[k] for k in extra if coeff[k] != 0.0}
     if stray:
         values = ", ".join(f"{k}={v:g}" for k, v in stray.items())
@@ -157,6 +161,8 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
     pinhole = [camera.fx, camera.fy, camera.cx, camera.cy]
     if camera.model == FISHEYE_MODEL:
         model, params = "OPENCV_FISHEYE", pinhole + [coeff[k] for k in ("k1", "k2", "k3", "k4")]
+    elif coeff["k3"] != 0.0:
+        model, params = "FULL_OPENCV", pinhole + [coeff[k] for k in ("k1", "k2", "p1", "p2", "k3")] + [0.0, 0.0, 0.0]
     elif any(coeff[k] != 0.0 for k in ("k1", "k2", "p1", "p2")):
         model, params = "OPENCV", pinhole + [coeff[k] for k in ("k1", "k2", "p1", "p2")]
     else:

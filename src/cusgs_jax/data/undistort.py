@@ -1,9 +1,10 @@
 """Undistorting COLMAP scenes whose cameras have lens distortion, once per scene, into the cache.
 
-:func:`cusgs_jax.data.colmap.load_scene` trains on pinhole cameras only. A scene whose registered
-images use a distorted camera model (:data:`DISTORTED_MODELS`: SIMPLE_RADIAL, RADIAL, OPENCV,
-OPENCV_FISHEYE — the models gsplat's COLMAP parser accepts besides the two pinholes) is turned
-into a PINHOLE scene here:
+:func:`cusgs_jax.data.colmap.load_scene` with ``data.undistort=crop`` or ``mask`` trains on pinhole cameras
+(``lens`` renders through the lens instead: :mod:`.lenses`). A scene whose registered images use a
+distorted camera model (:data:`DISTORTED_MODELS`: SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE — the
+models gsplat's COLMAP parser accepts besides the two pinholes — and FULL_OPENCV, which nerfstudio's
+OPENCV frames with a k3 map to) is turned into a PINHOLE scene here:
 
 * :func:`undistorted_cameras` — the PINHOLE cameras the images are undistorted to (no I/O; what
   :func:`~cusgs_jax.data.colmap.load_cameras` uses, so it still reads no image);
@@ -100,7 +101,7 @@ __all__ = ["CACHE_VERSION", "DISTORTED_MODELS", "MODES", "PINHOLE_MODELS", "came
 log = logging.getLogger("cusgs_jax")
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
-DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE")
+DISTORTED_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "OPENCV_FISHEYE", "FULL_OPENCV")
 CACHE_VERSION = 2  # 2: images with alpha keep it (RGBA)
 MODES = ("crop", "mask")  # data.undistort (module docstring)
 _MARKER = "undistort.json"

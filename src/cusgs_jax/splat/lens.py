@@ -13,7 +13,8 @@ against the scale on which the distortion changes.
 Models, in COLMAP's parameterisation (``colmap/src/colmap/sensor/models.h``) with the normalised
 undistorted coordinates ``(u, v) = (x/z, y/z)``, ``r² = u² + v²``:
 
-* radial–tangential (SIMPLE_RADIAL, RADIAL, OPENCV and the two pinholes, with zeros):
+* radial–tangential (SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV without its rational part, and the
+  two pinholes, with zeros):
   ``D(u, v) = (u·ρ + 2 p1 u v + p2 (r² + 2u²),  v·ρ + 2 p2 u v + p1 (r² + 2v²))``,
   ``ρ = 1 + k1 r² + k2 r⁴ + k3 r⁶``;
 * fisheye (OPENCV_FISHEYE, equidistant): ``θ = atan r``,

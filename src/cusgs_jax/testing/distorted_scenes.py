@@ -22,6 +22,8 @@ CAMERAS = {  # model: params for a 64×48 image
     "RADIAL": (50.0, 31.6, 24.3, -0.1, 0.02),  # barrel: it grows
     "OPENCV": (50.0, 52.0, 32.3, 23.8, -0.12, 0.02, 0.001, -0.002),
     "OPENCV_FISHEYE": (40.0, 41.0, 32.0, 24.0, 0.05, -0.01, 0.0, 0.0),
+    # nerfstudio's OPENCV with k3: COLMAP's FULL_OPENCV with the rational part (k4, k5, k6) zero
+    "FULL_OPENCV": (50.0, 51.0, 32.1, 24.2, -0.1, 0.03, 0.002, -0.001, 0.02, 0.0, 0.0, 0.0),
 }
 # 3×2 grid of points at z = 5 in front of the cameras (about ±16 px, ±10 px from the centre).
 POINTS = np.array([[x, y, 5.0] for y in (-1.0, 1.0) for x in (-1.6, 0.0, 1.6)])
@@ -98,7 +100,8 @@ def marker_errors(scene) -> list[float]:
 def nerfstudio_copy(colmap_root, dst):
     """The distorted COLMAP scene ``colmap_root`` (:func:`distorted_colmap_scene`) as a nerfstudio
     scene in ``dst``: the same images under ``images/`` and a ``transforms.json`` with each frame's
-    ``camera_model`` (OPENCV / OPENCV_FISHEYE; PINHOLE cameras as OPENCV without distortion),
+    ``camera_model`` (OPENCV / OPENCV_FISHEYE; PINHOLE cameras as OPENCV without distortion, FULL_OPENCV as OPENCV
+    with its k3),
     ``fl_x fl_y cx cy w h``, its distortion keys and an OpenGL camera-to-world ``transform_matrix``
     (what ``ns-process-data`` writes). Returns ``dst``."""
     import json
@@ -110,7 +113,8 @@ def nerfstudio_copy(colmap_root, dst):
     colmap_root, dst = pathlib.Path(colmap_root), pathlib.Path(dst)
     shutil.copytree(colmap_root / "images", dst / "images")
     rec = pycolmap.Reconstruction(str(colmap_root / "sparse" / "0"))
-    keys = {"OPENCV": ("k1", "k2", "p1", "p2"), "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"), "PINHOLE": ()}
+    keys = {"OPENCV": ("k1", "k2", "p1", "p2"), "OPENCV_FISHEYE": ("k1", "k2", "k3", "k4"), "PINHOLE": (),
+            "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3")}  # its k4–k6 (rational) are zero here
     frames = []
     for image in sorted(rec.images.values(), key=lambda im: im.name):
         cam = rec.cameras[image.camera_id]
@@ -121,7 +125,8 @@ def nerfstudio_copy(colmap_root, dst):
         w2c[:3] = pose.matrix()
         c2w = np.linalg.inv(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV → OpenGL camera axes
         frame = dict(file_path=f"images/{image.name}", transform_matrix=c2w.tolist(),
-                     camera_model="OPENCV" if model == "PINHOLE" else model, w=int(cam.width), h=int(cam.height),
+                     camera_model="OPENCV" if model in ("PINHOLE", "FULL_OPENCV") else model, w=int(cam.width),
+                     h=int(cam.height),
                      fl_x=params[0], fl_y=params[1], cx=params[2], cy=params[3])
         frame.update(zip(keys[model], params[4:]))
         frames.append(frame)
