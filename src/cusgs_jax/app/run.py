@@ -334,15 +334,6 @@ def _exact_step(session: Session, batch: dict) -> dict:
         session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
 
 
-def _camera_frame(scene) -> str:
-    """eval.json's ``camera_frame``, the images the metrics scored: "lens" (as captured, rendered through
-    the lens: ``data.undistort=lens``), "mask" (undistorted to the source frame, valid pixels only) or
-    "pinhole" (pinhole images: as loaded, or undistorted and cropped)."""
-    if scene.lens is not None:
-        return "lens"
-    return "mask" if scene.valid is not None else "pinhole"
-
-
 def _batches(session: Session):
     """``batch(step)``: the training views of ``step`` as the step's input.
 
@@ -540,9 +531,7 @@ def _cameras(session: Session, idx) -> dict:
     out = dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
                Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
     if scene.lens is not None:
-        out["lens"] = dict(coeffs=np.asarray(scene.lens.coeffs, np.float64)[idx].tolist(),
-                           bounds=np.asarray(scene.lens.bounds, np.float64)[idx].tolist(),
-                           fisheye=bool(scene.lens.fisheye))
+        out["lens"] = scene.lens.as_dict(idx)
     return out
 
 
@@ -575,7 +564,7 @@ def finalise(session: Session) -> dict:
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
         evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
         background=list(cfg.splat.background_color), curve=session.curve,
-        camera_frame=_camera_frame(session.scene),
+        camera_frame=session.scene.camera_frame,
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,

@@ -127,6 +127,15 @@ class SceneData:
     def num_images(self) -> int:
         return len(self.names)
 
+    @property
+    def camera_frame(self) -> str:
+        """The frame the images are scored in (``eval.json``'s ``camera_frame``): "lens" (as captured, rendered
+        through the lens: ``data.undistort=lens``), "mask" (undistorted to the source frame, valid pixels only)
+        or "pinhole" (pinhole images: as loaded, or undistorted and cropped)."""
+        if self.lens is not None:
+            return "lens"
+        return "mask" if self.valid is not None else "pinhole"
+
 
 # --------------------------------------------------------------------------------------------
 # Public entry point

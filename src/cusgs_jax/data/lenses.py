@@ -57,6 +57,11 @@ class SceneLens(NamedTuple):
     bounds: np.ndarray
     fisheye: bool
 
+    def as_dict(self, idx) -> dict:
+        """Views ``idx`` as JSON: {"coeffs": [V][6], "bounds": [V][4], "fisheye"} (a checkpoint's camera lists)."""
+        return dict(coeffs=np.asarray(self.coeffs, np.float64)[idx].tolist(),
+                    bounds=np.asarray(self.bounds, np.float64)[idx].tolist(), fisheye=bool(self.fisheye))
+
 
 def lens_coefficients(camera) -> tuple[np.ndarray, bool]:
     """([6] float64 (k1, k2, k3, k4, p1, p2), fisheye) of a pycolmap camera of :data:`LENS_MODELS`."""

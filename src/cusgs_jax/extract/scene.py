@@ -210,10 +210,8 @@ def _check_request(scene_path: str | os.PathLike, model: str,
 def feature_frame(scene) -> str:
     """The frame a scene's images were loaded in, as features record it: "mask" (``data.undistort=mask``
     of distorted cameras), "lens" (``data.undistort=lens`` of distorted cameras) or "crop" (pinhole
-    cameras in any mode, or distorted ones cropped)."""
-    if scene.valid is not None:
-        return "mask"
-    return "lens" if getattr(scene, "lens", None) is not None else "crop"
+    cameras in any mode, or distorted ones cropped): ``SceneData.camera_frame`` with "pinhole" → "crop"."""
+    return "crop" if scene.camera_frame == "pinhole" else scene.camera_frame
 
 
 def extract(scene_path: str | os.PathLike, model: str, *,
