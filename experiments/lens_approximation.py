@@ -7,13 +7,14 @@ resolution over the lens's field of view, then looked up at every distorted pixe
 (COLMAP's ``cam_from_img``) with bilinear interpolation. The low-pass filter is matched (eps2d·factor² in the
 fine render). Prints the PSNR between (1) and (2) per view and overall, and each one's PSNR against the images.
 
-    PYTHONPATH=src python experiments/lens_approximation.py [PLY] [--lens opencv] [--factor 4]
+    PYTHONPATH=src python experiments/lens_approximation.py [PLY] [--lens opencv] [--factor 4] [--scene FOLDER]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import pathlib
 
 import jax.numpy as jnp
 import numpy as np
@@ -48,8 +49,9 @@ def main():
     parser.add_argument("ply", nargs="?", default="experiments/results/lens_demo_lens/ply/pinhole_crop_s0.ply")
     parser.add_argument("--lens", default="opencv")
     parser.add_argument("--factor", type=int, default=4)
+    parser.add_argument("--scene", default=None, help="a lens demo folder (write_lens_demo) instead of --lens's")
     args = parser.parse_args()
-    path = lens_demo_path(lens=args.lens)
+    path = lens_demo_path(lens=args.lens) if args.scene is None else pathlib.Path(args.scene)
     scene = load_any_scene(path, undistort="lens")
     camera = pycolmap.Reconstruction(str(path / "sparse" / "0")).cameras[1]
     model, shift = recentre_splats(read_ply(args.ply), scene.camera_centers.mean(axis=0))
@@ -75,7 +77,7 @@ def main():
                          first_order_vs_image_db=round(_psnr(ours, target), 3),
                          exact_vs_image_db=round(_psnr(exact, target), 3)))
         print(json.dumps(rows[-1]), flush=True)
-    print(json.dumps(dict(ply=args.ply, lens=args.lens, factor=args.factor, fine_size=[width, height],
+    print(json.dumps(dict(ply=args.ply, lens=args.lens if args.scene is None else str(path), factor=args.factor, fine_size=[width, height],
                           first_order_vs_exact_db=round(float(-10 * np.log10(np.mean(gaps))), 2),
                           first_order_vs_image_db=round(float(np.mean([r["first_order_vs_image_db"] for r in rows])), 3),
                           exact_vs_image_db=round(float(np.mean([r["exact_vs_image_db"] for r in rows])), 3))))
