@@ -58,7 +58,7 @@ class SceneLens(NamedTuple):
     fisheye: bool
 
     def as_dict(self, idx) -> dict:
-        """Views ``idx`` as JSON: {"coeffs": [V][6], "bounds": [V][4], "fisheye"} (a checkpoint's camera lists)."""
+        """Views ``idx`` as JSON: ``{"coeffs": [V][6], "bounds": [V][4], "fisheye"}`` (a checkpoint's camera lists)."""
         return dict(coeffs=np.asarray(self.coeffs, np.float64)[idx].tolist(),
                     bounds=np.asarray(self.bounds, np.float64)[idx].tolist(), fisheye=bool(self.fisheye))
 
