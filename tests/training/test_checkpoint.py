@@ -376,7 +376,10 @@ try:
     error = None
 except CheckpointError as e:
     error = str(e)
-restored, meta = Checkpointer(mount / "ckpt").restore(state)
+    ckpt.close_after_error()  # as cusgs-train: orbax's threads stop before the interpreter does
+reader = Checkpointer(mount / "ckpt")
+restored, meta = reader.restore(state)
+reader.close()
 print(json.dumps(dict(error=error, entries=sorted(p.name for p in (mount / "ckpt").iterdir()), meta=meta,
                       same=bool(jnp.array_equal(restored["w"], state["w"])))))
 """

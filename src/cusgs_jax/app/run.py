@@ -590,5 +590,9 @@ def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies
     """
     with quiet_orbax():
         session = setup(cfg, output_dir, extra_strategies)
-        train(session, progress_label)
-        return finalise(session)
+        try:
+            train(session, progress_label)
+            return finalise(session)
+        except BaseException:
+            session.ckpt.close_after_error()
+            raise

@@ -290,7 +290,18 @@ class Checkpointer:
                                f"{_NEW_RUN}")
 
     def close(self) -> None:
-        self.manager.close()
+        """Wait for orbax's background work and stop it (idempotent)."""
+        if not getattr(self, "_closed", False):
+            self._closed = True
+            self.manager.close()
+
+    def close_after_error(self) -> None:
+        """:meth:`close` on an error path (e.g. a full disk): orbax's threads stop before the interpreter does,
+        so they cannot print a traceback at exit; a second failure while closing is logged, not raised."""
+        try:
+            self.close()
+        except Exception as e:  # noqa: BLE001 - the error being raised is the one to report
+            log.debug("closing the checkpointer after an error failed too: %s", e)
 
 
 def read_arrays(directory: str | pathlib.Path, keys: tuple[str, ...] = ("anchors", "nets"),
