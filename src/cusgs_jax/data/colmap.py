@@ -40,7 +40,7 @@ from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
-from cusgs_jax.data.lenses import scene_lens
+from cusgs_jax.data.lenses import SceneLens, scene_lens
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -94,9 +94,10 @@ class SceneData:
         distorted cameras undistorted with ``data.undistort=mask`` (:mod:`.undistort`); None when
         every pixel is valid. The loss, the held-out metrics and the feature targets ignore the
         others.
-      lens: the per-view lens distortion (:class:`cusgs_jax.splat.lens.Lens`, numpy leaves
-        coeffs [V, 6] and bounds [V, 4]) the images were captured through, kept with
-        ``data.undistort=lens`` (:mod:`.lenses`); None when the images are pinhole images.
+      lens: the per-view lens distortion the images were captured through
+        (:class:`cusgs_jax.data.lenses.SceneLens`: coeffs [V, 6], bounds [V, 4], fisheye), kept with
+        ``data.undistort=lens`` (:mod:`.lenses`; ``Lens.of_views`` gives one camera's); None when the
+        images are pinhole images.
     """
 
     path: pathlib.Path
@@ -116,7 +117,7 @@ class SceneData:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     random_points: bool = False
     valid: np.ndarray | None = None
-    lens: Any = None
+    lens: SceneLens | None = None
 
     @property
     def camera_centers(self) -> np.ndarray:
@@ -235,7 +236,7 @@ class _Model(NamedTuple):
     cameras: dict  # {camera id: intrinsics dict} (undistorted PINHOLE for distorted cameras)
     undistort: Any  # None, or (for distorted cameras) a function () -> folder whose images/ hold
     #                 the undistorted images (undistorting and caching them on first use)
-    lens: Any  # data.undistort=lens with a distorted camera: the per-view Lens (data/lenses.py); else None
+    lens: SceneLens | None  # data.undistort=lens with a distorted camera: the per-view lenses; else None
 
 
 def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
