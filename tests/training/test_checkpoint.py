@@ -359,27 +359,27 @@ import json, os, pathlib, sys
 import jax, jax.numpy as jnp
 from cusgs_jax.errors import CheckpointError
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
-quiet_orbax().__enter__()  # as cusgs-train: orbax's repeats of the failure are dropped
 mount = pathlib.Path(sys.argv[1])
 state = {"w": jax.random.normal(jax.random.PRNGKey(0), (200, 256)), "n": jnp.int32(1)}
-ckpt = Checkpointer(mount / "ckpt")
-ckpt.save(1, state, {"step": 1})
-with open(mount / "filler", "wb", buffering=0) as f:  # fill the disk, then leave 60 KiB: too little for step 2
+with quiet_orbax():  # as cusgs-train's main: orbax's repeats of the failure are dropped while it runs
+    ckpt = Checkpointer(mount / "ckpt")
+    ckpt.save(1, state, {"step": 1})
+    with open(mount / "filler", "wb", buffering=0) as f:  # fill the disk, then leave 60 KiB: too little for step 2
+        try:
+            while True:
+                f.write(b"x" * 4096)
+        except OSError:
+            pass
+    os.truncate(mount / "filler", os.path.getsize(mount / "filler") - 60 * 1024)
     try:
-        while True:
-            f.write(b"x" * 4096)
-    except OSError:
-        pass
-os.truncate(mount / "filler", os.path.getsize(mount / "filler") - 60 * 1024)
-try:
-    ckpt.save(2, jax.tree_util.tree_map(lambda x: x + 1, state), {"step": 2})
-    error = None
-except CheckpointError as e:
-    error = str(e)
-    ckpt.close_after_error()  # as cusgs-train: orbax's threads stop before the interpreter does
-reader = Checkpointer(mount / "ckpt")
-restored, meta = reader.restore(state)
-reader.close()
+        ckpt.save(2, jax.tree_util.tree_map(lambda x: x + 1, state), {"step": 2})
+        error = None
+    except CheckpointError as e:
+        error = str(e)
+        ckpt.close_after_error()  # as cusgs-train: orbax's threads stop before the interpreter does
+    reader = Checkpointer(mount / "ckpt")
+    restored, meta = reader.restore(state)
+    reader.close()
 print(json.dumps(dict(error=error, entries=sorted(p.name for p in (mount / "ckpt").iterdir()), meta=meta,
                       same=bool(jnp.array_equal(restored["w"], state["w"])))))
 """
