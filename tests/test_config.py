@@ -353,3 +353,9 @@ def test_data_undistort_validation():
     assert compose_config(["data.undistort=mask"]).data.undistort == "mask"
     with pytest.raises(ConfigError, match="data.undistort=.blur.: must be crop .* or lens"):
         compose_config(["data.undistort=blur"])
+
+
+def test_data_random_init_validation():
+    assert compose_config(["data.random_init=cube_and_rays"]).data.random_init == "cube_and_rays"
+    with pytest.raises(ConfigError, match="data.random_init='sphere': must be cube .* or cube_and_rays"):
+        compose_config(["data.random_init=sphere"])

@@ -36,6 +36,7 @@ M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 3
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
+RANDOM_INITS = ("cube", "cube_and_rays")  # data.random_init (data/random_points.py)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,6 +73,9 @@ class DataConfig:
     # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
     align: str = "none"
     random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
+    # Where those points go (data/random_points.py): "cube" (3DGS's cube, sized to what the cameras look at) or
+    # "cube_and_rays" (half there, half along the training rays, reaching walls a room-scale capture has).
+    random_init: str = "cube"
     # Distorted cameras: "lens" (default) keeps the images as captured and rasterises through the lens model
     # (splat/lens.py: no resampling blur, every pixel trained and scored; on the lens demo within 0.2 dB of the
     # pinhole demo, experiments/README.md); "crop" undistorts to the largest valid rectangle (data/undistort.py,
@@ -90,6 +94,9 @@ class DataConfig:
                 f"must be auto or one of {', '.join(DATASET_FORMATS)} (the layout of data.path)",
                 "e.g. data.format=auto to detect it from the files present")
         _at_least(self, "data", 2, "random_points")
+        require(self.random_init in RANDOM_INITS, "data.random_init", self.random_init,
+                "must be cube (uniform in the cube the cameras look at) or cube_and_rays (half of the points along "
+                "the training rays)", "e.g. data.random_init=cube_and_rays")
         require(self.undistort in ("crop", "mask", "lens"), "data.undistort", self.undistort,
                 "must be crop (keep the largest valid rectangle), mask (keep the frame, mask its invalid pixels) "
                 "or lens (keep the images, render through the lens)", "e.g. data.undistort=lens")

@@ -104,6 +104,24 @@ def test_random_points_and_extent(blender):
     assert scene.extent == pytest.approx(1.1 * np.max(np.linalg.norm(centers - centers.mean(0), axis=-1)))
 
 
+def test_random_points_come_from_the_training_cameras_only(blender):
+    """The held-out (test) cameras never shape the initial points: moving them changes nothing; moving a
+    training camera does. Both rules."""
+    for init in ("cube", "cube_and_rays"):
+        before = load_blender_scene(blender["root"], num_random_points=400, seed=2, random_init=init).points
+        test_json = blender["root"] / "transforms_test.json"
+        original = test_json.read_text()
+        _edit(test_json, lambda m: [f["transform_matrix"][i].__setitem__(3, f["transform_matrix"][i][3] + 5.0)
+                                    for f in m["frames"] for i in range(3)])
+        np.testing.assert_array_equal(
+            load_blender_scene(blender["root"], num_random_points=400, seed=2, random_init=init).points, before)
+        test_json.write_text(original)
+    train_json = blender["root"] / "transforms_train.json"
+    _edit(train_json, lambda m: m["frames"][0]["transform_matrix"][0].__setitem__(3, 9.0))
+    moved = load_blender_scene(blender["root"], num_random_points=400, seed=2, random_init="cube_and_rays").points
+    assert not np.array_equal(moved, before)
+
+
 def test_downscale(tmp_path):
     truth = write_blender_scene(tmp_path / "s", width=32, height=24)
     full, half = load_blender_scene(truth["root"]), load_blender_scene(truth["root"], downscale=2)

@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from cusgs_jax.data.random_points import GREY, random_box, random_points, random_voxel_size
+from cusgs_jax.data.normalize import camera_centers
+from cusgs_jax.data.random_points import GREY, RAY_DEPTHS, random_box, random_points, random_voxel_size, ray_points
 from cusgs_jax.model.anchors import auto_voxel_size
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, orbit_eyes
 
@@ -70,6 +71,60 @@ def test_points_are_uniform_deterministic_grey():
     assert np.all(np.abs(points.mean(0) - center) < 0.05 * half)
     np.testing.assert_array_equal(points, random_points(views, Ks, W, H, num=5000, seed=3)[0])
     assert not np.array_equal(points, random_points(views, Ks, W, H, num=5000, seed=4)[0])
+
+
+def _seen_by(views, Ks, points, distance):
+    """[N, V] bool: point n lies in front of camera v at a depth in RAY_DEPTHS × distance and inside its image."""
+    cam = np.einsum("vij,nj->nvi", views[:, :3, :3], points) + views[None, :, :3, 3]  # [N, V, 3]
+    z = cam[..., 2]
+    u = Ks[None, :, 0, 0] * cam[..., 0] / z + Ks[None, :, 0, 2]
+    v = Ks[None, :, 1, 1] * cam[..., 1] / z + Ks[None, :, 1, 2]
+    lo, hi = RAY_DEPTHS[0] * distance, RAY_DEPTHS[1] * distance
+    tol = 1e-9 * distance
+    return (z >= lo - tol) & (z <= hi + tol) & (u >= -1e-6) & (u <= W + 1e-6) & (v >= -1e-6) & (v <= H + 1e-6)
+
+
+def test_ray_points_lie_on_training_rays_at_the_rule_depths():
+    """Every ray point lies in front of some camera at a depth in [½ D, 2½ D] (D the median distance of the
+    cameras to the cube's centre) and projects inside its image; the cameras are drawn evenly; depths fill the
+    range (not only the cube)."""
+    views, Ks = _ring(), _K(20)
+    center, _ = random_box(views, Ks, W, H)
+    distance = np.median(np.linalg.norm(camera_centers(views) - center, axis=-1))
+    points = ray_points(views, Ks, W, H, 4000, np.random.default_rng(0))
+    seen = _seen_by(views, Ks, points, distance)
+    assert points.shape == (4000, 3) and np.all(seen.any(axis=1))
+    depth = np.linalg.norm(points - center, axis=-1)
+    assert np.mean(depth > distance) > 0.2  # far beyond the cube (half-side 0.36 D): walls are reached
+
+
+def test_ray_points_follow_the_capture_scale_and_pose():
+    """A similarity transform of the cameras moves the ray points with it (same seed): nothing depends on the
+    capture's arbitrary scale, origin or rotation."""
+    views, Ks = _ring(), _K(20)
+    rotation = np.linalg.qr(np.random.default_rng(5).normal(size=(3, 3)))[0]
+    rotation *= np.sign(np.linalg.det(rotation))
+    scale, shift = 7.0, np.array([3.0, -1.0, 2.0])
+    moved = views.copy()  # world x' = s R x + c: view' = [R_v Rᵀ, s t_v − R_v Rᵀ c]
+    moved[:, :3, :3] = views[:, :3, :3] @ rotation.T
+    moved[:, :3, 3] = scale * views[:, :3, 3] - np.einsum("vij,j->vi", moved[:, :3, :3], shift)
+    a = ray_points(views, Ks, W, H, 500, np.random.default_rng(2))
+    b = ray_points(moved, Ks, W, H, 500, np.random.default_rng(2))
+    np.testing.assert_allclose(b, scale * a @ rotation.T + shift, atol=1e-9)
+
+
+def test_cube_and_rays_splits_the_points():
+    views, Ks = _ring(), _K(20)
+    center, half = random_box(views, Ks, W, H)
+    points, colors = random_points(views, Ks, W, H, num=3001, seed=4, init="cube_and_rays")
+    assert points.shape == (3001, 3) and np.all(colors == GREY)
+    cube, rays = points[:1501], points[1501:]
+    assert np.all(np.abs(cube - center) <= half)
+    distance = np.median(np.linalg.norm(camera_centers(views) - center, axis=-1))
+    assert np.all(_seen_by(views, Ks, rays, distance).any(axis=1))
+    np.testing.assert_array_equal(points, random_points(views, Ks, W, H, num=3001, seed=4, init="cube_and_rays")[0])
+    with pytest.raises(ValueError, match="init='sphere'"):
+        random_points(views, Ks, W, H, num=10, init="sphere")
 
 
 def test_auto_voxel_size_is_the_uniform_spacing():

@@ -142,9 +142,9 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
     cfg = dataclasses.replace(cfg, features=run_features(cfg))
     scene, world = load_data(cfg)
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
-    cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats, scene.Ks, scene.width, scene.height)
-                             if scene.random_points else None)
     train_idx = scene.train_indices
+    cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train_idx], scene.Ks[train_idx], scene.width,
+                                                 scene.height) if scene.random_points else None)
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
     log.info("scene %s (%s): %d train / %d held-out views at %dx%d, %d points; extent %.4g in the scene's frame "
              "(trained in units of it), voxel size %.4g", scene.path, scene.dataset_format, len(train_idx),

@@ -94,14 +94,16 @@ def _read_split(scene: pathlib.Path, json_path: pathlib.Path, *, required: bool)
 
 def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
                        background: tuple[float, float, float] | None = None,
-                       num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0) -> SceneData:
+                       num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
+                       random_init: str = "cube") -> SceneData:
     """Load a Blender / NeRF-synthetic scene folder (see the module docstring for the layout).
 
     Args:
       path: the folder holding ``transforms_train.json`` (``data.path``).
       downscale: integer factor d (``data.downscale``): images at round(W/d) × round(H/d), K / d.
       background: RGB in [0, 1] under the RGBA images (``splat.background``); None = white.
-      num_random_points: the initial points (``data.random_points``), uniform in the cameras' cube.
+      num_random_points: the initial points (``data.random_points``), drawn for the training cameras by
+        the rule ``random_init`` (``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`).
       seed: of the random points.
 
     Returns:
@@ -136,7 +138,8 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
         log.warning("%s has no %s (or no frames in it): no held-out views; the reported PSNR will be on "
                     "training views", scene, TEST_FILE)
     out_w, out_h = images.shape[2], images.shape[1]
-    points, colors = random_points(viewmats, Ks, out_w, out_h, num=num_random_points, seed=seed)
+    points, colors = random_points(viewmats[train_indices], Ks[train_indices], out_w, out_h, num=num_random_points,
+                                   seed=seed, init=random_init)
     log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points)",
              scene, num_train, len(test_indices), out_w, out_h, len(points))
     extent, _ = camera_extent(camera_centers(viewmats), points)

@@ -87,7 +87,8 @@ def detect_format(path: str | os.PathLike) -> str:
 
 def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: int = 1, holdout_every: int = 8,
                    background: tuple[float, float, float] | None = None,
-                   num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0, undistort: str = "crop") -> SceneData:
+                   num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0, undistort: str = "crop",
+                   random_init: str = "cube") -> SceneData:
     """Load the scene folder ``path`` in its layout (``data.format``; ``"auto"``: :func:`detect_format`).
 
     Args:
@@ -95,7 +96,8 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
       downscale, holdout_every: ``data.downscale``, ``data.holdout_every`` (Blender scenes hold out
         their test frames instead).
       background: ``splat.background``, or None for the layout's default (:func:`default_background`).
-      num_random_points, seed: initial points of layouts without any (``data.random_points``).
+      num_random_points, seed, random_init: initial points of layouts without any (``data.random_points``,
+        ``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`).
       undistort: ``data.undistort``, "crop" or "mask", for distorted COLMAP and nerfstudio cameras
         (:mod:`cusgs_jax.data.undistort`).
     Returns:
@@ -111,10 +113,11 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
     bg = default_background(fmt) if background is None else background
     if fmt == "blender":
         return load_blender_scene(path, downscale=downscale, background=bg, num_random_points=num_random_points,
-                                  seed=seed)
+                                  seed=seed, random_init=random_init)
     if fmt == "nerfstudio":
         return load_nerfstudio_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg,
-                                     num_random_points=num_random_points, seed=seed, undistort=undistort)
+                                     num_random_points=num_random_points, seed=seed, undistort=undistort,
+                                     random_init=random_init)
 
     scene = load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg, undistort=undistort)
     return dataclasses.replace(scene, dataset_format="colmap", split=split_name(holdout_every),

@@ -264,7 +264,7 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
 def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
                           background: tuple[float, float, float] | None = None,
                           num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
-                          undistort: str = "crop") -> SceneData:
+                          undistort: str = "crop", random_init: str = "cube") -> SceneData:
     """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
 
     Args:
@@ -272,7 +272,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
       downscale: integer factor d (``data.downscale``).
       holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
       background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
-      num_random_points, seed: the initial points when the scene has no ``ply_file_path``.
+      num_random_points, seed, random_init: the initial points when the scene has no ``ply_file_path``
+        (:func:`cusgs_jax.data.random_points.random_points` of the training cameras).
       undistort: ``data.undistort`` for distorted frames: "crop", "mask" (:mod:`cusgs_jax.data.undistort`) or
         "lens" (kept as captured, rendered through their lens: :mod:`cusgs_jax.data.lenses`).
 
@@ -327,7 +328,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
 
     loaded = _points(scene, meta, json_path)
     if loaded is None:
-        points, colors = random_points(viewmats, Ks, width, height, num=num_random_points, seed=seed)
+        points, colors = random_points(viewmats[train_indices], Ks[train_indices], width, height,
+                                       num=num_random_points, seed=seed, init=random_init)
         source = f"{len(points)} random initial points (no ply_file_path)"
     else:
         points, colors = loaded

@@ -16,8 +16,21 @@ origin assumed:
    median_i tan(½ FoV_i)`` with ``tan(½ FoV) = max(W / 2f_x, H / 2f_y)`` (the wider half-angle). For
    NeRF-synthetic (radius 4.03, FoV 0.69 rad) this is ±1.45, close to the ±1.3 of 3DGS. When it is 0
    (the cameras sit at ``x``) the camera extent is used.
-3. **Points**: ``num`` (default 100 000) uniform in the cube ``x ± h``, from
-   ``numpy.random.default_rng(seed)`` (deterministic); colours mid-grey (128, 128, 128) uint8.
+3. **Points** (``data.random_init``), from ``numpy.random.default_rng(seed)`` (deterministic); colours
+   mid-grey (128, 128, 128) uint8:
+
+   - ``cube``: ``num`` (default 100 000) uniform in the cube ``x ± h``. That is what the cameras of an
+     object-centric capture (NeRF-synthetic) look at, but a room-scale capture's walls, floor and
+     ceiling lie outside it: the training views are then fitted by floaters inside the cube, which the
+     held-out views expose (14.3 dB on the demo room against 27.6 dB from SfM points,
+     ``experiments/README.md``).
+   - ``cube_and_rays``: half the points in the cube as above, the other half along the training
+     cameras' rays — a uniform camera, a uniform pixel, a depth (along the optical axis) uniform in
+     ``[½ D, 2½ D]`` with ``D = median_i ‖x − C_i‖`` the distance the cameras look at — so that
+     whatever lies up to about two and a half times that far in any training view has points near it
+     (the demo room's walls lie at 0.4–2.1 D).
+
+   Only the training cameras are used (never the held-out ones), for the cube as for the rays.
 
 **Voxel size.** ``model.voxel_size=auto`` is *not* the median nearest-neighbour spacing of these points
 (:func:`cusgs_jax.model.anchors.auto_voxel_size`, the rule for SfM points): for N uniform points in a cube
@@ -38,12 +51,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from cusgs_jax.config import RANDOM_INITS
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 
-__all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points", "random_voxel_size"]
+__all__ = ["DEFAULT_NUM_POINTS", "GREY", "RANDOM_INITS", "random_box", "random_points", "random_voxel_size",
+           "ray_points"]
 
 DEFAULT_NUM_POINTS = 100_000
 GREY = 128
+RAY_DEPTHS = (0.5, 2.5)  # the rays' depth range, in units of the distance the cameras look at
 _MIN_SPREAD = 0.02  # smallest eigenvalue of Σ(I − d dᵀ) / V for the axes' nearest point to be trusted
 
 
@@ -99,15 +115,55 @@ def random_voxel_size(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: 
     return size
 
 
-def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, *,
-                  num: int = DEFAULT_NUM_POINTS, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """``num`` uniform random points in :func:`random_box` of the cameras.
+def ray_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, num: int,
+               rng: np.random.Generator) -> np.ndarray:
+    """``num`` points along random rays of the cameras (the ``cube_and_rays`` rule of the module docstring).
 
+    Each point takes a uniform camera, a uniform position in its ``width`` × ``height`` image and a depth
+    along its optical axis uniform in ``RAY_DEPTHS`` × ``D`` (``D`` the median distance from the camera
+    centres to the centre of :func:`random_box`).
+
+    Args:
+      viewmats: [V, 4, 4] world→camera (OpenCV axes); Ks: [V, 3, 3] pinhole intrinsics; rng: the generator.
+    Returns:
+      points [num, 3] float64 in the frame of ``viewmats``; each lies in front of the camera it was drawn
+      for and projects inside its image.
+    """
+    viewmats = np.asarray(viewmats, np.float64)
+    Ks = np.asarray(Ks, np.float64)
+    center, half = random_box(viewmats, Ks, width, height)
+    distance = float(np.median(np.linalg.norm(center - camera_centers(viewmats), axis=-1)))
+    if not (np.isfinite(distance) and distance > 0):  # the cameras sit at x: the cube's size instead
+        distance = 2.0 * half
+    view = rng.integers(len(viewmats), size=num)
+    pixel = rng.uniform((0.0, 0.0), (float(width), float(height)), size=(num, 2))
+    depth = rng.uniform(RAY_DEPTHS[0] * distance, RAY_DEPTHS[1] * distance, size=num)
+    K = Ks[view]
+    camera = np.stack([(pixel[:, 0] - K[:, 0, 2]) / K[:, 0, 0], (pixel[:, 1] - K[:, 1, 2]) / K[:, 1, 1],
+                       np.ones(num)], axis=-1) * depth[:, None]  # [num, 3] in camera coordinates
+    rotation, translation = viewmats[view, :3, :3], viewmats[view, :3, 3]
+    return np.einsum("nji,nj->ni", rotation, camera - translation)  # Rᵀ (p − t)
+
+
+def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, *,
+                  num: int = DEFAULT_NUM_POINTS, seed: int = 0, init: str = "cube") -> tuple[np.ndarray, np.ndarray]:
+    """``num`` random initial points for the training cameras ``viewmats``, ``Ks`` by the rule ``init``.
+
+    Args:
+      viewmats: [V, 4, 4] world→camera of the *training* views; Ks: [V, 3, 3] at ``width`` × ``height``.
+      init: ``"cube"`` (uniform in :func:`random_box`) or ``"cube_and_rays"`` (half of them there, half
+        :func:`ray_points`), the module docstring's rules (``data.random_init``).
     Returns:
       (points [num, 3] float64, colours [num, 3] uint8, all mid-grey); the same for the same
-      cameras, ``num`` and ``seed``.
+      cameras, ``num``, ``seed`` and ``init``.
     """
+    if init not in RANDOM_INITS:
+        raise ValueError(f"init={init!r} must be one of {RANDOM_INITS}")
+    num = int(num)
     center, half = random_box(viewmats, Ks, width, height)
     rng = np.random.default_rng(seed)
-    points = center + rng.uniform(-half, half, size=(int(num), 3))
-    return points, np.full((int(num), 3), GREY, np.uint8)
+    on_rays = num // 2 if init == "cube_and_rays" else 0
+    points = center + rng.uniform(-half, half, size=(num - on_rays, 3))
+    if on_rays:
+        points = np.concatenate([points, ray_points(viewmats, Ks, width, height, on_rays, rng)])
+    return points, np.full((num, 3), GREY, np.uint8)

@@ -51,7 +51,7 @@ def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
                  "" if demo.lens == "pinhole" else f" through the {demo.lens} lens", path)
     scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=cfg.splat.background, num_random_points=data.random_points,
-                           seed=cfg.train.seed, undistort=data.undistort)
+                           seed=cfg.train.seed, undistort=data.undistort, random_init=data.random_init)
     require_ssim_size(scene, data.downscale, "data.downscale")
     return normalize_scene(scene, align=data.align)
 
