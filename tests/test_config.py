@@ -356,6 +356,7 @@ def test_data_undistort_validation():
 
 
 def test_data_random_init_validation():
+    assert compose_config([]).data.random_init == "auto"
     assert compose_config(["data.random_init=cube_and_rays"]).data.random_init == "cube_and_rays"
-    with pytest.raises(ConfigError, match="data.random_init='sphere': must be cube .* or cube_and_rays"):
+    with pytest.raises(ConfigError, match="data.random_init='sphere': must be auto .* cube .* or cube_and_rays"):
         compose_config(["data.random_init=sphere"])

@@ -41,6 +41,7 @@ def test_blender_scene_trains_and_evaluates_on_its_test_split(blender_run):
     assert [row["name"] for row in saved["per_view"]] == ["test/r_0.png", "test/r_1.png"]
     assert saved["background"] == [1.0, 1.0, 1.0]  # splat.background not set: white for Blender
     assert 0 < saved["voxel_size"] < 0.2 and saved["alive_anchors"] > 100  # auto on the random points
+    assert saved["initial_points"] == "cube"  # data.random_init=auto on a Blender scene
     assert result["psnr"] == saved["psnr"] and saved["psnr"] > 0
 
 

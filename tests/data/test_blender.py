@@ -97,6 +97,7 @@ def test_random_points_and_extent(blender):
     scene = load_blender_scene(blender["root"], num_random_points=500, seed=1)
     assert scene.points.shape == (500, 3) and scene.points.dtype == np.float64
     assert scene.point_colors.shape == (500, 3) and scene.point_colors.dtype == np.uint8
+    assert scene.random_points == "cube"  # data.random_init=auto on a Blender scene
     assert np.all(np.abs(scene.points) < 2.0)  # in a cube around the origin the cameras look at
     again = load_blender_scene(blender["root"], num_random_points=500, seed=1)
     np.testing.assert_array_equal(scene.points, again.points)

@@ -79,8 +79,21 @@ def test_ply_without_colours_is_grey(tmp_path):
 
 
 def test_without_ply_random_points(ns):
+    """No ply_file_path: data.random_init=auto is cube_and_rays here (a real capture), drawn for the training
+    cameras only; cube on request."""
+    from cusgs_jax.data.random_points import random_points
+
     scene = load_nerfstudio_scene(ns["root"], num_random_points=300)
     assert scene.points.shape == (300, 3) and np.all(scene.point_colors == 128)
+    assert scene.random_points == "cube_and_rays"
+    train = scene.train_indices
+    expected, _ = random_points(scene.viewmats[train], scene.Ks[train], scene.width, scene.height, num=300,
+                                init="cube_and_rays")
+    np.testing.assert_array_equal(scene.points, expected)
+    cube = load_nerfstudio_scene(ns["root"], num_random_points=300, random_init="cube")
+    assert cube.random_points == "cube"
+    np.testing.assert_array_equal(cube.points, random_points(scene.viewmats[train], scene.Ks[train], scene.width,
+                                                             scene.height, num=300, init="cube")[0])
 
 
 def test_downscale_prefers_images_d(tmp_path):

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from cusgs_jax.data.normalize import camera_centers
-from cusgs_jax.data.random_points import GREY, RAY_DEPTHS, random_box, random_points, random_voxel_size, ray_points
+from cusgs_jax.data.random_points import (GREY, RAY_DEPTHS, random_box, random_points, random_voxel_size, ray_points,
+                                         resolve_random_init)
 from cusgs_jax.model.anchors import auto_voxel_size
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, orbit_eyes
 
@@ -125,6 +126,15 @@ def test_cube_and_rays_splits_the_points():
     np.testing.assert_array_equal(points, random_points(views, Ks, W, H, num=3001, seed=4, init="cube_and_rays")[0])
     with pytest.raises(ValueError, match="init='sphere'"):
         random_points(views, Ks, W, H, num=10, init="sphere")
+
+
+def test_auto_rule_by_layout():
+    assert resolve_random_init("auto", "blender") == "cube"
+    assert resolve_random_init("auto", "nerfstudio") == "cube_and_rays"
+    assert resolve_random_init("cube", "nerfstudio") == "cube" and resolve_random_init("cube_and_rays", "blender") \
+        == "cube_and_rays"
+    with pytest.raises(ValueError, match="resolve 'auto' first"):
+        random_points(_ring(), _K(20), W, H, num=10, init="auto")
 
 
 def test_auto_voxel_size_is_the_uniform_spacing():

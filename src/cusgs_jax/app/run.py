@@ -565,6 +565,8 @@ def finalise(session: Session) -> dict:
         evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
         background=list(cfg.splat.background_color), curve=session.curve,
         camera_frame=session.scene.camera_frame,
+        # the initial points: the scene's own, or the random rule of a layout without any (data/random_points.py)
+        initial_points=session.scene.random_points or "scene_points",
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,

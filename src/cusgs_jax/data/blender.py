@@ -27,7 +27,8 @@ scene, e.g. ``train/r_0.png``); ``test_indices`` are the test frames — the sta
 
 RGBA images are composited onto ``background``, white by default (papers report NeRF-synthetic
 on white). There are no points: the scene gets :func:`cusgs_jax.data.random_points.random_points`
-(100 000 uniform grey points in the cube the cameras look at).
+(100 000 grey points; ``data.random_init=auto`` puts them uniformly in the cube the training cameras look at,
+as 3DGS and Scaffold-GS do for NeRF-synthetic).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from cusgs_jax.data.frames import (FrameImage, check_unique_names, fov_focal, fr
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background
 from cusgs_jax.data.normalize import camera_centers, camera_extent
-from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
+from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
 
 __all__ = ["load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
 
@@ -95,7 +96,7 @@ def _read_split(scene: pathlib.Path, json_path: pathlib.Path, *, required: bool)
 def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
                        background: tuple[float, float, float] | None = None,
                        num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
-                       random_init: str = "cube") -> SceneData:
+                       random_init: str = "auto") -> SceneData:
     """Load a Blender / NeRF-synthetic scene folder (see the module docstring for the layout).
 
     Args:
@@ -103,7 +104,8 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
       downscale: integer factor d (``data.downscale``): images at round(W/d) × round(H/d), K / d.
       background: RGB in [0, 1] under the RGBA images (``splat.background``); None = white.
       num_random_points: the initial points (``data.random_points``), drawn for the training cameras by
-        the rule ``random_init`` (``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`).
+        the rule ``random_init`` (``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`;
+        ``"auto"`` is ``"cube"`` here).
       seed: of the random points.
 
     Returns:
@@ -138,17 +140,18 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
         log.warning("%s has no %s (or no frames in it): no held-out views; the reported PSNR will be on "
                     "training views", scene, TEST_FILE)
     out_w, out_h = images.shape[2], images.shape[1]
+    rule = resolve_random_init(random_init, "blender")
     points, colors = random_points(viewmats[train_indices], Ks[train_indices], out_w, out_h, num=num_random_points,
-                                   seed=seed, init=random_init)
-    log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points)",
-             scene, num_train, len(test_indices), out_w, out_h, len(points))
+                                   seed=seed, init=rule)
+    log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points; "
+             "data.random_init=%s)", scene, num_train, len(test_indices), out_w, out_h, len(points), rule)
     extent, _ = camera_extent(camera_centers(viewmats), points)
     return SceneData(
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(out_w), height=int(out_h), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="blender",
         split="transforms_test" if len(test_indices) else "none", background=tuple(background),
-        random_points=True)
+        random_points=rule)
 
 
 def _K(width: int, height: int, angle_x: float, downscale: float) -> np.ndarray:

@@ -87,8 +87,9 @@ class SceneData:
       split: how the held-out views were chosen, e.g. "every_8th", "none" or
         "transforms_test" (Blender's test frames).
       background: RGB in [0, 1] that images with alpha were composited onto.
-      random_points: the points are :func:`cusgs_jax.data.random_points.random_points` (a layout without
-        points), not SfM points; ``model.voxel_size=auto`` then uses
+      random_points: None for SfM points (or a PLY's); for a layout without points, the rule
+        (``"cube"`` or ``"cube_and_rays"``) :func:`cusgs_jax.data.random_points.random_points` drew them
+        by (``eval.json``'s ``initial_points``); ``model.voxel_size=auto`` then uses
         :func:`cusgs_jax.data.random_points.random_voxel_size` instead of their spacing.
       valid: [V, H, W] bool, True where a pixel holds image content — the valid-pixel masks of
         distorted cameras undistorted with ``data.undistort=mask`` (:mod:`.undistort`); None when
@@ -115,7 +116,7 @@ class SceneData:
     dataset_format: str = "colmap"
     split: str = "every_8th"
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    random_points: bool = False
+    random_points: str | None = None
     valid: np.ndarray | None = None
     lens: SceneLens | None = None
 

@@ -88,7 +88,7 @@ def detect_format(path: str | os.PathLike) -> str:
 def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: int = 1, holdout_every: int = 8,
                    background: tuple[float, float, float] | None = None,
                    num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0, undistort: str = "crop",
-                   random_init: str = "cube") -> SceneData:
+                   random_init: str = "auto") -> SceneData:
     """Load the scene folder ``path`` in its layout (``data.format``; ``"auto"``: :func:`detect_format`).
 
     Args:

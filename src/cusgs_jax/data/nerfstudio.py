@@ -33,7 +33,8 @@ Layout (``data.path``), as ``ns-process-data`` writes it::
   are and it is **not** applied again.
 * ``ply_file_path`` (relative to the scene folder): initial points and colours (read with
   ``plyfile``: vertex ``x y z`` and, when present, ``red green blue``). Without it the scene gets
-  :func:`cusgs_jax.data.random_points.random_points`.
+  :func:`cusgs_jax.data.random_points.random_points` (``data.random_init=auto``: half in the cube the
+  training cameras look at, half along their rays — a real capture has walls or a background around them).
 
 Views are sorted by ``file_path``; the held-out views are every ``holdout_every``-th of them
 (``i % holdout_every == 0``, the COLMAP loader's rule; 0: none), ``split = "every_8th"`` etc.
@@ -58,7 +59,7 @@ from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, f
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
 from cusgs_jax.data.normalize import camera_centers, camera_extent
-from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points
+from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images, undistorted_masks
 
 __all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
@@ -264,7 +265,7 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
 def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
                           background: tuple[float, float, float] | None = None,
                           num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
-                          undistort: str = "crop", random_init: str = "cube") -> SceneData:
+                          undistort: str = "crop", random_init: str = "auto") -> SceneData:
     """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
 
     Args:
@@ -273,7 +274,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
       holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
       background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
       num_random_points, seed, random_init: the initial points when the scene has no ``ply_file_path``
-        (:func:`cusgs_jax.data.random_points.random_points` of the training cameras).
+        (:func:`cusgs_jax.data.random_points.random_points` of the training cameras; ``"auto"`` is
+        ``"cube_and_rays"`` here).
       undistort: ``data.undistort`` for distorted frames: "crop", "mask" (:mod:`cusgs_jax.data.undistort`) or
         "lens" (kept as captured, rendered through their lens: :mod:`cusgs_jax.data.lenses`).
 
@@ -327,10 +329,12 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
     train_indices, test_indices = _holdout_split(len(names), holdout_every, scene)
 
     loaded = _points(scene, meta, json_path)
+    rule = None
     if loaded is None:
+        rule = resolve_random_init(random_init, "nerfstudio")
         points, colors = random_points(viewmats[train_indices], Ks[train_indices], width, height,
-                                       num=num_random_points, seed=seed, init=random_init)
-        source = f"{len(points)} random initial points (no ply_file_path)"
+                                       num=num_random_points, seed=seed, init=rule)
+        source = f"{len(points)} random initial points (no ply_file_path; data.random_init={rule})"
     else:
         points, colors = loaded
         source = f"{len(points)} points from {meta['ply_file_path']}"
@@ -341,7 +345,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
         Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
         train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
-        split=split_name(holdout_every), background=tuple(background), random_points=loaded is None, valid=valid,
+        split=split_name(holdout_every), background=tuple(background), random_points=rule, valid=valid,
         lens=lens)
 
 
