@@ -128,3 +128,21 @@ def test_a_lens_demo_trains_through_its_lens_on_the_whole_frame(tmp_path, monkey
     assert trained.cameras.lens is not None and trained.cameras.lens.coeffs.shape == (len(trained.cameras.K), 6)
     cropped = run(compose_config([*overrides, "data.undistort=crop"]), tmp_path / "crop")
     assert cropped["camera_frame"] == "pinhole" and cropped["width"] < 48
+
+
+@pytest.mark.parametrize("ply", [pytest.param(False, id="random_points"),
+                                 pytest.param(True, id="ply_points", marks=pytest.mark.slow)])
+def test_nerfstudio_scene_trains_and_evaluates(tmp_path, ply):
+    """A tiny nerfstudio scene (OPENCV, no distortion) trains and is scored on its every-8th hold-out: without
+    ply_file_path from random points along the training rays (data.random_init=auto), with it from the PLY's."""
+    from cusgs_jax.testing.transforms_scenes import write_nerfstudio_scene
+
+    truth = write_nerfstudio_scene(tmp_path / "ns", n=9, width=40, height=30, fl=(35.0, 37.5), c=(20.0, 16.25),
+                                   ply=ply)
+    result = run(compose_config([f"data.path={truth['root']}", *TINY]), tmp_path / "run")
+    saved = json.loads((tmp_path / "run" / "eval.json").read_text())
+    assert saved["dataset_format"] == "nerfstudio" and saved["split"] == "every_8th"
+    assert saved["evaluated_on"] == "held_out" and saved["held_out_views"] == 2  # frames 0 and 8 of 9
+    assert saved["initial_points"] == ("scene_points" if ply else "cube_and_rays")
+    assert saved["background"] == [0.0, 0.0, 0.0] and saved["camera_frame"] == "pinhole"
+    assert result["psnr"] == saved["psnr"] and saved["psnr"] > 0 and saved["alive_anchors"] > 0
