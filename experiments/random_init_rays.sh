@@ -32,3 +32,8 @@ done
 for init in ${OBJECT_INITS-cube_and_rays cube}; do
   run "objects_$init" data.path="$OUT/scenes/objects/blender" data.random_init="$init"
 done
+# the same room in the nerfstudio layout without a PLY, all defaults (data.random_init=auto → cube_and_rays)
+if [ -n "${NERFSTUDIO-}" ]; then
+  [ -f "$OUT/scenes/room_ns/transforms.json" ] || python experiments/random_init_nerfstudio.py "$OUT/scenes/room_ns"
+  run room_nerfstudio_auto data.path="$OUT/scenes/room_ns"
+fi
