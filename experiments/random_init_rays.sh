@@ -4,17 +4,20 @@
 # and the demo objects in the Blender layout (experiments/random_init_objects.py; object-centric, on white).
 # Every run: 1500 steps, features=none, default 100k random points, train.seed=0.
 #   bash experiments/random_init_rays.sh [OUT]      (OUT defaults to experiments/results/random_init_rays)
-# ROOM_INITS / OBJECT_INITS (space-separated) choose which runs; summary.jsonl collects the eval.json rows.
+# ROOM_INITS / OBJECT_INITS (space-separated) choose which runs; SEED sets train.seed (it also seeds the random
+# points) and suffixes the run names with _s$SEED; summary.jsonl collects the eval.json rows.
 set -euo pipefail
 OUT=$(realpath -m "${1:-experiments/results/random_init_rays}")
 mkdir -p "$OUT/scenes"
 [ -f "$OUT/scenes/room/transforms_train.json" ] || python experiments/random_init_blender.py "$OUT/scenes/room"
 [ -f "$OUT/scenes/objects/blender/scene.json" ] || python -c \
   "import sys; from cusgs_jax.data.demo_objects import generate_object_scenes as g; g(sys.argv[1])" "$OUT/scenes/objects"
+SEED_ARGS=(); TAG=""
+if [ -n "${SEED-}" ]; then SEED_ARGS=("train.seed=$SEED"); TAG="_s$SEED"; fi
 run() {  # name, then overrides
-  local name=$1; shift
+  local name=$1$TAG; shift
   python -m cusgs_jax.app.train train.iterations=1500 features=none train.progress=false eval.save_renders=false \
-    "$@" hydra.run.dir="$OUT/$name" > "$OUT/$name.log" 2>&1
+    "${SEED_ARGS[@]}" "$@" hydra.run.dir="$OUT/$name" > "$OUT/$name.log" 2>&1
   python - "$OUT" "$name" <<'PY'
 import json, pathlib, sys
 out, name = pathlib.Path(sys.argv[1]), sys.argv[2]
