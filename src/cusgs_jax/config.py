@@ -76,7 +76,7 @@ class DataConfig:
     # Where those points go (data/random_points.py): "cube" (3DGS's cube, sized to what the cameras look at),
     # "cube_and_rays" (half there, half along the training rays: reaches the walls of a room-scale capture) or
     # "auto": cube for Blender scenes (object-centric, NeRF-synthetic's protocol), cube_and_rays for nerfstudio
-    # scenes without a PLY (real captures). Demo room: 13.97 -> 18.34 dB; demo objects: 29.67 -> 29.09 dB.
+    # scenes without a PLY (real captures). Demo room: 13.97 -> 18.34 dB; demo objects (2 seeds): 29.22 -> 29.15 dB.
     random_init: str = "auto"
     # Distorted cameras: "lens" (default) keeps the images as captured and rasterises through the lens model
     # (splat/lens.py: no resampling blur, every pixel trained and scored; on the lens demo within 0.2 dB of the
