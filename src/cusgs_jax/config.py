@@ -36,7 +36,8 @@ M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 3
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
-RANDOM_INITS = ("auto", "cube", "cube_and_rays")  # data.random_init (data/random_points.py)
+RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
+RANDOM_INITS = ("auto",) + RANDOM_POINT_RULES  # data.random_init: a rule, or auto (the layout's)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -60,7 +60,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cusgs_jax.config import RANDOM_INITS
+from cusgs_jax.config import RANDOM_POINT_RULES
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 
 __all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points", "random_voxel_size", "ray_points",
@@ -76,6 +76,12 @@ def _axes(viewmats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(camera centres [V, 3], unit viewing directions [V, 3]) of world→camera ``viewmats`` [V, 4, 4] (OpenCV)."""
     dirs = np.asarray(viewmats, np.float64)[:, 2, :3]  # the camera's +z axis in world coordinates
     return camera_centers(viewmats), dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)
+
+
+def _look_distance(viewmats: np.ndarray, center: np.ndarray) -> float:
+    """``D = median_i ‖x − C_i‖``: the distance the cameras look at, from the centre ``x`` [3] of
+    :func:`random_box` (it sizes the cube, the voxel and the rays' depths)."""
+    return float(np.median(np.linalg.norm(center - camera_centers(viewmats), axis=-1)))
 
 
 def random_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) -> tuple[np.ndarray, float]:
@@ -101,7 +107,7 @@ def random_box(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int) ->
         norm = np.linalg.norm(forward)
         center = mean + (forward / norm * extent if norm > 1e-6 else 0.0)
     tan_half = np.maximum(0.5 * width / Ks[:, 0, 0], 0.5 * height / Ks[:, 1, 1])
-    half = float(np.median(np.linalg.norm(center - centers, axis=-1)) * np.median(tan_half))
+    half = float(_look_distance(viewmats, center) * np.median(tan_half))
     if not (np.isfinite(half) and half > 0):
         half = float(extent)
     return np.asarray(center, np.float64), half
@@ -118,7 +124,7 @@ def random_voxel_size(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: 
     center, half = random_box(viewmats, Ks, width, height)
     Ks = np.asarray(Ks, np.float64)
     focal = np.maximum(Ks[:, 0, 0], Ks[:, 1, 1])
-    size = float(0.5 * np.median(np.linalg.norm(center - camera_centers(viewmats), axis=-1)) / np.median(focal))
+    size = float(0.5 * _look_distance(viewmats, center) / np.median(focal))
     if not (np.isfinite(size) and size > 0):  # the cameras sit at x: a 1/1000 of the cube
         size = 1e-3 * 2 * half
     return size
@@ -152,7 +158,7 @@ def ray_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, nu
     viewmats = np.asarray(viewmats, np.float64)
     Ks = np.asarray(Ks, np.float64)
     center, half = random_box(viewmats, Ks, width, height)
-    distance = float(np.median(np.linalg.norm(center - camera_centers(viewmats), axis=-1)))
+    distance = _look_distance(viewmats, center)
     if not (np.isfinite(distance) and distance > 0):  # the cameras sit at x: the cube's size instead
         distance = 2.0 * half
     view = rng.integers(len(viewmats), size=num)
@@ -177,8 +183,8 @@ def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int,
       (points [num, 3] float64, colours [num, 3] uint8, all mid-grey); the same for the same
       cameras, ``num``, ``seed`` and ``init``.
     """
-    if init not in RANDOM_INITS[1:]:
-        raise ValueError(f"init={init!r} must be one of {RANDOM_INITS[1:]} (resolve 'auto' first)")
+    if init not in RANDOM_POINT_RULES:
+        raise ValueError(f"init={init!r} must be one of {RANDOM_POINT_RULES} (resolve 'auto' first)")
     num = int(num)
     center, half = random_box(viewmats, Ks, width, height)
     rng = np.random.default_rng(seed)
