@@ -51,6 +51,18 @@ def build_once(tmp_path_factory):
     return lambda name, build: built_once(tmp_path_factory, name, build)
 
 
+@pytest.fixture
+def two_devices():
+    """Skip, saying why, unless the default backend has two devices: the views of a sharded step go to
+    ``jax.devices()``. On CPU this file makes two virtual devices; a machine whose default backend is one
+    GPU has one, and a single GPU cannot show a two-device sharding."""
+    import jax
+
+    if jax.device_count() < 2:
+        pytest.skip(f"needs two devices of the default backend ({jax.default_backend()} has "
+                    f"{jax.device_count()}); on CPU tests/conftest.py makes two virtual ones")
+
+
 TINY_DEMO = dict(width=40, height=30, num_views=4, num_points=1500)
 """The tiny demo scene of the ``demo`` fixture (W, H, V as the extract tests use them)."""
 

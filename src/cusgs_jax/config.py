@@ -35,6 +35,7 @@ from cusgs_jax.errors import ConfigError
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+MATMUL_PRECISIONS = ("highest", "default")  # model.matmul_precision (cusgs_jax/precision.py)
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
 RANDOM_INITS = ("auto",) + RANDOM_POINT_RULES  # data.random_init: a rule, or auto (the layout's)
@@ -183,6 +184,10 @@ class ModelConfig:
     visible_fraction: float = 0.6
     # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
     query_granularity: str = "per_anchor"
+    # Matmul precision of the networks (decoder and query heads; cusgs_jax/precision.py): "highest" gives the
+    # same numbers on every backend; "default" lets the backend choose (TF32 on NVIDIA GPUs since Ampere).
+    # Geometry is at full float32 whatever this says.
+    matmul_precision: str = "highest"
 
     def __post_init__(self):
         require(self.voxel_size is None or (_number(self.voxel_size) and self.voxel_size > 0), "model.voxel_size",
@@ -197,10 +202,12 @@ class ModelConfig:
                 "which grows when a view sees more)")
         require(self.query_granularity in QUERY_GRANULARITIES, "model.query_granularity", self.query_granularity,
                 f"must be one of {QUERY_GRANULARITIES}")
+        require(self.matmul_precision in MATMUL_PRECISIONS, "model.matmul_precision", self.matmul_precision,
+                f"must be one of {MATMUL_PRECISIONS}", "e.g. model.matmul_precision=highest")
 
     def decoder(self) -> DecoderConfig:
         return DecoderConfig(self.n_offsets, self.latent_dim, self.hidden,
-                             self.appearance_dim if self.appearance else 0)
+                             self.appearance_dim if self.appearance else 0, self.matmul_precision)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,6 +218,7 @@ class DecoderConfig:
     latent_dim: int = ModelConfig.latent_dim
     hidden: int = ModelConfig.hidden
     appearance_dim: int = ModelConfig.appearance_dim  # 0 disables the appearance embedding
+    matmul_precision: str = ModelConfig.matmul_precision  # of the heads' matmuls (cusgs_jax/precision.py)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -7,6 +7,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from cusgs_jax.precision import HIGHEST
+
 
 def init_mlp(key: jax.Array, sizes: tuple[int, ...]) -> dict:
     """Dense layers initialised like PyTorch ``nn.Linear`` (U(±1/√fan_in)).
@@ -23,11 +25,14 @@ def init_mlp(key: jax.Array, sizes: tuple[int, ...]) -> dict:
     return params
 
 
-def apply_mlp(params: dict, x: jax.Array) -> jax.Array:
-    """Dense → ReLU → … → Dense (no final activation). x: [..., sizes[0]]."""
+def apply_mlp(params: dict, x: jax.Array, precision: jax.lax.Precision = HIGHEST) -> jax.Array:
+    """Dense → ReLU → … → Dense (no final activation). x: [..., sizes[0]].
+
+    ``precision``: of the matmuls (:mod:`cusgs_jax.precision`; ``model.matmul_precision`` in a run).
+    """
     layers = len(params) // 2
     for i in range(layers):
-        x = x @ params[f"w{i}"] + params[f"b{i}"]
+        x = jnp.matmul(x, params[f"w{i}"], precision=precision) + params[f"b{i}"]
         if i < layers - 1:
             x = jax.nn.relu(x)
     return x

@@ -32,6 +32,13 @@ import jax.numpy as jnp
 from cusgs_jax.splat.lens import Lens
 
 
+def camera_center(world_to_camera: jax.Array) -> jax.Array:
+    """[..., 3] camera positions ``−Rᵀ t`` of [..., 4, 4] world→camera matrices, elementwise (no matmul, so
+    full float32 on every backend: :mod:`cusgs_jax.precision`)."""
+    rot, trans = world_to_camera[..., :3, :3], world_to_camera[..., :3, 3]
+    return -jnp.sum(rot * trans[..., :, None], axis=-2)
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Camera:
@@ -55,7 +62,7 @@ class Camera:
     @property
     def center(self) -> jax.Array:
         """[3] camera position in world coordinates."""
-        return -self.world_to_camera[:3, :3].T @ self.world_to_camera[:3, 3]
+        return camera_center(self.world_to_camera)
 
     @staticmethod
     def of_scene(scene, view: int) -> Camera:

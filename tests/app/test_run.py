@@ -405,7 +405,7 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
 
 
 @pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
-def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path):
+def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path, two_devices):
     result = run(_cfg(tiny_scene, "train.batch_size=2", "train.iterations=10", "eval.every=10", "grow.start=4",
                       "grow.interval=4", "grow.stop=10", "prune.start=6", "prune.interval=6"), tmp_path)
     assert result["batch_size"] == 2 and result["devices"] == 2

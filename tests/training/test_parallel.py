@@ -33,7 +33,10 @@ def test_view_mesh_is_none_for_one_view_and_spans_the_devices_otherwise():
 
 
 def test_place_splits_views_replicates_state_and_keeps_placed_arrays():
-    mesh = parallel.view_mesh(Config().replace(train=dict(batch_size=2, devices="2")))
+    from jax.sharding import Mesh
+
+    # two CPU devices whatever the default backend (tests/conftest.py makes them)
+    mesh = Mesh(np.asarray(jax.devices("cpu")[:2]), (parallel.AXIS,))
     state = {"w": jnp.arange(6.0).reshape(2, 3)}
     batch = {"image": np.arange(24.0).reshape(2, 3, 4), "banks": {"m": np.ones((5, 2))}}
     placed_state, placed_batch = parallel.place_step_inputs(mesh, state, batch)

@@ -344,14 +344,13 @@ def _batched(batch_size, devices, tx=None, **grow):
     return cfg, strategies, state, tx, make_train_step(cfg, tx, strategies)
 
 
-def test_two_view_step_on_two_devices_equals_one_device():
+def test_two_view_step_on_two_devices_equals_one_device(two_devices):
     """The same B = 2 step, views sharded over 2 devices or both on 1: same loss, same parameters.
 
     Tolerance: float32 reduction order (the two per-view gradient sums meet in a different order
     inside XLA's partitioned program): 1e-5 relative on the loss, 2e-6 absolute on parameters of
     size ~1 after 3 steps (measured ~4e-7).
     """
-    assert jax.device_count() >= 2  # tests/conftest.py makes two CPU devices
     finals = {}
     for devices in ("1", "2"):
         cfg, strategies, state, tx, step = _batched(2, devices)
@@ -365,7 +364,7 @@ def test_two_view_step_on_two_devices_equals_one_device():
         np.testing.assert_allclose(np.asarray(b, np.float64), np.asarray(a, np.float64), atol=2e-6, rtol=1e-5)
 
 
-def test_batched_step_is_the_mean_of_its_views_and_counts_every_view():
+def test_batched_step_is_the_mean_of_its_views_and_counts_every_view(two_devices):
     """B = 2 from one state: loss = mean of the single-view losses, update (plain SGD, lr 1) = mean of
     the single-view updates, every additive densification statistic = the sum of both views' additions."""
     import optax
@@ -394,7 +393,7 @@ def test_batched_step_is_the_mean_of_its_views_and_counts_every_view():
     assert int(after.step) == 1 and int(after.skipped) == 0
 
 
-def test_sharded_step_compiles_once_across_growing_and_pruning():
+def test_sharded_step_compiles_once_across_growing_and_pruning(two_devices):
     cfg, strategies, state, tx, step = _batched(2, "2", grad_threshold=0.0, min_opacity=0.2, success_threshold=0.8)
     scaffold = _scaffold(strategies)
     grown = pruned = 0
@@ -409,7 +408,7 @@ def test_sharded_step_compiles_once_across_growing_and_pruning():
     assert int(state.step) == 10 and bool(metrics["finite"])
 
 
-def test_a_batched_step_whose_views_overflow_changes_nothing():
+def test_a_batched_step_whose_views_overflow_changes_nothing(two_devices):
     cfg, strategies, state, tx, step = _batched(2, "2")
     cfg = cfg.replace(model=dict(visible_fraction=1 / 64))  # far fewer visible slots than either view needs
     step = make_train_step(cfg, tx, strategies)

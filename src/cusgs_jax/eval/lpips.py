@@ -38,6 +38,7 @@ import jax.numpy as jnp
 from cusgs_jax.convnets import INSTALL_HINT, NETS, TRUNKS, available, conv_trunk, min_size, read_weights
 from cusgs_jax.convnets import _check_net as _check_net_name
 from cusgs_jax.errors import UserError
+from cusgs_jax.precision import HIGHEST
 
 __all__ = ["INSTALL_HINT", "NETS", "TRUNKS", "available", "lpips_distance", "lpips_metrics", "load_params",
            "make_lpips", "min_size"]
@@ -97,7 +98,7 @@ def lpips_distance(params: dict, img0: jnp.ndarray, img1: jnp.ndarray, *, net: s
     for feat, w in zip(_trunk(params, x, net), params["lins"]):
         diff = (_unit(feat[:batch]) - _unit(feat[batch:])) ** 2  # [B, h, w, C]
         # 1×1 head then spatial mean == spatial mean then head (both linear); the head is last here.
-        total = total + jnp.mean(diff, axis=(1, 2)) @ w
+        total = total + jnp.matmul(jnp.mean(diff, axis=(1, 2)), w, precision=HIGHEST)
     return total
 
 

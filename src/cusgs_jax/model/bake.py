@@ -83,6 +83,8 @@ from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
 from cusgs_jax.io.ply import SplatModel
 from cusgs_jax.splat.sh import MAX_SH_DEGREE, num_sh_coeffs, sh_basis, sh_degree
+from cusgs_jax.precision import HIGHEST
+from cusgs_jax.types import camera_center as camera_center_of
 
 __all__ = ["BakeSummary", "BakedGaussians", "bake_anchors", "bake_splats", "fibonacci_sphere", "fit_sh",
            "matrix_to_quat", "mean_covariance", "mean_shape", "sh_fit_matrix", "to_colmap_frame", "rotate_sh"]
@@ -127,7 +129,7 @@ def fit_sh(colors: jax.Array, fit: jax.Array) -> jax.Array:
       [..., K, 3] coefficients (coefficient-major, ``[..., 0, :]`` is ``f_dc``)
       minimising ``Σ_d ‖0.5 + Σ_k c_k Y_k(d) − colour(d)‖²``.
     """
-    return jnp.einsum("kd,...dc->...kc", fit, colors - 0.5)
+    return jnp.einsum("kd,...dc->...kc", fit, colors - 0.5, precision=HIGHEST)
 
 
 def mean_shape(quats: jax.Array, scales: jax.Array, weights: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -146,8 +148,8 @@ def mean_shape(quats: jax.Array, scales: jax.Array, weights: jax.Array) -> tuple
     unit = normalize_quats(quats)
     ref = jnp.take_along_axis(unit, jnp.argmax(w, axis=0)[None, :, None], axis=0)  # [1, G, 4]
     aligned = jnp.where(jnp.sum(unit * ref, axis=-1, keepdims=True) < 0, -unit, unit)
-    quat = normalize_quats(jnp.einsum("dg,dgc->gc", w, aligned))
-    scale = jnp.exp(jnp.einsum("dg,dgc->gc", w, jnp.log(jnp.maximum(scales, 1e-30))))
+    quat = normalize_quats(jnp.einsum("dg,dgc->gc", w, aligned, precision=HIGHEST))
+    scale = jnp.exp(jnp.einsum("dg,dgc->gc", w, jnp.log(jnp.maximum(scales, 1e-30)), precision=HIGHEST))
     return quat, scale
 
 
@@ -184,12 +186,12 @@ def mean_covariance(quats: jax.Array, scales: jax.Array, weights: jax.Array) -> 
     total = jnp.sum(weights, axis=0)
     w = jnp.where(total > 0, weights / jnp.where(total > 0, total, 1.0), 1.0 / weights.shape[0])
     rot = quats_to_rotmats(normalize_quats(quats))  # [V, G, 3, 3]
-    cov = jnp.einsum("vg,vgij,vgj,vgkj->gik", w, rot, jnp.square(scales), rot)
+    cov = jnp.einsum("vg,vgij,vgj,vgkj->gik", w, rot, jnp.square(scales), rot, precision=HIGHEST)
     values, vectors = jnp.linalg.eigh(0.5 * (cov + jnp.swapaxes(cov, -1, -2)))
     proper = jnp.sign(jnp.linalg.det(vectors))
     vectors = vectors.at[..., 2].multiply(jnp.where(proper == 0, 1.0, proper)[..., None])
     diag = jnp.diagonal(vectors, axis1=-2, axis2=-1)  # [G, 3]
-    flips = jnp.asarray(_AXIS_FLIPS)[jnp.argmax(diag @ jnp.asarray(_AXIS_FLIPS).T, axis=-1)]  # [G, 3]
+    flips = jnp.asarray(_AXIS_FLIPS)[jnp.argmax(jnp.matmul(diag, jnp.asarray(_AXIS_FLIPS).T, precision=HIGHEST), axis=-1)]  # [G, 3]
     quat = matrix_to_quat(vectors * flips[:, None, :])
     return quat, jnp.sqrt(jnp.maximum(values, 1e-30))
 
@@ -258,7 +260,7 @@ def bake_anchors(decoder: dict, anchor_params: AnchorParams, centers: jax.Array,
     else:
         def one_camera(view_k_lens):
             view, K, lens = view_k_lens
-            camera_center = -view[:3, :3].T @ view[:3, 3]
+            camera_center = camera_center_of(view)
             g = decode_gaussians(decoder, anchor_params, centers, alive, camera_center, appearance, cfg)
             inside = frustum_mask(centers, view, K, width, height, margin=margin, lens=lens)
             return g.opacities, g.scales, g.quats, jnp.repeat(inside, n)

@@ -28,6 +28,7 @@ from cusgs_jax.model.anchors import AnchorParams, AnchorState
 from cusgs_jax.nn import apply_mlp, init_mlp
 from cusgs_jax.splat.lens import Lens, distort, inside_bounds
 from cusgs_jax.types import Camera
+from cusgs_jax.precision import HIGHEST, network_precision
 
 
 def init_decoder(key: jax.Array, cfg: DecoderConfig) -> dict:
@@ -90,7 +91,7 @@ def frustum_mask(centers: jax.Array, viewmat: jax.Array, K: jax.Array, width: in
     Returns:
       [A] bool.
     """
-    cam = centers @ viewmat[:3, :3].T + viewmat[:3, 3]
+    cam = jnp.matmul(centers, viewmat[:3, :3].T, precision=HIGHEST) + viewmat[:3, 3]
     z = cam[:, 2]
     zs = jnp.where(z > near, z, 1.0)
     front = z > near
@@ -189,14 +190,15 @@ def decode_inputs(params: dict, inputs: ViewInputs, cfg: DecoderConfig) -> Gauss
     rows, centers = inputs.rows, inputs.centers
     num, n = centers.shape[0], cfg.n_offsets
     base = jnp.concatenate([rows.latent, inputs.direction], axis=-1)  # [S, F+3]
-    opacity = jnp.tanh(apply_mlp(params["opacity"], base))  # [S, N]
-    cov = apply_mlp(params["cov"], base).reshape(num, n, 7)
+    precision = network_precision(cfg.matmul_precision)
+    opacity = jnp.tanh(apply_mlp(params["opacity"], base, precision))  # [S, N]
+    cov = apply_mlp(params["cov"], base, precision).reshape(num, n, 7)
     appearance = inputs.appearance
     if appearance is not None:
         color_in = jnp.concatenate([base, jnp.broadcast_to(appearance, (num, appearance.shape[-1]))], axis=-1)
     else:
         color_in = base
-    colors = jax.nn.sigmoid(apply_mlp(params["color"], color_in)).reshape(num, n, 3)
+    colors = jax.nn.sigmoid(apply_mlp(params["color"], color_in, precision)).reshape(num, n, 3)
 
     scaling = jnp.exp(rows.log_scaling)  # [S, 6]
     scales = scaling[:, None, 3:] * jax.nn.sigmoid(cov[..., :3])

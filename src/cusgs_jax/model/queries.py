@@ -17,6 +17,7 @@ import jax.numpy as jnp
 from cusgs_jax.config import FeatureConfig
 from cusgs_jax.model.decode import ViewInputs
 from cusgs_jax.nn import apply_mlp, init_mlp
+from cusgs_jax.precision import network_precision
 
 
 def init_query_heads(key, cfg: FeatureConfig, latent_dim: int, appearance_dim: int) -> dict:
@@ -27,7 +28,7 @@ def init_query_heads(key, cfg: FeatureConfig, latent_dim: int, appearance_dim: i
             "gaussian": init_mlp(k2, (q + 3, q))}
 
 
-def decode_queries(heads: dict | None, inputs: ViewInputs) -> jax.Array:
+def decode_queries(heads: dict | None, inputs: ViewInputs, precision: str = "highest") -> jax.Array:
     """Per-Gaussian queries of the view's anchors.
 
     Args:
@@ -35,6 +36,7 @@ def decode_queries(heads: dict | None, inputs: ViewInputs) -> jax.Array:
       inputs: the view's :class:`~cusgs_jax.model.decode.ViewInputs` [S] — the same latents,
         offsets, view directions d and appearance e the Gaussian heads decode (``rows.query_table``
         when ``heads`` is None).
+      precision: the heads' matmul precision, a ``model.matmul_precision`` value (:mod:`cusgs_jax.precision`).
     Returns:
       [S·N, Q].
     """
@@ -45,7 +47,7 @@ def decode_queries(heads: dict | None, inputs: ViewInputs) -> jax.Array:
     parts = [rows.latent, inputs.direction]
     if inputs.appearance is not None:
         parts.append(jnp.broadcast_to(inputs.appearance, (num, inputs.appearance.shape[-1])))
-    voxel = apply_mlp(heads["voxel"], jnp.concatenate(parts, axis=-1))  # [S, Q]
+    voxel = apply_mlp(heads["voxel"], jnp.concatenate(parts, axis=-1), network_precision(precision))  # [S, Q]
     per_gaussian = jnp.concatenate([jnp.broadcast_to(voxel[:, None], (num, n, voxel.shape[-1])),
                                     rows.offsets], -1)
-    return apply_mlp(heads["gaussian"], per_gaussian).reshape(num * n, -1)
+    return apply_mlp(heads["gaussian"], per_gaussian, network_precision(precision)).reshape(num * n, -1)

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.splat.tiles import TileGrid
+from cusgs_jax.precision import HIGHEST
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.999
@@ -237,14 +238,14 @@ def _weighted_sum(weight: jax.Array, feat: jax.Array) -> jax.Array:
     channel is not.
     """
     if feat.shape[-1] > SMALL_CHANNELS:
-        return jnp.einsum("mbs,mbc->msc", weight, feat)
+        return jnp.einsum("mbs,mbc->msc", weight, feat, precision=HIGHEST)
     return jnp.stack([jnp.sum(weight * feat[:, :, c, None], axis=1) for c in range(feat.shape[-1])], axis=-1)
 
 
 def _channel_dot(lane_g: jax.Array, feat: jax.Array) -> jax.Array:
     """Σ_c lane_g[m, s, c] · feat[m, b, c] → [M, B, S] (see :func:`_weighted_sum`)."""
     if feat.shape[-1] > SMALL_CHANNELS:
-        return jnp.einsum("msc,mbc->mbs", lane_g, feat)
+        return jnp.einsum("msc,mbc->mbs", lane_g, feat, precision=HIGHEST)
     total = lane_g[:, None, :, 0] * feat[:, :, 0, None]
     for c in range(1, feat.shape[-1]):
         total = total + lane_g[:, None, :, c] * feat[:, :, c, None]
@@ -254,7 +255,7 @@ def _channel_dot(lane_g: jax.Array, feat: jax.Array) -> jax.Array:
 def _pixel_sum(weight: jax.Array, lane_g: jax.Array) -> jax.Array:
     """Σ_s weight[m, b, s] · lane_g[m, s, c] → [M, B, C] (see :func:`_weighted_sum`)."""
     if lane_g.shape[-1] > SMALL_CHANNELS:
-        return jnp.einsum("mbs,msc->mbc", weight, lane_g)
+        return jnp.einsum("mbs,msc->mbc", weight, lane_g, precision=HIGHEST)
     return jnp.stack([jnp.sum(weight * lane_g[:, None, :, c], axis=-1) for c in range(lane_g.shape[-1])], axis=-1)
 
 

@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax.splat.lens import Lens, distort_with_jacobian, inside_bounds
+from cusgs_jax.precision import HIGHEST
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 
@@ -153,8 +154,8 @@ def _world_to_camera_jvp(primals, tangents):
     d_means, d_viewmat = tangents
     out = world_to_camera(means, viewmat)
     d_out = (
-        d_means @ viewmat[:3, :3].T
-        + means @ d_viewmat[:3, :3].T
+        jnp.matmul(d_means, viewmat[:3, :3].T, precision=HIGHEST)
+        + jnp.matmul(means, d_viewmat[:3, :3].T, precision=HIGHEST)
         + d_viewmat[:3, 3]
     )
     return out, d_out
@@ -213,8 +214,8 @@ def project_gaussians(
     # catastrophic cancellation of `a c − b²` for needle-like covariances.
     rot = quats_to_rotmats(normalize_quats(quats))
     world_to_cam_rot = viewmat[:3, :3].astype(dtype)
-    factor = jnp.einsum("ij,gjk->gik", world_to_cam_rot, rot) * scales[:, None, :]
-    proj = jnp.einsum("gij,gjk->gik", jac, factor)  # [G, 2, 3]
+    factor = jnp.einsum("ij,gjk->gik", world_to_cam_rot, rot, precision=HIGHEST) * scales[:, None, :]
+    proj = jnp.einsum("gij,gjk->gik", jac, factor, precision=HIGHEST)  # [G, 2, 3]
     cov_a = jnp.sum(proj[:, 0] * proj[:, 0], axis=-1)
     cov_b = jnp.sum(proj[:, 0] * proj[:, 1], axis=-1)
     cov_c = jnp.sum(proj[:, 1] * proj[:, 1], axis=-1)
@@ -299,5 +300,5 @@ def _lens_jacobian(lens: Lens, x, y, z_safe, fx, fy, cx, cy):
     d_persp = jnp.stack([jnp.stack([rz, zeros, -uv[:, 0] * rz], axis=-1),
                          jnp.stack([zeros, rz, -uv[:, 1] * rz], axis=-1)], axis=-2)  # ∂(u, v)/∂p [G, 2, 3]
     focal = jnp.stack([fx, fy])
-    jac = focal[None, :, None] * jnp.einsum("gij,gjk->gik", d_lens, d_persp)
+    jac = focal[None, :, None] * jnp.einsum("gij,gjk->gik", d_lens, d_persp, precision=HIGHEST)
     return jac, focal * distorted + jnp.stack([cx, cy]), trusted

@@ -14,6 +14,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from cusgs_jax.precision import HIGHEST
+
 __all__ = ["SH_C0", "SH_C1", "SH_C2", "SH_C3", "MAX_SH_DEGREE", "num_sh_coeffs", "sh_basis", "sh_degree",
            "sh_to_rgb"]
 
@@ -98,5 +100,5 @@ def sh_to_rgb(coeffs: jax.Array, dirs: jax.Array, degree: int | None = None) -> 
         raise ValueError(f"SH degree {degree} asked of coefficients of degree {full}")
     k = num_sh_coeffs(degree)
     basis = sh_basis(dirs, degree)
-    rgb = 0.5 + jnp.einsum("...k,...kc->...c", basis, coeffs[..., :k, :])
+    rgb = 0.5 + jnp.einsum("...k,...kc->...c", basis, coeffs[..., :k, :], precision=HIGHEST)
     return jnp.maximum(rgb, 0.0)

@@ -64,7 +64,7 @@ def decode_view_inputs(nets: dict, inputs: ViewInputs, cfg: Config, *, queries: 
     """The view's Gaussians [G = S·N] and, when ``queries``, their feature queries [G, Q] — both
     decoded from the one :class:`~cusgs_jax.model.decode.ViewInputs` bundle."""
     gaussians = decode_inputs(nets["decoder"], inputs, cfg.model.decoder())
-    return gaussians, (decode_queries(nets.get("queries"), inputs) if queries else None)
+    return gaussians, (decode_queries(nets.get("queries"), inputs, cfg.model.matmul_precision) if queries else None)
 
 
 def work_metrics(view: VisibleSlots, chosen: ActiveSet, out: RenderOutput) -> dict:
