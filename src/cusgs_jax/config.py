@@ -125,6 +125,9 @@ class TrainOptions:
     viewer: bool = False  # serve a live web viewer of the model while training (cusgs_jax/view/live.py)
     viewer_port: int = 8080  # 0: a free port (the address is logged)
     viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
+    # JAX's persistent compilation cache (app/xla_cache.py): "auto" = $CUSGS_CACHE_DIR/xla or ~/.cache/cusgs_jax/xla
+    # (or the folder this process already uses), a folder, or None (null: off). It holds compiled code.
+    compilation_cache: Optional[str] = "auto"
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,

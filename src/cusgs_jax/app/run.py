@@ -24,8 +24,14 @@ The shell names no concrete strategy: it calls every strategy's hooks the same w
 (:class:`cusgs_jax.densify.base.Strategy`: ``due``, ``before_first_update``, ``update`` → ``UpdateInfo``,
 ``log_values``, ``results``); research code adds its own through ``run(..., extra_strategies=...)``.
 
-The learning curve and the final evaluation use the same renderer: the model
-compacted to its alive anchors (:func:`cusgs_jax.model.anchors.compact`), every slot decoded.
+The learning curve, the pruning probe and the final evaluation use one renderer: the padded model
+with its alive mask, at the step's work capacities (with feature models, the feature render, whose
+RGB is the evaluated image), so an evaluation compiles again only when the anchor capacity changes
+(the step recompiles then too), never because the model grew inside it.
+
+``eval.json`` also holds ``time`` (seconds per stage, :mod:`cusgs_jax.app.budget`) and
+``compilations`` (every XLA compilation of the run: count, seconds, by function,
+:mod:`cusgs_jax.app.compiles`); the log's last line prints the time budget.
 
 The run trains in the normalised world frame of :mod:`cusgs_jax.data.normalize`
 (``eval.json`` records the transform as ``world_transform``), so lengths in the
@@ -49,7 +55,10 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.clock import Clock
+from cusgs_jax.app.compiles import CompileLog
+from cusgs_jax.app.xla_cache import use_compilation_cache
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.colmap import SceneData
 from cusgs_jax.data.errors import SceneError
@@ -70,7 +79,7 @@ from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
 from cusgs_jax.training.distributed import require_single_process
 from cusgs_jax.training.parallel import resolve_devices
-from cusgs_jax.training.render import make_feature_render_fn, make_render_fn, most_work
+from cusgs_jax.training.render import RgbOfFeatureRender, make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.splat.lens import Lens
@@ -79,6 +88,8 @@ from cusgs_jax.view.live import live_view
 from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_model
 
 log = logging.getLogger("cusgs_jax")
+STEP_FUNCTION = "jit(train_step)"  # the jitted step's name in the compile log (training/step.py)
+EVAL_RENDER_FUNCTIONS = ("jit(render_rgb)", "jit(render_rgb_features)")  # training/render.py
 LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
 FEATURE_L2_ALARM = 100.0  # mean squared error per feature component; the extractors' targets keep it below ~10
 
@@ -108,8 +119,9 @@ class Session:
     replays: int = 0  # steps replayed because a capacity was too small
     alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (_loss_alarms)
     step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
-    render: capacity.ExactRender | None = None  # the evaluation's RGB render (set by setup)
+    render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render (set by setup)
     feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
+    budget: TimeBudget | None = None  # seconds per stage (eval.json's time)
 
     @property
     def evaluated_on(self) -> str:
@@ -119,13 +131,16 @@ class Session:
 # --- setup ----------------------------------------------------------------------------------
 
 
-def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) -> Session:
+def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
+          budget: TimeBudget | None = None) -> Session:
     """Scene, feature targets, fresh (or resumed) state, step and renderers.
 
     ``extra_strategies``: research code's own densification strategies
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
     (:func:`~cusgs_jax.densify.factory.make_strategies`); a resume must pass the same ones.
+    ``budget``: where the setup's stages are charged (:func:`run` passes the run's; default a new one).
     """
+    budget = budget or TimeBudget(CompileLog())
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
@@ -139,12 +154,13 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     _require_not_past(cfg, latest, ckpt.directory)
-    cfg = dataclasses.replace(cfg, features=run_features(cfg))
-    scene, world = load_data(cfg)
-    cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
-    train_idx = scene.train_indices
-    cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train_idx], scene.Ks[train_idx], scene.width,
-                                                 scene.height) if scene.random_points else None)
+    with budget.stage("load"):
+        cfg = dataclasses.replace(cfg, features=run_features(cfg))
+        scene, world = load_data(cfg)
+        cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
+        train_idx = scene.train_indices
+        cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train_idx], scene.Ks[train_idx], scene.width,
+                                                     scene.height) if scene.random_points else None)
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
     log.info("scene %s (%s): %d train / %d held-out views at %dx%d, %d points; extent %.4g in the scene's frame "
              "(trained in units of it), voxel size %.4g", scene.path, scene.dataset_format, len(train_idx),
@@ -155,27 +171,36 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = ()) 
                     "training views and say nothing about novel views", cfg.data.holdout_every)
     feature_sets, banks, targets = {}, None, {}
     if cfg.features.enabled:
-        feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed)
-        targets = feature_targets(feature_sets, train_idx)
-        banks = {name: jnp.asarray(b) for name, b in banks.items()}
+        with budget.stage("features"):
+            feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed, stage=budget.stage)
+            targets = feature_targets(feature_sets, train_idx)
+            banks = {name: jnp.asarray(b) for name, b in banks.items()}
     strategies = make_strategies(cfg) + tuple(extra_strategies)
     names = [s.name for s in strategies]
     if len(set(names)) != len(names):
         raise ValueError(f"densification strategies need unique names (TrainState.densify is keyed by them): {names}")
-    state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
+    with budget.stage("init"):
+        state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
     session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
                       state=state, ckpt=ckpt, clock=Clock(), curve=[],
                       tallies={name: Tally() for name in names},
-                      capacities=capacity.Capacities.from_config(cfg))
-    session.capacities = _fitted_capacities(session)
+                      capacities=capacity.Capacities.from_config(cfg), budget=budget)
+    with budget.stage("probe"):
+        session.capacities = _fitted_capacities(session)
     if cfg.train.resume:
-        _resume(session)
+        with budget.stage("checkpoints"):
+            _resume(session)
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
-    session.render = make_render_fn(session.cfg)  # capacities of its own: sized by the first evaluated view
-    session.feature_render = make_feature_render_fn(session.cfg) if cfg.features.enabled else None
+    # The evaluation renders the padded model at the step's capacities (its own grow, should a held-out
+    # view need more): one program per anchor capacity; with feature models one program for RGB and features.
+    if cfg.features.enabled:
+        session.feature_render = make_feature_render_fn(session.cfg, session.capacities)
+        session.render = RgbOfFeatureRender(session.feature_render, session.banks)
+    else:
+        session.render = make_render_fn(session.cfg, session.capacities)
     return session
 
 
@@ -281,8 +306,10 @@ def train(session: Session, progress_label: str = "train") -> None:
             open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.clock:
-                metrics = _exact_step(session, batches(step))
-                _densify(session, step + 1)
+                with session.budget.stage("train_steps"):
+                    metrics = _exact_step(session, batches(step))
+                with session.budget.stage("densify"):
+                    _densify(session, step + 1)
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
                 live.after_step()
             done = step + 1
@@ -294,15 +321,18 @@ def train(session: Session, progress_label: str = "train") -> None:
                 bar.set_postfix(loss=f"{row['loss']:.4f}", psnr=f"{row['train_psnr']:.2f}",
                                 anchors=row["alive_anchors"], step_s=row["step_s"])
             if cfg.eval.every and (done % cfg.eval.every == 0 or done == iterations):
-                point = _curve_point(session, done)
+                with session.budget.stage("evaluation"):
+                    point = _curve_point(session, done)
                 curve_file.write(json.dumps(point) + "\n")
                 curve_file.flush()
                 bar.write(f"step {done}: {_psnr_label(session)} {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
-                _save(session, done)
+                with session.budget.stage("checkpoints"):
+                    _save(session, done)
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
-        _save(session, iterations)
+        with session.budget.stage("checkpoints"):
+            _save(session, iterations)
 
 
 def _snapshot(session: Session, cameras: list[ViewCamera]) -> ViewModel:
@@ -405,8 +435,8 @@ def _shrink_if_empty(session: Session, step: int) -> None:
 def _probe(session: Session, step: int) -> Probe:
     """What a strategy's ``before_first_update`` hook may measure of the run after ``step`` steps."""
     def render_ms_per_view() -> float:
-        with session.clock.paused():
-            return _evaluate(session, compact(session.state.anchors), time_renders=True)["render_ms_per_view"]
+        with session.clock.paused(), session.budget.stage("evaluation"):
+            return _evaluate(session, session.state.anchors, time_renders=True)["render_ms_per_view"]
 
     return Probe(step=step, render_ms_per_view=render_ms_per_view)
 
@@ -483,18 +513,18 @@ def _loss_alarms(session: Session, step: int, metrics: dict) -> None:
 
 
 def _evaluate(session: Session, anchors, **kwargs) -> dict:
-    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
+    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``session.state.anchors`` (padded, alive mask)."""
     return evaluate_views(session.render, anchors, session.state.nets, session.scene, session.test_idx, **kwargs)
 
 
 def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
-    """Feature errors of the model as it is now; ``anchors`` = ``compact(session.state.anchors)``."""
+    """Feature errors of the model as it is now; ``anchors`` = ``session.state.anchors`` (padded, alive mask)."""
     return evaluate_features(session.feature_render, anchors, session.state.nets, session.scene, session.test_idx,
                              session.banks, session.feature_sets, **kwargs)
 
 
 def _curve_point(session: Session, step: int) -> dict:
-    anchors = compact(session.state.anchors)  # once for the RGB and the feature evaluation
+    anchors = session.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
     result = _evaluate(session, anchors)
     point = dict(step=step, wall_s=session.clock.total, psnr=result["psnr"], ssim=result["ssim"],
                  alive_anchors=int(np.sum(session.state.anchors.alive)))
@@ -542,9 +572,12 @@ def finalise(session: Session) -> dict:
     """Final held-out evaluation, ``eval.json``, plots; returns the ``eval.json`` dict."""
     cfg, out, state = session.cfg, session.out, session.state
     save = cfg.eval.save_renders
-    lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
-    anchors = compact(state.anchors)
-    final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True, lpips=lpips)
+    budget = session.budget
+    with budget.stage("evaluation"):
+        lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
+        anchors = state.anchors
+        final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True,
+                          lpips=lpips)
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
@@ -572,15 +605,33 @@ def finalise(session: Session) -> dict:
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,
     )
     if session.banks is not None:
-        result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)
-        (out / "features.md").write_text(result["features"]["markdown"])
+        with budget.stage("evaluation"):
+            result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)
+    with budget.stage("report"):
+        if session.banks is not None:
+            (out / "features.md").write_text(result["features"]["markdown"])
+        plot_error_vs_time(session.curve, out / "error_vs_time.png",
+                           title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
+    with budget.stage("checkpoints"):
+        session.ckpt.close()
+    result["compilations"] = _compilations(budget.compiles)
+    result["time"] = budget.as_dict()
     (out / "eval.json").write_text(json.dumps(result, indent=1))
-    plot_error_vs_time(session.curve, out / "error_vs_time.png",
-                       title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
-    session.ckpt.close()
     log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
              result["ssim"], result["alive_anchors"], result["train_wall_s"])
+    compiles = result["compilations"]
+    log.info("%d XLA compilations, %.1f s (%d loaded from the persistent cache; train step %d, evaluation "
+             "renders %d)", compiles["count"], compiles["seconds"], compiles["from_cache"], compiles["train_step"],
+             compiles["evaluation_renders"])
+    log.info("%s", budget.line())
     return result
+
+
+def _compilations(compiles: CompileLog) -> dict:
+    """``eval.json``'s ``compilations``: :meth:`CompileLog.summary` with the train step's and the
+    evaluation renders' counts (their jitted functions' names, :mod:`cusgs_jax.training`)."""
+    return dict(compiles.summary(), train_step=compiles.count(STEP_FUNCTION),
+                evaluation_renders=sum(compiles.count(name) for name in EVAL_RENDER_FUNCTIONS))
 
 
 def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = ()) -> dict:
@@ -590,11 +641,25 @@ def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies
     are research code's own densification strategies (see :func:`setup`). While it runs, the
     noise orbax repeats after a failed checkpoint save or read is dropped (:func:`quiet_orbax`).
     """
-    with quiet_orbax():
-        session = setup(cfg, output_dir, extra_strategies)
+    started, _STARTUP[0] = _STARTUP[0], None  # the process's start, for its first run only
+    with quiet_orbax(), CompileLog() as compiles:
+        budget = TimeBudget(compiles, start=started)
+        with budget.stage("startup"):
+            cache = use_compilation_cache(cfg.train.compilation_cache)
+        log.debug("persistent compilation cache: %s", cache or "off")
+        session = setup(cfg, output_dir, extra_strategies, budget)
         try:
             train(session, progress_label)
             return finalise(session)
         except BaseException:
             session.ckpt.close_after_error()
             raise
+
+
+_STARTUP: list[float | None] = [None]
+
+
+def mark_process_start(started: float) -> None:
+    """``cusgs-train`` calls this with ``time.perf_counter()`` taken as the process began, so the first
+    run's ``time`` budget covers the imports and Hydra's composition too (its ``startup``)."""
+    _STARTUP[0] = started

@@ -18,6 +18,10 @@ input) or 1, never 0. ``cusgs-report <multirun folder>`` lists them too.
 
 from __future__ import annotations
 
+import time
+
+_STARTED = [time.perf_counter()]  # this process's start, near enough: its first run's time budget begins here
+
 import json
 import logging
 import math
@@ -73,13 +77,15 @@ def _objectives(hydra_cfg) -> list[str]:
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
-    from cusgs_jax.app.run import run  # lazy: app.run imports JAX; keeps cusgs-train --help free of it
+    from cusgs_jax.app.run import mark_process_start, run  # lazy: app.run imports JAX (keeps --help free of it)
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
     hydra_cfg = HydraConfig.get()
     output_dir = hydra_cfg.runtime.output_dir
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
+    if _STARTED:  # only the process's first run charges the start-up to its budget
+        mark_process_start(_STARTED.pop())
     try:
         result = run(from_omegaconf(cfg), output_dir,
                      progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")

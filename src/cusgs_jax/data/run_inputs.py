@@ -6,6 +6,7 @@ Naming (:mod:`cusgs_jax.types`): V views, h×w feature map, D feature dimension,
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 
@@ -89,7 +90,7 @@ def resolve_background(cfg: Config, scene: SceneData) -> Config:
     return cfg.replace(splat=dict(background=color))
 
 
-def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
+def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int, stage=None
                          ) -> tuple[dict[str, FeatureSet], dict[str, np.ndarray]]:
     """Feature maps of every configured model and their PSC banks.
 
@@ -104,9 +105,13 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
     (``data.undistort=mask``) the target vectors whose pixel lies outside it are zeroed — "no target"
     (:func:`mask_feature_maps`).
 
+    ``stage``: ``stage("psc")`` is entered around each bank's construction (a run's time budget,
+    :class:`cusgs_jax.app.budget.TimeBudget`), or None.
+
     Returns:
       (maps {model: FeatureSet}, banks {model: [M, D] float32 numpy}).
     """
+    stage = stage or (lambda name: contextlib.nullcontext())
     maps, banks = {}, {}
     masked = scene.valid is not None
     frame = feature_frame(scene)
@@ -129,7 +134,8 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int
         rows = rows[np.any(rows != 0, axis=-1)]
         rng = np.random.default_rng([seed, 7, index])
         rows = rows[rng.permutation(len(rows))[: fcfg.psc_rows]]
-        bank = psc.build(rows, model.gamma, max_entries=fcfg.max_bank_entries)
+        with stage("psc"):
+            bank = psc.build(rows, model.gamma, max_entries=fcfg.max_bank_entries)
         if bank.count == 0:
             raise ValueError(f"feature model {model.name!r}: no non-zero training targets to build a memory from")
         log.info("PSC %s: %d entries from %d pixels (gamma %.2f)", model.name, bank.count, len(rows), model.gamma)

@@ -24,7 +24,7 @@ products of the same vectors computed in a different order (NumPy vs XLA, CPU
 vs GPU, a Gram block vs a bank block) may differ in the last bit, which flips a
 decision whenever a cosine sits at ``gamma`` -- and with ``gamma = 1.0``
 duplicated feature vectors sit there by construction. So the fast path computes
-cosines in float32 (one jitted matmul per chunk, ``Precision.HIGHEST``) only to
+cosines in float32 (NumPy matmuls, BLAS, in any summation order) only to
 *screen*: with ``tol`` a rigorous bound on ``|float32 cosine - exact cosine|``
 (float32 normalisation plus any-order float32 summation, :func:`screen_tolerance`),
 a float32 cosine below ``gamma - tol`` proves "below", one at or above
@@ -41,28 +41,29 @@ after float32 rounding; its cosine may round to 1.0 (rejected) or fall just belo
 (kept). ``gamma > 1`` keeps every non-zero row.
 
 Cost. Rows are processed in chunks of ``chunk``: (1) each chunk row's maximum
-float32 cosine to the bank, by a jitted loop over bank blocks (memory
+float32 cosine to the bank, by BLAS matmuls over bank blocks (memory
 ``chunk x block``, never ``chunk x M``); (2) the surviving candidates' float32 Gram
 matrix and a short sequential pass (a candidate depends only on earlier kept
 candidates of the chunk, and rows with no near-or-above-threshold earlier
-candidate are kept without looking). The bank lives in preallocated host and
-device buffers whose capacity doubles outside jit, so appending is amortised
-O(1) per row; the screening kernel compiles once per (capacity, power-of-two block)
-pair, i.e. O(log M) times. Near-threshold pairs are decided exactly in vectorised
-batches (``math.fsum`` per pair); only data with very many near-parallel but not
-equal rows at ``gamma = 1.0`` spends noticeable time there.
+candidate are kept without looking). The bank lives in preallocated host buffers
+whose capacity doubles, so appending is amortised O(1) per row. Near-threshold
+pairs are decided exactly in vectorised batches (``math.fsum`` per pair); only data
+with very many near-parallel but not equal rows at ``gamma = 1.0`` spends
+noticeable time there.
+
+All of it is NumPy on the host, on purpose: the scan is a sequence of small,
+data-dependent steps, and as device work each would be a kernel launch, a
+transfer and a sync (and a compile per shape) — on a GPU machine that made the
+demo's build 6.5× slower than on a 2-core CPU (DESIGN.md §13).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import types
 from collections.abc import Mapping
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
@@ -84,8 +85,7 @@ M3_GAMMAS: Mapping[str, float] = types.MappingProxyType({
     "llamav": 0.60,
 })
 
-_HIGHEST = jax.lax.Precision.HIGHEST
-_SCREEN_ELEMENTS = 1 << 24  # chunk x bank-block float32 similarities per loop step (64 MiB)
+_SCREEN_ELEMENTS = 1 << 24  # chunk x bank-block float32 similarities per screening matmul (64 MiB)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -249,45 +249,17 @@ def _validate(gamma, chunk, max_entries):
 # --------------------------------------------------------------------------- fast build
 
 
-@functools.partial(jax.jit, static_argnames=("block",))
-def _bank_max(units, bank, count, *, block):
-    """Max float32 cosine of each chunk row to the first ``count`` bank rows.
-
-    units [C, D] f32 unit rows; bank [cap, D] f32 unit rows (cap a multiple of block);
-    count int32 scalar. Returns [C] f32 (-inf when count == 0). Memory: C x block.
-    """
-    idx = jnp.arange(block)
-
-    def body(i, best):
-        blk = jax.lax.dynamic_slice_in_dim(bank, i * block, block, axis=0)
-        sim = jnp.dot(units, blk.T, precision=_HIGHEST)
-        sim = jnp.where((i * block + idx < count)[None, :], sim, -jnp.inf)
-        return jnp.maximum(best, jnp.max(sim, axis=1))
-
-    nblocks = (count + block - 1) // block
-    init = jnp.full(units.shape[:1], -jnp.inf, units.dtype)
-    return jax.lax.fori_loop(0, nblocks, body, init)
-
-
-@functools.partial(jax.jit, donate_argnums=(0,))
-def _write_rows(bank, slab, start):
-    """bank [cap, D] with slab [C, D] written at row ``start`` (start + C <= cap)."""
-    return jax.lax.dynamic_update_slice_in_dim(bank, slab, start, axis=0)
-
-
 class _Bank:
-    """Growable bank buffers: original rows, unit rows (host and device), source indices."""
+    """Growable bank buffers: original rows, unit rows, source indices (host arrays)."""
 
     def __init__(self, dim: int, capacity: int, chunk: int):
         self.dim, self.chunk, self.count = dim, chunk, 0
         cap = 1 << max(0, int(capacity) - 1).bit_length()  # a power of two
-        # Bank rows per screening step: a power of two, so it divides every capacity >= it.
-        self._max_block = max(64, 1 << ((_SCREEN_ELEMENTS // chunk).bit_length() - 1))
+        self._block = max(64, _SCREEN_ELEMENTS // chunk)  # bank rows per screening matmul
         self.rows = np.empty((cap, dim), np.float32)
         self.units = np.empty((cap, dim), np.float32)
         self.indices = np.empty(cap, np.int64)
         self.sq = np.full(cap, np.nan)  # exact squared norms, computed on first use
-        self.device = jnp.zeros((cap, dim), jnp.float32)
 
     @property
     def capacity(self) -> int:
@@ -306,32 +278,24 @@ class _Bank:
                 (cap,) + old.shape[1:], old.dtype)
             new[:n] = old[:n]
             setattr(self, name, new)
-        self.device = jax.lax.dynamic_update_slice_in_dim(
-            jnp.zeros((cap, self.dim), jnp.float32), self.device, 0, axis=0)
 
     def max_cosine(self, units: np.ndarray) -> np.ndarray:
-        """[n, D] unit rows (n <= chunk) -> [n] max float32 cosine to the bank."""
-        pad = np.zeros((self.chunk, self.dim), np.float32)
-        pad[: len(units)] = units
-        # Block: the power of two >= count (at least 64, at most the memory cap), so a small
-        # bank costs ~count, not ~capacity; one compilation per power of two.
-        block = min(self._max_block, self.capacity, max(64, 1 << max(0, self.count - 1).bit_length()))
-        out = _bank_max(pad, self.device, jnp.int32(self.count), block=block)
-        return np.asarray(out)[: len(units)]
+        """[n, D] unit rows (n <= chunk) -> [n] max float32 cosine to the bank (-inf when it is empty)."""
+        best = np.full(len(units), -np.inf, np.float32)
+        for start in range(0, self.count, self._block):
+            sims = units @ self.units[start:min(self.count, start + self._block)].T  # float32, any order
+            np.maximum(best, sims.max(axis=1), out=best)
+        return best
 
     def append(self, rows: np.ndarray, units: np.ndarray, indices: np.ndarray):
         k = len(rows)
         if k == 0:
             return
-        # The device write is a full [chunk, D] slab (one compiled shape), so keep room for it.
-        self._grow(self.count + max(k, self.chunk))
+        self._grow(self.count + k)
         n = self.count
         self.rows[n:n + k] = rows
         self.units[n:n + k] = units
         self.indices[n:n + k] = indices
-        slab = np.zeros((max(k, self.chunk), self.dim), np.float32)
-        slab[:k] = units
-        self.device = _write_rows(self.device, jnp.asarray(slab), jnp.int32(n))
         self.count = n + k
 
 

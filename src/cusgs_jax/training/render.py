@@ -5,6 +5,8 @@ Naming (:mod:`cusgs_jax.types`): G Gaussians, Q query channels, H×W image, D fe
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 
@@ -126,11 +128,11 @@ def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRe
     """
     def build(capacities: Capacities):
         @jax.jit
-        def render(anchors, nets, camera, appearance_index):
+        def render_rgb(anchors, nets, camera, appearance_index):
             out, _, work = render_model(anchors, nets, camera, appearance_index, cfg, capacities)
             return jnp.clip(out.image, 0.0, 1.0), work
 
-        return render
+        return render_rgb
 
     return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
 
@@ -142,13 +144,30 @@ def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) ->
     """
     def build(capacities: Capacities):
         @jax.jit
-        def render(anchors, nets, camera, appearance_index, banks):
+        def render_rgb_features(anchors, nets, camera, appearance_index, banks):
             out, features, work = render_model(anchors, nets, camera, appearance_index, cfg, capacities, banks)
             return jnp.clip(out.image[..., :3], 0.0, 1.0), features, work
 
-        return render
+        return render_rgb_features
 
     return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
+
+
+@dataclasses.dataclass
+class RgbOfFeatureRender:
+    """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3],)`` from a feature render
+    (:func:`make_feature_render_fn`) and the memory ``banks``: the RGB it composites in the same pass,
+    so a run with feature models evaluates RGB and features with one compiled program.
+
+    ``growths`` is 0: the feature render counts its own.
+    """
+
+    feature_render: ExactRender
+    banks: dict
+    growths: int = 0
+
+    def __call__(self, anchors, nets, camera, appearance_index):
+        return self.feature_render(anchors, nets, camera, appearance_index, self.banks)[:1]
 
 
 def view_work_probe(cfg: Config):

@@ -1,0 +1,79 @@
+"""Where a run's wall time goes: ``eval.json``'s ``time``, the closing log line, ``cusgs-report``'s tables.
+
+A :class:`TimeBudget` charges the wall time since it started to one stage at a time
+(``with budget.stage("evaluation"): ...``; nested stages charge the inner one), and moves the
+seconds the :class:`~cusgs_jax.app.compiles.CompileLog` saw compiling out of the stage they
+happened in into ``compile``. Time outside every stage is ``other``. The stages therefore add up
+to ``total`` by construction; ``total`` is then compared with the process wall outside (the
+README's main job: within 5 %).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import time
+
+from cusgs_jax.app.compiles import CompileLog
+
+#: The stages, in the order a run passes them (``eval.json``'s ``time`` keys, with ``compile``, ``other``, ``total``).
+STAGES = ("startup", "load", "features", "psc", "init", "probe", "train_steps", "densify", "evaluation",
+          "checkpoints", "report")
+
+
+class TimeBudget:
+    """Seconds per stage of one process's run.
+
+    Args:
+      compiles: the run's compile log (its seconds move into ``compile``).
+      start: ``time.perf_counter()`` at which the budget starts (default now); the time until the
+        first stage is ``startup`` when given (e.g. the process's import of the package).
+    """
+
+    def __init__(self, compiles: CompileLog, start: float | None = None):
+        self.compiles = compiles
+        self.seconds = {name: 0.0 for name in STAGES}
+        self.seconds.update(compile=0.0, other=0.0)
+        now = time.perf_counter()
+        self._since = now if start is None else start
+        self._compiled = compiles.seconds
+        self._current = "other" if start is None else "startup"
+        self._start = self._since
+
+    def _charge(self) -> None:
+        now, compiled = time.perf_counter(), self.compiles.seconds
+        compile_part = compiled - self._compiled
+        self.seconds[self._current] += (now - self._since) - compile_part
+        self.seconds["compile"] += compile_part
+        self._since, self._compiled = now, compiled
+
+    @contextlib.contextmanager
+    def stage(self, name: str):
+        """Charge the time inside to ``name`` (one of :data:`STAGES`), less its compilation."""
+        if name not in self.seconds:
+            raise KeyError(f"unknown stage {name!r}; stages: {STAGES}")
+        self._charge()
+        outer, self._current = self._current, name
+        try:
+            yield
+        finally:
+            self._charge()
+            self._current = outer
+
+    def begin(self, name: str) -> None:
+        """Charge from now on to ``name`` until the next :meth:`begin` or stage (for the startup → run handover)."""
+        self._charge()
+        self._current = name
+
+    def as_dict(self) -> dict:
+        """{stage: seconds, "compile", "other", "total"} (rounded to ms); the stages add up to ``total``."""
+        self._charge()
+        out = {name: round(value, 3) for name, value in self.seconds.items()}
+        out["total"] = round(time.perf_counter() - self._start, 3)
+        return out
+
+    def line(self) -> str:
+        """One log line: the stages that took time, largest first."""
+        table = self.as_dict()
+        total = table.pop("total")
+        parts = [f"{name} {value:.1f}" for name, value in sorted(table.items(), key=lambda kv: -kv[1]) if value >= 0.05]
+        return f"time {total:.1f} s: " + ", ".join(parts)
