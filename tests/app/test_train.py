@@ -114,6 +114,8 @@ def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     good, bad = sweep / "0", sweep / "1"
     result = json.loads((good / "eval.json").read_text())
     assert result["prune"]["passes"] == 3 and result["prune"]["pruned"] > 0
+    # two jobs side by side share the accelerator: each took 0.9 / 2 of its memory (app/accelerator.py)
+    assert result["accelerator"]["memory_fraction"] == "0.450"
     assert (good / ".hydra" / "overrides.yaml").is_file()
     assert str(missing) in json.loads((bad / "failed.json").read_text())["error"]
     assert not (bad / "eval.json").exists()

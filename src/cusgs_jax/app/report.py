@@ -66,7 +66,12 @@ METRICS = [
     ("feature_cosine", "feat. cos", "{:.4f}",
      "cosine distance 1-cos of the rendered feature maps, mean over feature models (lower is better)"),
     ("feature_l2", "feat. L2", "{:.4f}", "L2 error of the rendered feature maps, mean over feature models"),
-    ("train_s", "train (s)", "{:.1f}", "training wall-clock seconds"),
+    ("train_s", "train (s)", "{:.1f}", "training wall-clock seconds (the train step's compilation included; "
+     "evaluation and checkpoints not)"),
+    ("run_s", "run (s)", "{:.1f}", "the whole run's seconds: load, features, PSC, compiling, training, "
+     "evaluation, checkpoints, report (eval.json time.total)"),
+    ("compile_s", "compile (s)", "{:.1f}", "seconds spent compiling XLA programs, tracing included "
+     "(eval.json compilations.seconds; small when the persistent compilation cache held them)"),
     ("render_ms", "render ms/view", "{:.1f}", "median held-out render time per view"),
     ("render_ms_before_prune", "render ms/view at 1st prune", "{:.1f}",
      "render time per view of the model just before the first pruning pass (pruning runs only; it has "
@@ -160,6 +165,8 @@ def _eval_metrics(result: dict) -> dict:
         "feature_cosine": _mean(m.get("cosine") for m in models),
         "feature_l2": _mean(m.get("l2") for m in models),
         "train_s": finite_or_none(result.get("train_wall_s")),
+        "run_s": finite_or_none(time.get("total")) if isinstance(time := result.get("time"), dict) else None,
+        "compile_s": finite_or_none(c.get("seconds")) if isinstance(c := result.get("compilations"), dict) else None,
         "render_ms": finite_or_none(result.get("render_ms_per_view")),
         "render_ms_before_prune": finite_or_none(result.get("render_ms_before_prune")),
     }

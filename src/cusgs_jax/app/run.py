@@ -55,6 +55,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from cusgs_jax.app.accelerator import accelerator_record
 from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.compiles import CompileLog
@@ -70,7 +71,7 @@ from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.features import evaluate_features
 from cusgs_jax.eval.lpips import lpips_metrics
-from cusgs_jax.eval.plots import plot_error_vs_time
+from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import run_features
 from cusgs_jax.io.load_run import BANKS_FILE
@@ -596,7 +597,7 @@ def finalise(session: Session) -> dict:
         batch_size=cfg.train.batch_size, devices=_devices(session), width=session.scene.width,
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
         evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
-        background=list(cfg.splat.background_color), curve=session.curve,
+        background=list(cfg.splat.background_color), curve=session.curve, curve_clock=CLOCK,
         camera_frame=session.scene.camera_frame,
         # the initial points: the scene's own, or the random rule of a layout without any (data/random_points.py)
         initial_points=session.scene.random_points or "scene_points",
@@ -614,6 +615,7 @@ def finalise(session: Session) -> dict:
                            title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
     with budget.stage("checkpoints"):
         session.ckpt.close()
+    result["accelerator"] = accelerator_record()
     result["compilations"] = _compilations(budget.compiles)
     result["time"] = budget.as_dict()
     (out / "eval.json").write_text(json.dumps(result, indent=1))

@@ -25,6 +25,7 @@ _STARTED = [time.perf_counter()]  # this process's start, near enough: its first
 import json
 import logging
 import math
+import os
 import pathlib
 import sys
 import traceback
@@ -35,6 +36,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.config import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
@@ -68,6 +70,13 @@ class FailedJobs(Callback):
                             for path in sorted(sweep_dir.glob("*/failed.json"))]
 
 
+def _parallel_jobs(hydra_cfg) -> int | None:
+    """How many jobs the sweep's launcher runs at once on this machine (joblib's ``n_jobs``), or None."""
+    launcher = hydra_cfg.launcher
+    n_jobs = launcher.get("n_jobs") if isinstance(launcher, DictConfig) else None
+    return None if n_jobs is None else int(n_jobs)
+
+
 def _objectives(hydra_cfg) -> list[str]:
     """The objective names a multi-objective sweeper asks for (``hydra.sweeper.objectives``), else []."""
     names = hydra_cfg.sweeper.get("objectives") if isinstance(hydra_cfg.sweeper, DictConfig) else None
@@ -86,6 +95,11 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
     if _STARTED:  # only the process's first run charges the start-up to its budget
         mark_process_start(_STARTED.pop())
+    if sweeping:  # jobs side by side on one machine share its accelerator (before JAX's backend starts)
+        shared = sweep_memory_env(_parallel_jobs(hydra_cfg))
+        os.environ.update(shared)
+        if shared:
+            log.info("job %s: %s", hydra_cfg.job.num, ", ".join(f"{k}={v}" for k, v in shared.items()))
     try:
         result = run(from_omegaconf(cfg), output_dir,
                      progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")

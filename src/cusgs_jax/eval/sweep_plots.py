@@ -25,6 +25,8 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+from cusgs_jax.eval.plots import CLOCK_LABEL  # noqa: E402
+
 __all__ = ["finite_or_none", "pareto_front", "write_plots"]
 
 FIGSIZE, DPI = (8.0, 5.0), 120
@@ -87,7 +89,7 @@ def _plot_psnr_vs_time(runs, path):
         if pts:
             ax.plot(*zip(*pts), marker="o", ms=3, color=color, label=name, **_style(r))
             n += 1
-    ax.set(xlabel="training wall-clock time (s)", ylabel="held-out PSNR (dB)", title="PSNR against training time")
+    ax.set(xlabel=CLOCK_LABEL, ylabel="held-out PSNR (dB)", title="PSNR against training time")
     _finish(fig, [ax], path, n)
 
 
@@ -112,7 +114,7 @@ def _plot_features(runs, path) -> bool:
             if pts:
                 ax.plot(*zip(*pts), marker="o", ms=3 if len(pts) > 1 else 6, color=color, label=label, **_style(r))
     axes[0].set(ylabel="feature cosine distance (1 - cos)", title="feature error against training time")
-    axes[1].set(ylabel="feature L2 error", xlabel="training wall-clock time (s)")
+    axes[1].set(ylabel="feature L2 error", xlabel=CLOCK_LABEL)
     _finish(fig, axes, path, len(series))
     return True
 

@@ -1,0 +1,185 @@
+"""One command for a machine with an NVIDIA GPU: tests, splatter against splax, the README's main job; prints JSON.
+
+Runs, each in a subprocess with its own time limit (together at most ``--budget`` seconds, 8 minutes
+by default):
+
+1. **tests** — ``pytest -m "not slow"`` of ``tests/splat``, ``tests/model``, ``tests/training`` and
+   ``tests/test_precision.py`` with ``--workers`` xdist workers on the default backend (the GPU),
+   ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so the workers share the card;
+2. **splatter** — ``splat_bench.py`` at the issue's cells (50k Gaussians at 256², 500k and 1M at
+   1024², tile 8 and 16; forward and forward+backward medians) and, given ``--splax-src``,
+   ``peer_bench.py --quick`` (splax at 50k, 256²);
+3. **main job** — ``cusgs-train`` with no overrides (the README's main job; 3000 steps, evaluation,
+   report) into ``OUT/main_job``, then the same again into ``OUT/main_job_rerun`` (the persistent
+   compilation cache warm): each run's process wall, ``eval.json``'s ``time`` budget,
+   ``compilations`` and held-out PSNR.
+
+Writes ``OUT/gpu_check.json`` (everything) and the logs beside it, and prints a short table last.
+``OUT`` is ``--out`` (default ``$OUT`` — the device tool's folder that comes back — else
+``gpu_check_out/``). ``--smoke`` shrinks every part (one test module, 10k Gaussians at 64²,
+a 40-step main job on a small demo) so the script itself can be checked on a CPU.
+
+    python benchmarks/gpu_check.py [--splax-src splax/src] [--budget 480]
+    python benchmarks/gpu_check.py --smoke        # on a CPU: the script works
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import re
+import subprocess
+import sys
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+TRAIN = [sys.executable, "-c", "import sys; from cusgs_jax.app.train import main; sys.argv[0] = 'cusgs-train'; main()"]
+TEST_PATHS = ["tests/splat", "tests/model", "tests/training", "tests/test_precision.py"]
+SPLAT_CELLS = [(50_000, 256, (8, 16)), (500_000, 1024, (8, 16)), (1_000_000, 1024, (8, 16))]
+SMOKE_MAIN = ["train.iterations=40", "eval.every=20", "data.demo.views=8", "data.demo.width=80", "data.demo.height=60"]
+
+
+def _run(cmd, log: pathlib.Path, timeout: float, env=None) -> dict:
+    """Run ``cmd`` with stdout+stderr into ``log``; {"rc", "wall_s", "timed_out"}."""
+    start = time.perf_counter()
+    with open(log, "w") as out:
+        try:
+            rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, timeout=max(timeout, 1),
+                                env={**os.environ, **(env or {})}).returncode
+            timed_out = False
+        except subprocess.TimeoutExpired:
+            rc, timed_out = None, True
+    return dict(rc=rc, wall_s=round(time.perf_counter() - start, 2), timed_out=timed_out, log=log.name)
+
+
+def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool) -> dict:
+    paths = ["tests/test_precision.py"] if smoke else TEST_PATHS
+    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "not slow", "-p", "no:cacheprovider", *paths]
+    if workers > 1:
+        cmd += ["-n", str(workers)]
+    result = _run(cmd, out / "tests.log", timeout, env={"XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    text = (out / "tests.log").read_text(errors="replace")
+    summary = [line for line in text.splitlines() if re.search(r"\d+ (passed|failed)", line)]
+    result["summary"] = summary[-1].strip("= ") if summary else None
+    for key in ("passed", "failed", "skipped", "errors"):
+        found = re.search(rf"(\d+) {key.rstrip('s') if key == 'errors' else key}", result["summary"] or "")
+        result[key] = int(found.group(1)) if found else 0
+    result["failures"] = [line[7:] for line in text.splitlines() if line.startswith("FAILED ")][:40]
+    return result
+
+
+def run_splatter(out: pathlib.Path, timeout: float, smoke: bool, splax_src: str | None) -> dict:
+    cells = [(10_000, 64, (8, 16))] if smoke else SPLAT_CELLS
+    rows, runs, deadline = [], [], time.perf_counter() + timeout
+    for num, size, tiles in cells:
+        log = out / f"splat_{num}_{size}.log"
+        cmd = [sys.executable, "benchmarks/splat_bench.py", "--gaussians", str(num), "--sizes", str(size),
+               "--tile-sizes", *map(str, tiles), "--repeats", "3" if smoke else "5"]
+        runs.append(_run(cmd, log, deadline - time.perf_counter()))
+        text = log.read_text(errors="replace")
+        try:
+            rows += json.loads(text[text.index("{\n"):])["results"]
+        except ValueError:
+            pass
+    result = dict(runs=runs, ours=[{k: r.get(k) for k in ("gaussians", "width", "tile_size", "forward_median_s",
+                                                           "forward_backward_median_s", "composited_pairs",
+                                                           "forward_backward_pairs_per_s")} for r in rows])
+    if splax_src:
+        peer_json = out / "peer.json"
+        cmd = [sys.executable, "benchmarks/peer_bench.py", "--splax-src", splax_src, "--our-tiles", "8", "16",
+               "--splax-tiles", "16", "--out", str(peer_json)] + (["--gaussians", "10000", "--sizes", "64"]
+                                                                   if smoke else ["--quick"])
+        result["peer_run"] = _run(cmd, out / "peer.log", deadline - time.perf_counter())
+        if peer_json.is_file():
+            result["peer"] = json.loads(peer_json.read_text())
+    else:
+        result["peer"] = "skipped: no --splax-src (git clone https://github.com/chungmin99/splax; jaxlie, jax_dataclasses)"
+    return result
+
+
+def run_main_job(out: pathlib.Path, name: str, timeout: float, smoke: bool) -> dict:
+    folder = out / name
+    cmd = [*TRAIN, f"hydra.run.dir={folder}", "train.progress=false", *(SMOKE_MAIN if smoke else [])]
+    result = _run(cmd, out / f"{name}.log", timeout)
+    evaluation = folder / "eval.json"
+    if evaluation.is_file():
+        data = json.loads(evaluation.read_text())
+        compiles = data.get("compilations", {})
+        result.update(psnr=data["psnr"], ssim=data["ssim"], time=data.get("time"),
+                      compilations={k: compiles.get(k) for k in ("count", "compiled", "from_cache", "seconds",
+                                                                 "backend_seconds", "train_step",
+                                                                 "evaluation_renders", "functions")},
+                      budget_over_wall=round(data["time"]["total"] / result["wall_s"], 4) if data.get("time") else None,
+                      accelerator=data.get("accelerator"))
+    return result
+
+
+def table(report: dict) -> str:
+    lines = [f"gpu_check on {report['device']} (jax {report['jax']}, {report['backend']})"]
+    tests = report.get("tests")
+    if tests:
+        lines.append(f"tests: {tests['summary']} in {tests['wall_s']:.0f} s")
+        lines += [f"  FAILED {name}" for name in tests["failures"][:10]]
+    splat = report.get("splatter")
+    if splat:
+        lines.append("splatter (ms)          fwd   fwd+bwd")
+        for row in splat["ours"]:
+            if row.get("forward_median_s"):
+                lines.append(f"  {row['gaussians']:>8} {row['width']:>5}² t{row['tile_size']:<3}"
+                             f"{1e3 * row['forward_median_s']:8.2f} {1e3 * row['forward_backward_median_s']:8.2f}")
+        peer = splat.get("peer")
+        if isinstance(peer, dict):
+            for cell in peer.get("cells", peer.get("results", []))[:4]:
+                lines.append(f"  splax {json.dumps(cell)[:150]}")
+    for name in ("main_job", "main_job_rerun"):
+        job = report.get(name)
+        if job and job.get("time"):
+            c = job["compilations"]
+            lines.append(f"{name}: wall {job['wall_s']:.0f} s, budget {job['time']['total']:.0f} s, PSNR "
+                         f"{job['psnr']:.2f} dB; {c['count']} compilations {c['seconds']:.1f} s (backend "
+                         f"{c['backend_seconds']:.1f} s, {c['from_cache']} from cache), train step "
+                         f"{c['train_step']}, eval renders {c['evaluation_renders']}")
+            stages = sorted(((k, v) for k, v in job["time"].items() if k != "total"), key=lambda kv: -kv[1])
+            lines.append("  " + ", ".join(f"{k} {v:.1f}" for k, v in stages if v >= 0.1))
+        elif job:
+            lines.append(f"{name}: rc {job['rc']}, timed out {job['timed_out']} (log {job['log']})")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default=os.environ.get("OUT") or "gpu_check_out")
+    parser.add_argument("--budget", type=float, default=480.0, help="seconds for all parts together")
+    parser.add_argument("--workers", type=int, default=8, help="pytest-xdist workers for the tests")
+    parser.add_argument("--splax-src", default=None, help="splax's src folder (peer_bench.py); none: splax skipped")
+    parser.add_argument("--parts", nargs="+", default=["tests", "splatter", "main_job"],
+                        choices=["tests", "splatter", "main_job"])
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script on a CPU")
+    args = parser.parse_args(argv)
+    out = pathlib.Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    import jax
+
+    report = dict(benchmark="gpu_check", jax=jax.__version__, backend=jax.default_backend(),
+                  device=str(jax.devices()[0]), smoke=args.smoke, budget_s=args.budget)
+    deadline = time.perf_counter() + args.budget
+    shares = {"tests": 0.3, "splatter": 0.3, "main_job": 0.4}  # of the budget, in this order; leftovers carry over
+    left = lambda: deadline - time.perf_counter()  # noqa: E731
+    if "tests" in args.parts:
+        report["tests"] = run_tests(out, args.workers, shares["tests"] * args.budget, args.smoke)
+    if "splatter" in args.parts:
+        report["splatter"] = run_splatter(out, min(left(), shares["splatter"] * args.budget + 30), args.smoke,
+                                          args.splax_src)
+    if "main_job" in args.parts:
+        report["main_job"] = run_main_job(out, "main_job", left() * 0.7, args.smoke)
+        report["main_job_rerun"] = run_main_job(out, "main_job_rerun", left(), args.smoke)
+    (out / "gpu_check.json").write_text(json.dumps(report, indent=1))
+    print(json.dumps(report, indent=1))
+    print(table(report))
+    return report
+
+
+if __name__ == "__main__":
+    main()
