@@ -27,24 +27,6 @@ def _describe(dots) -> str:
     return "; ".join(f"{d.where} {d.shapes} precision={d.precision}" for d in dots)
 
 
-def test_the_check_sees_a_default_precision_matmul_even_inside_jit_scan_and_custom_vjp():
-    @jax.custom_vjp
-    def inner(a, b):
-        return a @ b
-
-    inner.defvjp(lambda a, b: (inner(a, b), (a, b)), lambda res, g: (g @ res[1].T, res[0].T @ g))
-
-    def fn(a, b):
-        carry, _ = jax.lax.scan(lambda c, _: (jnp.matmul(c, b, precision=jax.lax.Precision.HIGHEST), None), a,
-                                None, length=2)
-        return jax.jit(inner)(carry, b).sum()
-
-    a = jnp.ones((3, 3))
-    assert len(dot_precisions(fn, a, a)) == 2
-    assert len(loose_dots(fn, a, a)) == 1  # the custom_vjp's forward, nested in jit
-    assert len(loose_dots(jax.grad(fn), a, a)) >= 2  # and the backward's two
-
-
 @pytest.mark.parametrize("channels,lens", [(3, None), (12, None), (3, "OPENCV"), (12, "OPENCV_FISHEYE")])
 def test_the_splatter_forward_and_backward_are_at_highest(channels, lens):
     scene = make_scene(seed=1, num=40, channels=channels)

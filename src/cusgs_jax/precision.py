@@ -1,4 +1,4 @@
-"""Matmul precision: geometry at full float32 on every backend (DESIGN.md §13).
+"""Matmul precision: geometry at full float32 on every backend (docs/scaling.md#on-a-gpu).
 
 On NVIDIA GPUs since Ampere, XLA computes a float32 ``dot_general`` whose precision is left at
 DEFAULT in TF32 (inputs rounded to 10 mantissa bits; JAX docs "Precision", jax-ml/jax#12008). A

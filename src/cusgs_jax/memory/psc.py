@@ -54,7 +54,7 @@ noticeable time there.
 All of it is NumPy on the host, on purpose: the scan is a sequence of small,
 data-dependent steps, and as device work each would be a kernel launch, a
 transfer and a sync (and a compile per shape) — on a GPU machine that made the
-demo's build 6.5× slower than on a 2-core CPU (DESIGN.md §13).
+demo's build 6.5× slower than on a 2-core CPU (docs/scaling.md#on-a-gpu).
 """
 
 from __future__ import annotations

@@ -238,22 +238,33 @@ def place_anchors(anchors: AnchorState, slots: np.ndarray, centers: np.ndarray, 
 
     Args:
       slots: [K] int slot indices; centers: [K, 3]; latent: [K, F]; log_scale: [K].
+
+    The new rows are laid out on the host as [A]-row arrays with a row mask and merged by one jitted
+    program per capacity (:func:`_merge_rows`), so growing K anchors compiles nothing new for a new K.
     """
-    params = anchors.params
     slots = np.asarray(slots)
     rows = np.zeros(anchors.capacity, bool)
     rows[slots] = True
+    full_centers = np.zeros((anchors.capacity, 3), np.float32)
+    full_centers[slots] = centers
+    full_latent = np.zeros((anchors.capacity, anchors.params.latent.shape[-1]), np.float32)
+    full_latent[slots] = latent
+    full_log = np.zeros(anchors.capacity, np.float32)
+    full_log[slots] = log_scale
+    return _merge_rows(anchors, rows, full_centers, full_latent, full_log, key)
+
+
+@jax.jit
+def _merge_rows(anchors: AnchorState, rows, centers, latent, log_scale, key) -> AnchorState:
+    """:func:`place_anchors` on [A]-row arrays: rows [A] bool take the new values (traceable)."""
+    params = anchors.params
     table = params.query_table
     if table is not None:
-        table = jnp.where(jnp.asarray(rows)[:, None, None], fresh_queries(key, table.shape), table)
-    params = AnchorParams(
-        offsets=jnp.asarray(params.offsets).at[slots].set(0.0),
-        log_scaling=jnp.asarray(params.log_scaling).at[slots].set(jnp.asarray(log_scale, jnp.float32)[:, None]),
-        latent=jnp.asarray(params.latent).at[slots].set(jnp.asarray(latent, jnp.float32)),
-        query_table=table,
-    )
-    return AnchorState(jnp.asarray(anchors.centers).at[slots].set(jnp.asarray(centers, jnp.float32)),
-                       jnp.asarray(anchors.alive).at[slots].set(True), params)
+        table = jnp.where(rows[:, None, None], fresh_queries(key, table.shape), table)
+    params = AnchorParams(offsets=jnp.where(rows[:, None, None], 0.0, params.offsets),
+                          log_scaling=jnp.where(rows[:, None], log_scale[:, None], params.log_scaling),
+                          latent=jnp.where(rows[:, None], latent, params.latent), query_table=table)
+    return AnchorState(jnp.where(rows[:, None], centers, anchors.centers), anchors.alive | rows, params)
 
 
 def compacted_capacity(alive: int, multiple: int = 64) -> int:

@@ -6,6 +6,7 @@ Naming (:mod:`cusgs_jax.types`): G Gaussians, Q query channels, H×W image, D fe
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -182,11 +183,19 @@ def view_work_probe(cfg: Config):
 
 
 def most_work(anchors: AnchorState, nets: dict, views, cfg: Config) -> dict:
-    """The most any of ``views`` (pairs ``(camera, appearance_index)``) needs of each capacity
-    (:func:`view_work`): ``{"visible_anchors", "active_gaussians", "pairs"}`` as host ints."""
-    fit = view_work_probe(cfg)
-    needs = dict(visible_anchors=0, active_gaussians=0, pairs=0)
-    for camera, index in views:
-        work = fit(anchors, nets, camera, index)
-        needs = {k: max(v, work[k]) for k, v in needs.items()}
-    return needs
+    """The most any of ``views`` (pairs ``(camera, appearance_index)`` of one image size) needs of each
+    capacity (:func:`view_work`): ``{"visible_anchors", "active_gaussians", "pairs"}`` as host ints.
+
+    One jitted program walks the views (``lax.map``: one view's memory at a time) and one transfer
+    brings the answer back — no per-view round trip.
+    """
+    cameras = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[camera for camera, _ in views])
+    indices = jnp.asarray([index for _, index in views], jnp.int32)
+    work = jax.device_get(_probe_views(anchors, nets, cameras, indices, cfg))
+    return {key: int(max(values)) for key, values in work.items()}
+
+
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def _probe_views(anchors, nets, cameras, indices, cfg):
+    """{"visible_anchors", "active_gaussians", "pairs"}: [V] int32, :func:`view_work` of each view."""
+    return jax.lax.map(lambda view: view_work(anchors, nets, view[0], view[1], cfg), (cameras, indices))

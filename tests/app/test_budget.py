@@ -1,0 +1,44 @@
+"""app/budget.py: a run's wall time charged to one stage at a time, compilation moved into its own entry."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from cusgs_jax.app.budget import STAGES, TimeBudget
+from cusgs_jax.app.compiles import CompileLog
+
+
+def test_stages_add_up_to_the_total_and_nested_stages_charge_the_inner_one():
+    budget = TimeBudget(CompileLog())
+    with budget.stage("load"):
+        time.sleep(0.05)
+        with budget.stage("psc"):
+            time.sleep(0.1)
+        time.sleep(0.02)
+    time.sleep(0.03)  # outside every stage: "other"
+    table = budget.as_dict()
+    assert set(table) == set(STAGES) | {"compile", "other", "total"}
+    assert 0.07 <= table["load"] < 0.1 and 0.1 <= table["psc"] < 0.13 and table["other"] >= 0.03
+    assert sum(v for k, v in table.items() if k != "total") == pytest.approx(table["total"], abs=0.005)
+
+
+def test_compile_seconds_leave_the_stage_they_happened_in():
+    with CompileLog() as log:
+        budget = TimeBudget(log, start=time.perf_counter() - 0.2)  # 0.2 s of start-up before it
+        with budget.stage("evaluation"):
+            jax.jit(lambda x: jnp.cos(x) + 0.5 * x)(jnp.ones(13)).block_until_ready()
+        table = budget.as_dict()
+    assert table["startup"] >= 0.2 and table["compile"] > 0
+    assert table["compile"] == pytest.approx(log.seconds, abs=1e-3)
+    assert sum(v for k, v in table.items() if k != "total") == pytest.approx(table["total"], abs=0.005)
+    assert budget.line().startswith(f"time {table['total']:.1f} s: ")
+
+
+def test_an_unknown_stage_is_refused():
+    with pytest.raises(KeyError, match="unknown stage 'lunch'"):
+        with TimeBudget(CompileLog()).stage("lunch"):
+            pass
