@@ -294,3 +294,70 @@ def test_export_format_errors_are_one_line_exit_2(trained, tmp_path, capsys, mon
     err = capsys.readouterr().err
     assert e.value.code == 2 and "pip install 'cusgs-jax[spz]'" in err and err.count("\n") == 1
     assert not list(tmp_path.glob("x.*"))
+
+
+def test_export_refuses_to_refine_against_another_scene(trained, tmp_path, capsys):
+    """A scene with as many views but other poses (the demo with another seed) is not the run's: exit 2 naming
+    both, before anything is written."""
+    from cusgs_jax.data.demo import generate_demo_scene
+
+    scene, run_dir = trained
+    other = generate_demo_scene(tmp_path / "other", num_views=6, width=40, height=30, num_points=800, seed=1)
+    out = tmp_path / "x.ply"
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(out), "--refine", "3", "--scene", str(other), "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1, err
+    assert f"--scene {other}: not the scene the run {run_dir} was trained on ({scene})" in err
+    assert "other camera poses" in err and not out.exists()
+
+
+def test_export_checks_its_output_before_the_work_and_writes_it_whole(trained, tmp_path, capsys, monkeypatch):
+    _, run_dir = trained
+    folder = tmp_path / "a_folder"
+    folder.mkdir()
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(folder), "--refine", "0", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "is a folder: name the file to write" in err and err.count("\n") == 1
+    import cusgs_jax.app.export as export
+
+    def no_bake(*args, **kwargs):
+        raise AssertionError("baked before the output was checked")
+
+    monkeypatch.setattr("cusgs_jax.model.bake.bake_splats", no_bake)
+    blocked = tmp_path / "file_not_folder"
+    blocked.write_text("x")
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(blocked / "x.ply"), "--refine", "0", "--quiet"])
+    assert e.value.code == 2 and "cannot write there" in capsys.readouterr().err
+    assert export.PROG == "cusgs-export"
+
+
+def test_a_ply_write_that_fails_leaves_no_file(tmp_path, monkeypatch):
+    """write_ply writes beside the name and renames: a failure (or a kill) mid-write leaves nothing."""
+    import plyfile
+
+    from cusgs_jax.io import SplatModel, write_ply
+
+    model = SplatModel(means=np.zeros((3, 3), np.float32), quats=np.tile([1.0, 0, 0, 0], (3, 1)).astype(np.float32),
+                       log_scales=np.zeros((3, 3), np.float32), opacity_logits=np.zeros(3, np.float32),
+                       sh=np.zeros((3, 1, 3), np.float32))
+
+    def broken(self, stream):
+        pathlib.Path(stream).write_bytes(b"ply\nformat binary_little_endian 1.0\n")  # the header, then the kill
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(plyfile.PlyData, "write", broken)
+    with pytest.raises(Exception, match="No space left on device"):
+        write_ply(tmp_path / "m.ply", model)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_min_opacity_that_removes_everything_says_so(trained, tmp_path, capsys):
+    _, run_dir = trained
+    with pytest.raises(SystemExit) as e:
+        main([str(run_dir), str(tmp_path / "x.ply"), "--min-opacity", "0.999", "--refine", "0", "--quiet"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and err.count("\n") == 1, err
+    assert "--min-opacity 0.999 removed every one of the" in err and "lower it" in err

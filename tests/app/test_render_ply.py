@@ -45,7 +45,7 @@ def scene_and_ply(tmp_path_factory):
 def test_render_ply_cli(scene_and_ply, tmp_path, capsys):
     scene_dir, ply = scene_and_ply
     out_dir = tmp_path / "pngs"
-    assert main([str(ply), "--colmap", str(scene_dir), "--holdout-every", "2", "--out-dir", str(out_dir),
+    assert main([str(ply), "--scene", str(scene_dir), "--holdout-every", "2", "--out-dir", str(out_dir),
                  "--background", "0", "0", "0", "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert {"ply", "scene", "num_gaussians", "sh_degree", "evaluated_on", "num_views", "psnr", "ssim",
@@ -69,7 +69,7 @@ def test_missing_ply_exits_2_naming_it(scene_and_ply, tmp_path, capsys):
     scene_dir, _ = scene_and_ply
     missing = tmp_path / "nowhere" / "model.ply"
     with pytest.raises(SystemExit) as e:
-        main([str(missing), "--colmap", str(scene_dir)])
+        main([str(missing), "--scene", str(scene_dir)])
     assert e.value.code == 2
     err = capsys.readouterr().err
     assert err.startswith("cusgs-render-ply: error: ") and str(missing) in err and err.count("\n") == 1
@@ -78,23 +78,31 @@ def test_missing_ply_exits_2_naming_it(scene_and_ply, tmp_path, capsys):
 def test_bad_scene_exits_2(scene_and_ply, tmp_path, capsys):
     _, ply = scene_and_ply
     with pytest.raises(SystemExit) as e:
-        main([str(ply), "--colmap", str(tmp_path / "no scene"), "--quiet"])
+        main([str(ply), "--scene", str(tmp_path / "no scene"), "--quiet"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "no scene" in err
-    assert "set --colmap to a COLMAP scene" in err and "data." not in err  # its own flag, not cusgs-train's option
+    assert "set --scene to a COLMAP scene" in err and "data." not in err  # its own flag, not cusgs-train's option
     with pytest.raises(SystemExit) as e:
-        main([str(ply), "--colmap", str(scene_and_ply[0]), "--format", "blender", "--quiet"])
+        main([str(ply), "--scene", str(scene_and_ply[0]), "--format", "blender", "--quiet"])
     err = capsys.readouterr().err
-    assert e.value.code == 2 and "set --colmap to such a folder, or --format to the layout" in err and "data." not in err
+    assert e.value.code == 2 and "set --scene to such a folder, or --format to the layout" in err and "data." not in err
 
 
 def test_images_smaller_than_the_ssim_window_exit_2_naming_downscale(scene_and_ply, capsys):
     scene_dir, ply = scene_and_ply
     with pytest.raises(SystemExit) as e:  # 32x24 / 3 = 11x8: no SSIM
-        main([str(ply), "--colmap", str(scene_dir), "--downscale", "3", "--quiet"])
+        main([str(ply), "--scene", str(scene_dir), "--downscale", "3", "--quiet"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and err.count("\n") == 1
     assert "11x8 pixels with --downscale=3" in err and "use a smaller --downscale (e.g. --downscale=2)" in err
+
+
+def test_the_old_colmap_flag_still_works_and_says_it_is_deprecated(scene_and_ply, capsys):
+    scene_dir, ply = scene_and_ply
+    assert main([str(ply), "--colmap", str(scene_dir), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "cusgs-render-ply: warning: --colmap is deprecated (it reads every layout): use --scene" in captured.err
+    assert json.loads(captured.out)["psnr"] > 0
 
 
 def test_help_does_not_import_jax():
@@ -103,7 +111,7 @@ def test_help_does_not_import_jax():
             "except SystemExit:\n    pass\nprint('JAX' if 'jax' in sys.modules else 'NOJAX')")
     env = dict(os.environ, PYTHONPATH=src + os.pathsep + os.environ.get("PYTHONPATH", ""))
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
-    assert "--colmap" in out and out.strip().endswith("NOJAX")
+    assert "--scene" in out and out.strip().endswith("NOJAX")
 
 
 def test_undistort_mask_keeps_the_frame_and_scores_its_valid_pixels(scene_and_ply, tmp_path, capsys, monkeypatch):
@@ -118,13 +126,13 @@ def test_undistort_mask_keeps_the_frame_and_scores_its_valid_pixels(scene_and_pl
                            height=24, num_points=300)
     scores = {}
     for name, folder, mode in (("pinhole", scene_dir, "crop"), ("mask", lens, "mask"), ("crop", lens, "crop")):
-        assert main([str(ply), "--colmap", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
+        assert main([str(ply), "--scene", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
         scores[name] = json.loads(capsys.readouterr().out)
     assert (scores["mask"]["width"], scores["mask"]["height"]) == (32, 24)
     assert scores["crop"]["width"] < 32 and scores["crop"]["height"] < 24
     assert abs(scores["mask"]["psnr"] - scores["pinhole"]["psnr"]) < 1.5, scores
     with pytest.raises(SystemExit) as exit_info:
-        main([str(ply), "--colmap", str(lens), "--undistort", "blur"])
+        main([str(ply), "--scene", str(lens), "--undistort", "blur"])
     assert exit_info.value.code == 2
 
 
@@ -142,7 +150,7 @@ def test_undistort_lens_renders_through_the_lens_over_the_whole_frame(scene_and_
     lens = write_lens_demo(tmp_path / "lens", model, params, num_views=4, width=32, height=24, num_points=300)
     scores = {}
     for name, folder, mode in (("pinhole", scene_dir, "crop"), ("lens", lens, "lens")):
-        assert main([str(ply), "--colmap", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
+        assert main([str(ply), "--scene", str(folder), "--all", "--undistort", mode, "--quiet"]) == 0
         scores[name] = json.loads(capsys.readouterr().out)
     assert (scores["lens"]["width"], scores["lens"]["height"]) == (32, 24)
     assert abs(scores["lens"]["psnr"] - scores["pinhole"]["psnr"]) < 1.0, scores

@@ -373,6 +373,21 @@ def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, t
     assert (out / "eval.json").read_text() == before and _latest_checkpoint(out) == 30
 
 
+def test_resuming_on_another_scene_with_as_many_views_is_refused(straight, tiny_scene, tmp_path):
+    """The same demo with another seed (9 views too, other poses and points): refused, naming both scenes,
+    before the checkpoints or logs change; the run's own scene resumes."""
+    other = generate_demo_scene(tmp_path / "other", num_views=9, width=40, height=30, num_points=1500, seed=1)
+    out = tmp_path / "run"
+    shutil.copytree(straight[0], out)
+    before = (out / "metrics.jsonl").read_text()
+    with pytest.raises(ConfigError, match=rf"data\.path='{other}': is not the scene the checkpoint of step 30 in "
+                                          rf".*checkpoints was trained on \({tiny_scene}\): its cameras differ "
+                                          r"\(other camera poses.*resume with the run's own scene"):
+        setup(_cfg(other, "train.resume=true", "train.iterations=40"), out)
+    assert (out / "metrics.jsonl").read_text() == before and _latest_checkpoint(out) == 30
+    assert len(json.loads((out / "eval.json").read_text())["scene_digest"]) == 16
+
+
 def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_logged_step(caplog):
     from types import SimpleNamespace
 

@@ -60,13 +60,13 @@ def test_render_ply_on_a_blender_scene(tmp_path, capsys):
         means=rng.uniform(-1, 1, (g, 3)).astype(np.float32), quats=np.tile(np.float32([1, 0, 0, 0]), (g, 1)),
         log_scales=np.full((g, 3), np.log(0.1), np.float32), opacity_logits=np.zeros(g, np.float32),
         sh=rng.normal(size=(g, 1, 3)).astype(np.float32)))
-    assert main([str(ply), "--colmap", str(truth["root"]), "--quiet"]) == 0
+    assert main([str(ply), "--scene", str(truth["root"]), "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["dataset_format"] == "blender" and result["split"] == "transforms_test"
     assert [r["name"] for r in result["per_view"]] == ["test/r_0.png", "test/r_1.png"]
     assert result["background"] == [1.0, 1.0, 1.0]
     out = tmp_path / "pngs"
-    assert main([str(ply), "--colmap", str(truth["root"]), "--all", "--out-dir", str(out), "--background", "0", "0",
+    assert main([str(ply), "--scene", str(truth["root"]), "--all", "--out-dir", str(out), "--background", "0", "0",
                  "0", "--quiet"]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["background"] == [0.0, 0.0, 0.0] and result["num_views"] == 5

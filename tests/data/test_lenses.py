@@ -15,7 +15,8 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from cusgs_jax.data.colmap import SceneError, load_scene  # noqa: E402
-from cusgs_jax.data.lenses import WIDENINGS, lens_coefficients, lens_of_camera, scene_lens  # noqa: E402
+from cusgs_jax.data.lenses import (WIDENINGS, check_undistortable, lens_coefficients, lens_of_camera,  # noqa: E402
+                                    scene_lens)
 from cusgs_jax.splat.project import project_gaussians  # noqa: E402
 from cusgs_jax.testing.distorted_scenes import (BACKGROUND, CAMERAS, N_VIEWS, POINTS,  # noqa: E402
                                                 distorted_colmap_scene)
@@ -147,3 +148,24 @@ def test_a_fisheye_wider_than_the_cap_is_kept_within_it_with_a_warning(caplog):
         _, box, fisheye = lens_of_camera(camera, "camera 3")
     assert fisheye and np.all(np.abs(box) <= 10.0) and np.max(np.abs(box)) == 10.0
     assert "camera 3" in caplog.text and "within it" in caplog.text and "data.undistort=crop" in caplog.text
+
+
+@pytest.mark.parametrize("mode", ["crop", "mask"])
+def test_undistorting_refuses_a_folding_lens_and_a_fisheye_past_90_degrees(mode):
+    """crop and mask would fill the image with the folded lens's mirrored ring (and mask would score it as
+    valid); a fisheye seeing 90° or more off the axis has no pinhole image. The demo's own lenses pass."""
+    with pytest.raises(SceneError, match=r"camera 7: .*not one-to-one over the image.*data.undistort=crop or mask"):
+        check_undistortable(_camera("SIMPLE_RADIAL", (50.0, 32.0, 24.0, -2.0)), "camera 7", mode)
+    with pytest.raises(SceneError, match=rf"camera 3: its OPENCV_FISHEYE lens .* 90° or more off the axis.*"
+                                         rf"data.undistort={mode} cannot undistort it: use data.undistort=lens"):
+        check_undistortable(_camera("OPENCV_FISHEYE", (20.0, 20.0, 32.0, 24.0, 0.0, 0.0, 0.0, 0.0)), "camera 3", mode)
+    for model, params in CAMERAS.items():  # the test scenes' lenses (strong barrel and fisheye included) pass
+        check_undistortable(_camera(model, params), "camera 1", mode)
+
+
+@pytest.mark.parametrize("mode", ["crop", "mask"])
+def test_a_scene_with_a_folding_lens_is_refused_in_every_mode(tmp_path, mode):
+    distorted_colmap_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, -2.0))])
+    for undistort in (mode, "lens"):
+        with pytest.raises(SceneError, match=r"camera 1 in .*cameras.bin: its SIMPLE_RADIAL lens .*not one-to-one"):
+            load_scene(tmp_path / "s", holdout_every=0, undistort=undistort)

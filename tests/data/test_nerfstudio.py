@@ -78,6 +78,17 @@ def test_ply_without_colours_is_grey(tmp_path):
     assert np.all(scene.point_colors == 128) and len(scene.points) == 50
 
 
+def test_non_finite_ply_points_are_left_out_with_a_warning(tmp_path, caplog):
+    truth = write_nerfstudio_scene(tmp_path / "s", ply=True)
+    points = truth["points"].copy()
+    points[[3, 7], 1] = np.nan
+    write_ply_points(truth["root"] / "sparse_pc.ply", points)
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        scene = load_nerfstudio_scene(truth["root"])
+    assert len(scene.points) == len(points) - 2
+    assert "2 of its 50 points have a non-finite coordinate (NaN or Inf) and were left out" in caplog.text
+
+
 def test_without_ply_random_points(ns):
     """No ply_file_path: data.random_init=auto is cube_and_rays here (a real capture), drawn for the training
     cameras only; cube on request."""

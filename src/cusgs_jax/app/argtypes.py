@@ -37,8 +37,8 @@ def number_in(low: float, high: float, *, include_high: bool = True) -> Callable
 
 def in_cli_terms(message: str, names: dict[str, str]) -> str:
     """``message`` (a :class:`~cusgs_jax.errors.UserError`'s, written in ``cusgs-train``'s option names)
-    with each option of ``names`` replaced by what the tool calls it: ``{"data.path": "--colmap"}`` turns
-    ``data.path=/x`` into ``--colmap /x`` and ``set data.path to`` into ``set --colmap to``."""
+    with each option of ``names`` replaced by what the tool calls it: ``{"data.path": "--scene"}`` turns
+    ``data.path=/x`` into ``--scene /x`` and ``set data.path to`` into ``set --scene to``."""
     for option, flag in names.items():
         message = re.sub(rf"(?<![\w.-]){re.escape(option)}(?![\w])(=?)",
                          lambda m, flag=flag: flag + (" " if m.group(1) else ""), message)

@@ -9,7 +9,7 @@ and one covariance; the sphere when no camera is known or with ``--views
 sphere``), drops the Gaussians that are never visible (:mod:`cusgs_jax.model.bake`,
 whose docstring gives and measures every choice), moves the result to the
 COLMAP frame of the scene (default; the frame a COLMAP-based viewer or
-``cusgs-render-ply --colmap`` expects), then refines it as plain 3DGS against the
+``cusgs-render-ply --scene`` expects), then refines it as plain 3DGS against the
 scene's training views (``--refine K`` steps, by default 30 per training view,
 :func:`cusgs_jax.io.refine_splats`; on by
 default when the run's scene is found: ``--scene``, else the run's ``data.path``, else
@@ -153,6 +153,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     # lazy (these import JAX): keeps cusgs-export --help free of JAX
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.io import write_ply
+    from cusgs_jax.io.atomic import require_writable
     from cusgs_jax.io.spz import require_gsply, write_spz
     from cusgs_jax.model.bake import bake_splats, to_colmap_frame
     from cusgs_jax.splat.sh import num_sh_coeffs
@@ -168,10 +169,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     if fmt == "spz":
         require_gsply(out)  # before the bake and the refinement, not after
     scene_path = _scene_folder(scene) if scene is not None else None
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        raise UserError(f"cannot create the folder of {out} ({e.strerror or e})") from e
+    require_writable(out, "the output")  # before the bake and the refinement, not after
     model = load_trained(run_dir, step=step)
     if views == "cameras" and model.cameras is None:
         raise UserError(f"{model.run_dir}: neither its checkpoint nor its scene ({model.cfg.data.path or 'the demo'}) "
@@ -185,6 +183,9 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
                                       directions=directions, min_opacity=min_opacity, chunk_anchors=chunk_anchors,
                                       cameras=cameras, frustum_margin=model.cfg.model.frustum_margin,
                                       progress=bar.update)
+    if summary.gaussians == 0:
+        raise UserError(f"--min-opacity {min_opacity} removed every one of the {summary.considered} Gaussians (none "
+                        "reaches that opacity from the views baked): lower it (0.005 is the default)")
     if colmap_frame:
         means, log_scales, quats, sh = to_colmap_frame(np.asarray(splats.means), np.asarray(splats.log_scales),
                                                        np.asarray(splats.quats), np.asarray(splats.sh), model.world)
@@ -262,6 +263,7 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     data, splat = model.cfg.data, model.cfg.splat
     scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=splat.background, num_random_points=2, undistort=data.undistort)
+    _require_run_scene(model, scene, scene_path)
     steps = default_refine_steps(len(scene.train_indices)) if refine is None else int(refine)
     if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there
         scene = dataclasses.replace(scene, viewmats=model.world.viewmats(scene.viewmats))
@@ -296,6 +298,24 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
         psnr_run=None if run_psnr is None else round(float(run_psnr), 3), psnr_bake=db(before), psnr_refined=db(after),
         seconds=round(seconds, 3), first_step_seconds=round(ticks[0] - start, 3),
         seconds_per_100_steps=None if steady is None else round(steady, 3))
+
+
+def _require_run_scene(model, scene, scene_path) -> None:
+    """Refine only against the scene the run trained on: its training poses, moved into the run's
+    normalised frame, must be the ones the checkpoint records (:func:`cusgs_jax.data.identity.same_poses`)."""
+    import numpy as np
+
+    from cusgs_jax.data.identity import same_poses
+
+    if model.cameras_from != "checkpoint" or model.world is None:  # an older run: nothing recorded to compare
+        return
+    train = scene.train_indices
+    differs = same_poses(np.asarray(model.cameras.world_to_camera), model.world.viewmats(scene.viewmats[train]))
+    if differs is not None:
+        trained_on = model.cfg.data.path or "the built-in demo scene"
+        raise UserError(f"--scene {scene_path}: not the scene the run {model.run_dir} was trained on ({trained_on}): "
+                        f"its training cameras differ ({differs}); pass the run's own scene, or --refine 0 to write "
+                        "the plain bake")
 
 
 def _run_size(model) -> tuple[int, int]:

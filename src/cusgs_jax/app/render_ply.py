@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import sys
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
@@ -27,7 +28,7 @@ __all__ = ["main", "evaluate_ply"]
 
 PROG = "cusgs-render-ply"
 #: cusgs-train's option names in the loaders' messages → this tool's flags
-FLAGS = {"data.path": "--colmap", "data.format": "--format", "data.downscale": "--downscale",
+FLAGS = {"data.path": "--scene", "data.format": "--format", "data.downscale": "--downscale",
          "data.holdout_every": "--holdout-every", "splat.background": "--background", "data.undistort": "--undistort"}
 
 
@@ -37,9 +38,9 @@ def _parser() -> argparse.ArgumentParser:
         description="Render a standard 3DGS PLY at the held-out cameras of a scene (COLMAP, Blender or nerfstudio; "
                     "in the frame of its poses, not normalised) and print per-view and mean PSNR/SSIM as JSON.")
     ap.add_argument("ply", help="standard 3DGS PLY (x y z f_dc_* f_rest_* opacity scale_* rot_*)")
-    ap.add_argument("--colmap", required=True, metavar="SCENE",
+    ap.add_argument("--scene", "--colmap", dest="scene", required=True, metavar="SCENE",
                     help="scene folder: COLMAP (images/, sparse/0/), Blender (transforms_train.json) or nerfstudio "
-                         "(transforms.json)")
+                         "(transforms.json); --colmap is its old, deprecated name")
     ap.add_argument("--format", default="auto", choices=("auto", "colmap", "blender", "nerfstudio"),
                     help="the scene's layout (default: detected from the files present)")
     ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D",
@@ -145,12 +146,15 @@ def _camera(scene, view: int, shift):
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """CLI: ``cusgs-render-ply PLY --colmap SCENE [--format auto] [--downscale D] [--holdout-every 8 | --all]
+    """CLI: ``cusgs-render-ply PLY --scene SCENE [--format auto] [--downscale D] [--holdout-every 8 | --all]
     [--out-dir DIR] [--background R G B] [--sh-degree D] [--antialiased] [--quiet]``."""
     ap = _parser()
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = ap.parse_args(argv)
+    if any(a == "--colmap" or a.startswith("--colmap=") for a in argv):
+        print(f"{PROG}: warning: --colmap is deprecated (it reads every layout): use --scene", file=sys.stderr)
     try:
-        result = evaluate_ply(args.ply, args.colmap, downscale=args.downscale, holdout_every=args.holdout_every,
+        result = evaluate_ply(args.ply, args.scene, downscale=args.downscale, holdout_every=args.holdout_every,
                               all_views=args.all, out_dir=args.out_dir,
                               background=None if args.background is None else tuple(args.background),
                               sh_degree=args.sh_degree, antialiased=args.antialiased, progress=not args.quiet,

@@ -64,6 +64,7 @@ from cusgs_jax.config import Config, require
 from cusgs_jax.data.colmap import SceneData
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
+from cusgs_jax.data.identity import same_cameras, scene_digest
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.data.run_inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.densify import ops
@@ -257,6 +258,7 @@ def _resume(session: Session) -> None:
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
+    _require_same_scene(session, meta, step)
     _require_not_past(session.cfg, step, session.ckpt.directory)
     session.capacities = session.capacities.restored(meta.get("capacities"))
     session.clock = Clock(float(meta["wall_s"]))
@@ -270,6 +272,23 @@ def _resume(session: Session) -> None:
     _trim_jsonl(session.out / "metrics.jsonl", step)
     _trim_jsonl(session.out / "eval_curve.jsonl", step)
     log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+
+
+def _require_same_scene(session: Session, meta: dict, step: int) -> None:
+    """A resumed run continues on the scene it was trained on: refuse another one (its recorded training
+    cameras, :func:`cusgs_jax.data.identity.same_cameras`), even one with as many views."""
+    recorded = meta.get("train_cameras")
+    if not recorded:  # a checkpoint written before the cameras were recorded: nothing to compare
+        return
+    scene, idx = session.scene, session.train_idx
+    differs = same_cameras(recorded, scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
+    if differs is None:
+        return
+    trained_on = (meta.get("config") or {}).get("data", {}).get("path") or "the built-in demo scene"
+    require(False, "data.path", session.cfg.data.path or "the built-in demo scene",
+            f"is not the scene the checkpoint of step {step} in {session.ckpt.directory} was trained on "
+            f"({trained_on}): its cameras differ ({differs})",
+            "resume with the run's own scene and settings, or train this scene in a new folder (hydra.run.dir=...)")
 
 
 def _require_not_past(cfg: Config, step: int | None, directory) -> None:
@@ -548,11 +567,17 @@ def _save(session: Session, step: int) -> None:
                 capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
                 # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
                 world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
-                train_cameras=_cameras(session, session.train_idx),
+                train_cameras=_cameras(session, session.train_idx), scene_digest=_digest(session),
                 held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list
     session.ckpt.save(step, session.state, meta)
     if session.banks is not None and not (session.out / BANKS_FILE).is_file():  # what cusgs-view renders with
         np.savez(session.out / BANKS_FILE, **{name: np.asarray(b) for name, b in session.banks.items()})
+
+
+def _digest(session: Session) -> str:
+    """The training cameras' digest (:func:`cusgs_jax.data.identity.scene_digest`): checkpoints and eval.json."""
+    scene, idx = session.scene, session.train_idx
+    return scene_digest(scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
 
 
 def _cameras(session: Session, idx) -> dict:
@@ -600,7 +625,7 @@ def finalise(session: Session) -> dict:
         background=list(cfg.splat.background_color), curve=session.curve, curve_clock=CLOCK,
         camera_frame=session.scene.camera_frame,
         # the initial points: the scene's own, or the random rule of a layout without any (data/random_points.py)
-        initial_points=session.scene.random_points or "scene_points",
+        initial_points=session.scene.random_points or "scene_points", scene_digest=_digest(session),
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,

@@ -40,7 +40,7 @@ from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
-from cusgs_jax.data.lenses import SceneLens, scene_lens
+from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -263,6 +263,9 @@ def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
         _check_common_size(entries, cameras, downscale, files)
         return _Model(scene, files, rec, entries, cameras, None, lens)
     if any(needs_undistortion(cam) for cam in used.values()):
+        for cid, cam in used.items():
+            if needs_undistortion(cam):  # a folding lens, or a fisheye past 90°: refused before any work
+                check_undistortable(cam, f"camera {cid} in {files['cameras']}", mode)
         sizes = {cid: dict(width=int(cam.width), height=int(cam.height))
                  for cid, cam in used.items()}
         _check_common_size(entries, sizes, downscale, files)  # of the source images

@@ -27,7 +27,8 @@ from typing import NamedTuple
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.undistort import camera_model_name
 
-__all__ = ["LENS_MODELS", "MAX_TAN", "WIDENINGS", "SceneLens", "lens_coefficients", "lens_of_camera", "scene_lens"]
+__all__ = ["LENS_MODELS", "MAX_TAN", "WIDENINGS", "SceneLens", "check_undistortable", "lens_coefficients",
+           "lens_of_camera", "scene_lens"]
 
 # COLMAP models the lens mode renders through: {model: (fisheye, names of its distortion params)}.
 LENS_MODELS = {
@@ -137,10 +138,45 @@ def lens_of_camera(camera, where: str) -> tuple[np.ndarray, np.ndarray, bool]:
         box = np.clip(image_box + np.array([-1, 1, -1, 1]) * widen * half, -MAX_TAN, MAX_TAN)
         if _one_to_one(camera, box):
             return coeffs, box, fisheye
-    raise SceneError(
-        f"{where}: its {camera_model_name(camera)} lens {np.asarray(camera.params).tolist()} is not one-to-one over "
-        "the image (the distortion folds the frame back on itself), so nothing can be rendered through it — check "
-        "the calibration, or undistort the images instead with data.undistort=crop")
+    raise SceneError(_folds_message(camera, where))
+
+
+def _folds_message(camera, where: str) -> str:
+    return (f"{where}: its {camera_model_name(camera)} lens {np.asarray(camera.params).tolist()} is not one-to-one "
+            "over the image (the distortion folds the frame back on itself), so nothing can be rendered through it, "
+            "and undistorting it (data.undistort=crop or mask) would fill the image with a mirrored copy of its "
+            "ring — check the calibration")
+
+
+def check_undistortable(camera, where: str, mode: str) -> None:
+    """Refuse, for ``data.undistort=crop|mask``, a distorted camera whose images no pinhole image can hold.
+
+    A perspective lens must be one-to-one over the image (COLMAP would otherwise undistort the folded
+    part into a mirrored ring that the crop keeps and the mask scores as valid); a fisheye must see
+    less than 90° off the axis at every border pixel (a pinhole image cannot hold a direction at or
+    beyond 90°; COLMAP's undistorter then produces images of another size than its cameras say).
+
+    Raises:
+      SceneError: naming ``where`` (e.g. "camera 1 in sparse/0/cameras.bin"), the lens and the fix.
+    """
+    fisheye = LENS_MODELS.get(camera_model_name(camera), (False,))[0]
+    width, height = int(camera.width), int(camera.height)
+    border = _border(width, height)
+    with np.errstate(all="ignore"):
+        uv = np.asarray(camera.cam_from_img(border), np.float64)
+        back = camera.img_from_cam(np.concatenate([uv, np.ones((len(uv), 1))], -1))
+    reached = np.all(np.isfinite(uv), -1) & np.all(np.abs(back - border) < 1e-3 * max(width, height), -1)
+    if fisheye:
+        if not np.all(reached):
+            raise SceneError(
+                f"{where}: its OPENCV_FISHEYE lens {np.asarray(camera.params).tolist()} sees 90° or more off the axis, "
+                f"which no pinhole image can hold, so data.undistort={mode} cannot undistort it: use "
+                f"data.undistort=lens (it renders such a lens up to {np.degrees(np.arctan(MAX_TAN)):.0f}° off the "
+                "axis)")
+        return
+    box = np.array([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()]) if np.all(reached) else None
+    if box is None or not _one_to_one(camera, box):
+        raise SceneError(_folds_message(camera, where))
 
 
 def scene_lens(cameras: list, wheres: list[str]) -> SceneLens:

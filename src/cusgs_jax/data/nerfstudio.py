@@ -54,7 +54,7 @@ import numpy as np
 
 from cusgs_jax.data.colmap import SceneData, _check_int_setting, _holdout_split
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.lenses import SceneLens, scene_lens
+from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
@@ -205,6 +205,10 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode:
     if mode == "lens":
         return as_captured, None, scene_lens([cameras[cid] for cid in views],
                                              [f"frame {name!r} of {json_path}" for name, _, _ in frames])
+    first_frame = {cid: name for (name, _, _), cid in zip(reversed(frames), reversed(views))}
+    for cid, camera in cameras.items():
+        if needs_undistortion(camera):  # a folding lens, or a fisheye past 90°: refused before any work
+            check_undistortable(camera, f"frame {first_frame[cid]!r} of {json_path}", mode)
     images_dir = scene / "images"
     names = []
     for name, image, _ in frames:
@@ -258,6 +262,9 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
     keep = np.all(np.isfinite(xyz), axis=-1)
     if not np.any(keep):
         raise SceneError(f"{path} has no finite points; {fix}")
+    if not np.all(keep):
+        log.warning("%s: %d of its %d points have a non-finite coordinate (NaN or Inf) and were left out", path,
+                    int(np.sum(~keep)), len(keep))
     rgb = np.clip(np.nan_to_num(rgb[keep]), 0, 255).round().astype(np.uint8)
     return xyz[keep], rgb.reshape(-1, 3)
 

@@ -393,9 +393,10 @@ def _check_and_crop(path: pathlib.Path, source: pathlib.Path, plan: _Plan) -> No
     with Image.open(path) as im:
         size = im.size
     expected = (int(plan.full.width), int(plan.full.height))
-    if size != expected:  # the undistorter and undistort_camera disagree: a bug, not the user's
-        raise RuntimeError(f"COLMAP undistorted {source} to {size[0]}x{size[1]}, expected "
-                           f"{expected[0]}x{expected[1]}")
+    if size != expected:  # the undistorter and undistort_camera disagree (lenses.check_undistortable refuses the known cause)
+        raise SceneError(f"COLMAP's undistorter made {source} {size[0]}x{size[1]} but its undistorted camera is "
+                         f"{expected[0]}x{expected[1]}: its {plan.source_model} lens cannot be undistorted to one "
+                         "pinhole image reliably; use data.undistort=lens")
     if (plan.full.width, plan.full.height) == (plan.camera.width, plan.camera.height):
         return
     import imageio.v3 as iio

@@ -29,6 +29,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
 from cusgs_jax.errors import UserError
+from cusgs_jax.io.atomic import atomic_path
 
 __all__ = ["PlyError", "SplatModel", "read_ply", "write_ply", "ply_property_names"]
 
@@ -127,7 +128,8 @@ def write_ply(path: str | os.PathLike, gaussians: SplatModel) -> pathlib.Path:
     for i, n in enumerate(names):
         vertex[n] = columns[:, i]
     try:
-        PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(path))
+        with atomic_path(path) as tmp:  # whole or absent, even if the process is killed mid-write
+            PlyData([PlyElement.describe(vertex, "vertex")], byte_order="<").write(str(tmp))
     except OSError as e:
         raise PlyError(f"cannot write {path}: {e.strerror or e}") from e
     return path

@@ -23,6 +23,7 @@ import pathlib
 import numpy as np
 
 from cusgs_jax.errors import UserError
+from cusgs_jax.io.atomic import atomic_path
 from cusgs_jax.io.ply import SplatModel
 
 __all__ = ["write_spz", "read_spz", "spz_fractional_bits", "require_gsply", "SPZ_INSTALL_HINT"]
@@ -86,7 +87,8 @@ def write_spz(path, model: SplatModel) -> pathlib.Path:
                         quats=quats.astype(np.float32), opacities=np.asarray(model.opacity_logits, np.float32),
                         sh0=np.ascontiguousarray(sh[:, 0, :]), shN=np.ascontiguousarray(sh[:, 1:, :]))
     try:
-        gsply.write_spz(path, data, version=3, fractional_bits=bits)
+        with atomic_path(path) as tmp:  # whole or absent, even if the process is killed mid-write
+            gsply.write_spz(tmp, data, version=3, fractional_bits=bits)
     except OSError as e:
         raise UserError(f"cannot write {path} ({e.strerror or e}); pass a writable path") from e
     return path
