@@ -72,3 +72,14 @@ def test_saved_capacities_are_restored_but_never_shrink_the_first_ones():
     assert old == capacity.Capacities(0.875, first.active_fraction, first.pairs_per_active)
     with pytest.raises(KeyError):
         first.restored({"max_pairs_per_gaussian": 1.0})
+
+
+def test_evaluation_capacities_give_the_visible_slots_headroom_in_buckets():
+    Capacities = capacity.Capacities
+    caps = Capacities(visible_fraction=0.375, active_fraction=0.4375, pairs_per_active=2.5)
+    evaluation = caps.for_evaluation()
+    assert evaluation.visible_fraction == 0.625  # 1.5 × 0.375 = 0.5625, rounded up to eighths
+    assert (evaluation.active_fraction, evaluation.pairs_per_active) == (0.4375, 2.5)
+    assert evaluation.visible_slots(10_000) >= 1.5 * caps.visible_slots(10_000)
+    assert evaluation.active_gaussians(10_000, 10) >= 1.5 * caps.active_gaussians(10_000, 10)
+    assert Capacities(0.875, 0.5, 2.0).for_evaluation().visible_fraction == 1.0  # never beyond every slot

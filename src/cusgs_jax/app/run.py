@@ -196,13 +196,13 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
-    # The evaluation renders the padded model at the step's capacities (its own grow, should a held-out
-    # view need more): one program per anchor capacity; with feature models one program for RGB and features.
+    # The evaluation renders the padded model at the step's capacities with headroom (its own grow, should a
+    # held-out view need more): one program per anchor capacity; with features one program for RGB and features.
     if cfg.features.enabled:
-        session.feature_render = make_feature_render_fn(session.cfg, session.capacities)
+        session.feature_render = make_feature_render_fn(session.cfg, session.capacities.for_evaluation())
         session.render = RgbOfFeatureRender(session.feature_render, session.banks)
     else:
-        session.render = make_render_fn(session.cfg, session.capacities)
+        session.render = make_render_fn(session.cfg, session.capacities.for_evaluation())
     return session
 
 

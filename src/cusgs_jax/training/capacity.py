@@ -41,6 +41,7 @@ ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 # recompiles the whole step (~30 s for the demo's feature step on 2 CPU cores) while 25 % more slots
 # cost a few per cent of a step; the first fit (Capacities.fitted) uses the tighter 1.1 / 1.15.
 GROWTH_HEADROOM = 1.25
+EVAL_HEADROOM = 1.5  # visible slots of an evaluation render over the step's (Capacities.for_evaluation)
 
 
 def max_pairs(pairs_per_gaussian: float, num_gaussians: int) -> int:
@@ -161,6 +162,18 @@ class Capacities:
         num_active = cls(visible, active, 1.0).active_gaussians(anchor_capacity, n_offsets)
         per = max(1.25 * (int(needs["pairs"]) - PAIR_SLACK) / max(num_active, 1), 0.5)
         return cls(visible, active, math.ceil(per * 2.0) / 2.0)
+
+    def for_evaluation(self) -> Capacities:
+        """The capacities an evaluation render starts from: these with :data:`EVAL_HEADROOM` × the visible
+        slots (in buckets of 1/8 of A; the active Gaussians and tile pairs scale with them).
+
+        Held-out views may see more than the training views the step was fitted to, and the model grows
+        between evaluations; each overflow would cost the render a recompilation (a replayed step grows
+        the step's own capacities, not the evaluation's), while the extra slots cost a few held-out
+        renders next to thousands of steps.
+        """
+        visible = min(1.0, math.ceil(EVAL_HEADROOM * self.visible_fraction * FRACTION_BUCKET) / FRACTION_BUCKET)
+        return dataclasses.replace(self, visible_fraction=max(visible, self.visible_fraction))
 
     def as_dict(self) -> dict:
         """Checkpoint metadata and ``eval.json``'s ``capacities``."""
