@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.data.run_inputs import view_order
+from cusgs_jax.training.inputs import view_order
 from cusgs_jax.app.run import setup
 from cusgs_jax.config import compose_config
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, prune_pass

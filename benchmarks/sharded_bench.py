@@ -38,7 +38,7 @@ def main() -> None:
     import jax
     import numpy as np
 
-    from cusgs_jax.data.run_inputs import view_order
+    from cusgs_jax.training.inputs import view_order
     from cusgs_jax.config import Config
     from cusgs_jax.data.colmap import load_scene
     from cusgs_jax.data.demo import generate_demo_scene

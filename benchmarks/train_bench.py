@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
-from cusgs_jax.data.run_inputs import load_feature_targets
+from cusgs_jax.training.inputs import load_feature_targets
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.normalize import normalize_scene

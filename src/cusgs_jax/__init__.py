@@ -23,7 +23,7 @@ _EXPORTS = {
     "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "config",
     "Camera": "types",
     # data
-    "SceneData": "data.colmap", "SceneError": "data.colmap", "load_scene": "data.colmap",
+    "SceneData": "data.scene_data", "SceneError": "data.colmap", "load_scene": "data.loader",
     "load_any_scene": "data.layouts", "detect_format": "data.layouts",
     "load_blender_scene": "data.blender", "load_nerfstudio_scene": "data.nerfstudio",
     "normalize_scene": "data.normalize", "WorldTransform": "data.normalize",

@@ -35,6 +35,10 @@ from cusgs_jax.errors import ConfigError
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
+# data.undistort, and the frame a scene's images are in wherever it is recorded (SceneData.camera_frame, eval.json's
+# camera_frame, a feature set's meta): "crop" (pinhole images: as captured, or undistorted and cropped), "mask"
+# (undistorted in the source frame, invalid pixels masked), "lens" (as captured, rendered through the lens).
+CAMERA_FRAMES = ("crop", "mask", "lens")
 MATMUL_PRECISIONS = ("highest", "default")  # model.matmul_precision (cusgs_jax/precision.py)
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
@@ -101,7 +105,7 @@ class DataConfig:
         require(self.random_init in RANDOM_INITS, "data.random_init", self.random_init,
                 "must be auto (by the scene layout), cube (uniform in the cube the cameras look at) or cube_and_rays "
                 "(half of the points along the training rays)", "e.g. data.random_init=cube_and_rays")
-        require(self.undistort in ("crop", "mask", "lens"), "data.undistort", self.undistort,
+        require(self.undistort in CAMERA_FRAMES, "data.undistort", self.undistort,
                 "must be crop (keep the largest valid rectangle), mask (keep the frame, mask its invalid pixels) "
                 "or lens (keep the images, render through the lens)", "e.g. data.undistort=lens")
 
@@ -239,7 +243,7 @@ class SplatConfig:
     antialiased: bool = False
     # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
     # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the
-    # colour it used (data/run_inputs.py::resolve_background). Renderers read ``background_color``.
+    # colour it used (training/inputs.py::resolve_background). Renderers read ``background_color``.
     background: Optional[tuple[float, float, float]] = None
 
     def __post_init__(self):

@@ -66,6 +66,6 @@ class Camera:
 
     @staticmethod
     def of_scene(scene, view: int) -> Camera:
-        """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.colmap.SceneData`)."""
+        """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.scene_data.SceneData`)."""
         lens = None if getattr(scene, "lens", None) is None else Lens.of_views(scene.lens, view)
         return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height, lens)

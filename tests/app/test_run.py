@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.data.run_inputs import load_data
+from cusgs_jax.training.inputs import load_data
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
 from cusgs_jax.data.demo import generate_demo_scene

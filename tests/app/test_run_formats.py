@@ -127,7 +127,7 @@ def test_a_lens_demo_trains_through_its_lens_on_the_whole_frame(tmp_path, monkey
     trained = load_trained(tmp_path / "lens")  # the recorded training cameras keep their lens
     assert trained.cameras.lens is not None and trained.cameras.lens.coeffs.shape == (len(trained.cameras.K), 6)
     cropped = run(compose_config([*overrides, "data.undistort=crop"]), tmp_path / "crop")
-    assert cropped["camera_frame"] == "pinhole" and cropped["width"] < 48
+    assert cropped["camera_frame"] == "crop" and cropped["width"] < 48
 
 
 @pytest.mark.parametrize("ply", [pytest.param(False, id="random_points"),
@@ -144,5 +144,5 @@ def test_nerfstudio_scene_trains_and_evaluates(tmp_path, ply):
     assert saved["dataset_format"] == "nerfstudio" and saved["split"] == "every_8th"
     assert saved["evaluated_on"] == "held_out" and saved["held_out_views"] == 2  # frames 0 and 8 of 9
     assert saved["initial_points"] == ("scene_points" if ply else "cube_and_rays")
-    assert saved["background"] == [0.0, 0.0, 0.0] and saved["camera_frame"] == "pinhole"
+    assert saved["background"] == [0.0, 0.0, 0.0] and saved["camera_frame"] == "crop"
     assert result["psnr"] == saved["psnr"] and saved["psnr"] > 0 and saved["alive_anchors"] > 0

@@ -14,7 +14,7 @@ import pytest
 pytest.importorskip("pycolmap")
 
 from cusgs_jax.data.colmap import SceneError, load_scene  # noqa: E402
-from cusgs_jax.data.images import _to_rgb_uint8, check_background  # noqa: E402
+from cusgs_jax.data.images import to_rgb_uint8, check_background  # noqa: E402
 
 BACKGROUND = (0.2, 0.6, 1.0)
 
@@ -124,13 +124,13 @@ def test_16bit_alpha_scaled_consistently():
     alpha16 = rng.integers(0, 65536, (5, 6), dtype=np.uint16)
     alpha16[0] = 65535
     alpha16[1] = 0
-    out, alpha = _to_rgb_uint8(np.concatenate([rgb16, alpha16[..., None]], -1), pathlib.Path("x"),
+    out, alpha = to_rgb_uint8(np.concatenate([rgb16, alpha16[..., None]], -1), pathlib.Path("x"),
                                BACKGROUND)
     a = alpha16.astype(np.float64)[..., None] / 65535.0
     expect = rgb16 / 257.0 * a + 255.0 * np.asarray(BACKGROUND) * (1.0 - a)
     np.testing.assert_array_equal(out, np.round(expect).astype(np.uint8))
     np.testing.assert_allclose(alpha, a[..., 0])
-    opaque_rgb, no_alpha = _to_rgb_uint8(rgb16, pathlib.Path("x"))
+    opaque_rgb, no_alpha = to_rgb_uint8(rgb16, pathlib.Path("x"))
     assert no_alpha is None
     np.testing.assert_array_equal(out[0], opaque_rgb[0])  # opaque row = the plain 16-bit RGB
     np.testing.assert_array_equal(out[1], np.broadcast_to([51, 153, 255], (6, 3)))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.nerfstudio import load_nerfstudio_scene, split_name
+from cusgs_jax.data.nerfstudio import load_nerfstudio_scene
 from cusgs_jax.testing.distorted_scenes import CAMERAS, H, N_VIEWS, W, distorted_colmap_scene, marker_errors, nerfstudio_copy
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, write_nerfstudio_scene, write_ply_points
 
@@ -49,11 +49,6 @@ def test_holdout_every_nth_sorted_by_file_path(ns):
     assert load_nerfstudio_scene(ns["root"]).split == "every_8th"
     with pytest.raises(SceneError, match="holds out all"):
         load_nerfstudio_scene(ns["root"], holdout_every=1)
-
-
-def test_split_names():
-    assert [split_name(n) for n in (0, 2, 3, 8, 11, 12, 21)] == [
-        "none", "every_2nd", "every_3rd", "every_8th", "every_11th", "every_12th", "every_21st"]
 
 
 def test_per_frame_intrinsics(tmp_path):

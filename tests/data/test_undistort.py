@@ -20,7 +20,7 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from cusgs_jax.data import undistort  # noqa: E402
 from cusgs_jax.data.colmap import SceneError, load_cameras, load_scene  # noqa: E402
-from cusgs_jax.data.images import _downscale, scaled_size  # noqa: E402
+from cusgs_jax.data.images import downscale_image, scaled_size  # noqa: E402
 from cusgs_jax.testing.distorted_scenes import (BACKGROUND, CAMERAS, H, N_VIEWS, W,  # noqa: E402
                                                 distorted_colmap_scene, marker_errors)
 
@@ -189,7 +189,7 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
     out_hw = (scaled_size(full.height, 2), scaled_size(full.width, 2))
     assert (half.height, half.width) == out_hw
     for a, b in zip(full.images, half.images):
-        np.testing.assert_array_equal(_downscale(a, 2, out_hw), b)
+        np.testing.assert_array_equal(downscale_image(a, 2, out_hw), b)
     np.testing.assert_allclose(half.Ks[:, :2], full.Ks[:, :2] / 2, rtol=1e-6)
 
 

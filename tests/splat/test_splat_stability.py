@@ -118,7 +118,7 @@ def _with_special(rng, special: dict, viewmat=EYE) -> Scene:
     return _make_scene(**merged, viewmat=viewmat)
 
 
-def _look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
+def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> np.ndarray:
     """World→camera matrix (OpenCV axes) of a camera at ``eye`` looking at ``target``."""
     eye = np.asarray(eye, float)
     fwd = np.asarray(target, float) - eye
@@ -236,7 +236,7 @@ def scene_offset(offset: float = OFFSET) -> Scene:
     rng = np.random.default_rng(8)
     sp = _base(rng, G)
     sp["means"][:, 2] -= 5.5  # centre the scene on the origin
-    viewmat = _look_at([3.0, -2.0, -5.0], [0.2, 0.1, 0.3])
+    viewmat = look_at([3.0, -2.0, -5.0], [0.2, 0.1, 0.3])
     shift = np.full(3, offset)
     sp["means"] = sp["means"] + shift
     viewmat[:3, 3] -= viewmat[:3, :3] @ shift  # same camera pose relative to the scene

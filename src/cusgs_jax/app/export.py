@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least, number_in
 from cusgs_jax.data.demo_lens import configured_demo
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "export_run", "output_format", "default_refine_steps", "DEFAULT_REFINE_EPOCHS", "FORMATS"]
@@ -261,8 +261,9 @@ def _refine(splats, model, refine, scene_path, *, colmap_frame: bool, seed: int,
     else:
         found = "--scene"
     data, splat = model.cfg.data, model.cfg.splat
-    scene = load_any_scene(scene_path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=splat.background, num_random_points=2, undistort=data.undistort)
+    # the scene as the run loaded it: its own data settings, at the folder found
+    scene = load_scene(scene_path, dataclasses.replace(data, path=str(scene_path)), background=splat.background,
+                       seed=model.cfg.train.seed)
     _require_run_scene(model, scene, scene_path)
     steps = default_refine_steps(len(scene.train_indices)) if refine is None else int(refine)
     if not colmap_frame:  # the PLY is in the normalised training frame: move the cameras there

@@ -10,7 +10,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least
-from cusgs_jax.config import DataConfig
+from cusgs_jax.config import CAMERA_FRAMES, DataConfig
 from cusgs_jax.errors import UserError
 from cusgs_jax.extract import MODELS, extract
 
@@ -40,7 +40,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--overwrite", action="store_true", help="replace existing features")
     ap.add_argument("--dtype", choices=("float16", "float32"), default="float16")
     ap.add_argument("--downscale", type=int_at_least(1), default=1, metavar="D", help="load images at 1/D resolution")
-    ap.add_argument("--undistort", default=DataConfig.undistort, choices=("crop", "mask", "lens"),
+    ap.add_argument("--undistort", default=DataConfig.undistort, choices=CAMERA_FRAMES,
                     help="distorted cameras: crop to the valid rectangle, keep the frame and mask it, or keep the "
                          "images as captured (lens), as the training run's data.undistort (default %(default)s)")
     ap.add_argument("--dim", type=int, default=None, help="semantic: vector dimension (32)")

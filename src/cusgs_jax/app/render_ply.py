@@ -20,8 +20,7 @@ import sys
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least, number_in
-from cusgs_jax.data.layouts import load_any_scene
-from cusgs_jax.config import DataConfig
+from cusgs_jax.config import CAMERA_FRAMES, DataConfig
 from cusgs_jax.errors import UserError
 
 __all__ = ["main", "evaluate_ply"]
@@ -48,7 +47,7 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--holdout-every", type=int_at_least(0), default=8, metavar="N",
                     help="score every N-th image (index %% N == 0), as cusgs-train holds out; 0: all (default 8)")
     ap.add_argument("--all", action="store_true", help="score every image")
-    ap.add_argument("--undistort", default=DataConfig.undistort, choices=("crop", "mask", "lens"),
+    ap.add_argument("--undistort", default=DataConfig.undistort, choices=CAMERA_FRAMES,
                     help="distorted cameras: crop to the valid rectangle, keep the frame and score only its "
                          "valid pixels, or keep the images and render through the lens (data.undistort; "
                          "default %(default)s)")
@@ -87,16 +86,16 @@ def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8,
     from tqdm import tqdm
 
     # lazy: these import JAX; keeps cusgs-render-ply --help free of it
-    from cusgs_jax.data.run_inputs import require_ssim_size
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.eval import metrics
     from cusgs_jax.io import read_ply, render_splats_exact
 
     start = time.perf_counter()
     model = read_ply(ply)  # before the scene: a bad PLY fails fast
     every = 0 if all_views or holdout_every <= 1 else holdout_every
-    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=every,
-                           background=None if background is None else tuple(background), undistort=undistort)
-    require_ssim_size(scene, downscale, "--downscale")  # before any render: SSIM needs 11x11 pixels
+    # the scene as cusgs-train loads it with these settings (SSIM's 11x11 pixels checked before any render)
+    data = DataConfig(path=str(scene_path), format=format, downscale=downscale, holdout_every=every, undistort=undistort)
+    scene = load_scene(scene_path, data, background=None if background is None else tuple(background))
     background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
     degree = model.sh_degree if sh_degree is None else sh_degree

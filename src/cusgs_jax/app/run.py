@@ -61,12 +61,12 @@ from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.compiles import CompileLog
 from cusgs_jax.app.xla_cache import use_compilation_cache
 from cusgs_jax.config import Config, require
-from cusgs_jax.data.colmap import SceneData
+from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.data.identity import same_cameras, scene_digest
 from cusgs_jax.data.normalize import WorldTransform
-from cusgs_jax.data.run_inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
+from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
 from cusgs_jax.densify.factory import make_strategies

@@ -1,4 +1,4 @@
-"""Load a NeRF-synthetic (Blender) scene into a :class:`~cusgs_jax.data.colmap.SceneData`.
+"""Load a NeRF-synthetic (Blender) scene into a :class:`~cusgs_jax.data.scene_data.SceneData`.
 
 Layout (``data.path``)::
 
@@ -41,12 +41,11 @@ import pathlib
 
 import numpy as np
 
-from cusgs_jax.data.colmap import SceneData, _check_int_setting
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, fov_focal, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background
-from cusgs_jax.data.normalize import camera_centers, camera_extent
+from cusgs_jax.data.scene_data import SceneData, check_int_setting, make_scene
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
 
 __all__ = ["load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
@@ -115,8 +114,8 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
     Raises:
       SceneError: a missing/malformed JSON, key, image or matrix — naming the file and the fix.
     """
-    downscale = _check_int_setting("data.downscale", downscale, minimum=1)
-    num_random_points = _check_int_setting("data.random_points", num_random_points, minimum=2)
+    downscale = check_int_setting("data.downscale", downscale, minimum=1)
+    num_random_points = check_int_setting("data.random_points", num_random_points, minimum=2)
     background = WHITE if background is None else check_background(background)
     scene = pathlib.Path(path).expanduser()
     if not scene.is_dir():
@@ -145,13 +144,10 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
                                    seed=seed, init=rule)
     log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points; "
              "data.random_init=%s)", scene, num_train, len(test_indices), out_w, out_h, len(points), rule)
-    extent, _ = camera_extent(camera_centers(viewmats), points)
-    return SceneData(
-        path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
-        Ks=Ks.astype(np.float32), width=int(out_w), height=int(out_h), points=points, point_colors=colors,
-        train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="blender",
-        split="transforms_test" if len(test_indices) else "none", background=tuple(background),
-        random_points=rule)
+    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
+                      point_colors=colors, train_indices=train_indices, test_indices=test_indices,
+                      dataset_format="blender", split="transforms_test" if len(test_indices) else "none",
+                      background=background, random_points=rule)
 
 
 def _K(width: int, height: int, angle_x: float, downscale: float) -> np.ndarray:

@@ -38,9 +38,9 @@ import numpy as np
 
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
 from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
+from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
@@ -60,83 +60,6 @@ _UNDISTORT_HINT = (
     "--input_path <scene>/sparse/0 --output_path <undistorted scene> --output_type COLMAP`, "
     "and point data.path at the undistorted scene"
 )
-
-
-@dataclasses.dataclass(frozen=True, eq=False)  # arrays: compare/hash by identity
-class SceneData:
-    """A COLMAP scene loaded into host memory.
-
-    Attributes:
-      path: the scene folder (``data.path``).
-      names: image names as stored in the model, sorted.
-      images: [V, H, W, 3] uint8 RGB images at the loaded resolution (any alpha channel
-        composited onto ``load_scene``'s ``background``).
-      viewmats: [V, 4, 4] float64 world→camera matrices (OpenCV axes, COLMAP cam_from_world; double precision
-        as COLMAP stores them, since a far-off origin loses float32 precision; float32 after
-        :func:`cusgs_jax.data.normalize.normalize_scene`).
-      Ks: [N, 3, 3] float32 intrinsics scaled to the loaded resolution.
-      width, height: the loaded resolution, shared by all images.
-      points: [P, 3] float64 SfM points (sorted by COLMAP point id; float32 once normalised).
-      point_colors: [P, 3] uint8 colours of those points.
-      train_indices, test_indices: int32 indices into ``names``; test views are every
-        ``holdout_every``-th image (``i % holdout_every == 0``), none when it is 0.
-      extent: 1.1 × the largest distance of a camera centre from the mean camera centre
-        (:func:`cusgs_jax.data.normalize.camera_extent`; from the points when the cameras coincide).
-      dataset_format: the layout it was read from: "colmap", "blender" or "nerfstudio"
-        (:mod:`cusgs_jax.data.layouts`).
-      split: how the held-out views were chosen, e.g. "every_8th", "none" or
-        "transforms_test" (Blender's test frames).
-      background: RGB in [0, 1] that images with alpha were composited onto.
-      random_points: None for SfM points (or a PLY's); for a layout without points, the rule
-        (``"cube"`` or ``"cube_and_rays"``) :func:`cusgs_jax.data.random_points.random_points` drew them
-        by (``eval.json``'s ``initial_points``); ``model.voxel_size=auto`` then uses
-        :func:`cusgs_jax.data.random_points.random_voxel_size` instead of their spacing.
-      valid: [V, H, W] bool, True where a pixel holds image content — the valid-pixel masks of
-        distorted cameras undistorted with ``data.undistort=mask`` (:mod:`.undistort`); None when
-        every pixel is valid. The loss, the held-out metrics and the feature targets ignore the
-        others.
-      lens: the per-view lens distortion the images were captured through
-        (:class:`cusgs_jax.data.lenses.SceneLens`: coeffs [V, 6], bounds [V, 4], fisheye), kept with
-        ``data.undistort=lens`` (:mod:`.lenses`; ``Lens.of_views`` gives one camera's); None when the
-        images are pinhole images.
-    """
-
-    path: pathlib.Path
-    names: tuple[str, ...]
-    images: np.ndarray
-    viewmats: np.ndarray
-    Ks: np.ndarray
-    width: int
-    height: int
-    points: np.ndarray
-    point_colors: np.ndarray
-    train_indices: np.ndarray
-    test_indices: np.ndarray
-    extent: float
-    dataset_format: str = "colmap"
-    split: str = "every_8th"
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    random_points: str | None = None
-    valid: np.ndarray | None = None
-    lens: SceneLens | None = None
-
-    @property
-    def camera_centers(self) -> np.ndarray:
-        """[V, 3] camera centres in world coordinates (float64): -Rᵀt."""
-        return camera_centers(self.viewmats)
-
-    @property
-    def num_images(self) -> int:
-        return len(self.names)
-
-    @property
-    def camera_frame(self) -> str:
-        """The frame the images are scored in (``eval.json``'s ``camera_frame``): "lens" (as captured, rendered
-        through the lens: ``data.undistort=lens``), "mask" (undistorted to the source frame, valid pixels only)
-        or "pinhole" (pinhole images: as loaded, or undistorted and cropped)."""
-        if self.lens is not None:
-            return "lens"
-        return "mask" if self.valid is not None else "pinhole"
 
 
 # --------------------------------------------------------------------------------------------
@@ -180,26 +103,12 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
     valid = None if undistorted is None else undistorted_masks(image_root, [image.camera_id for _, _, image in entries],
                                                              downscale)
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
-    train_indices, test_indices = _holdout_split(len(entries), holdout_every, scene)
+    train_indices, test_indices = holdout_split(len(entries), holdout_every, scene)
 
-    extent, _ = camera_extent(camera_centers(viewmats), points)  # points when the cameras coincide
-
-    return SceneData(
-        path=scene,
-        names=tuple(names),
-        images=images,
-        viewmats=viewmats.astype(np.float64),
-        Ks=Ks.astype(np.float32),
-        width=int(width),
-        height=int(height),
-        points=points,
-        point_colors=point_colors,
-        train_indices=train_indices,
-        test_indices=test_indices,
-        extent=extent,
-        valid=valid,
-        lens=lens,
-    )
+    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
+                      point_colors=point_colors, train_indices=train_indices, test_indices=test_indices,
+                      dataset_format="colmap", split=split_name(holdout_every), background=background, valid=valid,
+                      lens=lens)
 
 
 def load_cameras(path: str | os.PathLike, *, downscale: int = 1, undistort: str = "crop",
@@ -222,7 +131,7 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = 1, undistort: str 
     _, viewmats = _poses(entries, files)
     first = cameras[entries[0][2].camera_id]
     Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
-    train_indices, _ = _holdout_split(len(entries), holdout_every, scene)
+    train_indices, _ = holdout_split(len(entries), holdout_every, scene)
     return (viewmats.astype(np.float64), Ks, scaled_size(first["width"], downscale),
             scaled_size(first["height"], downscale), train_indices)
 
@@ -282,8 +191,8 @@ def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
 
 
 def _check_settings(downscale, holdout_every) -> tuple[int, int]:
-    return (_check_int_setting("data.downscale", downscale, minimum=1),
-            _check_int_setting("data.holdout_every", holdout_every, minimum=0))
+    return (check_int_setting("data.downscale", downscale, minimum=1),
+            check_int_setting("data.holdout_every", holdout_every, minimum=0))
 
 
 # --------------------------------------------------------------------------------------------
@@ -382,37 +291,6 @@ def _check_common_size(entries, cameras: dict[int, dict], downscale: int,
                 f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
                 "have one resolution — undistort/crop them to a common size (e.g. "
                 "`colmap image_undistorter`) and rerun")
-
-
-def _holdout_split(num: int, holdout_every: int,
-                   scene: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:
-    """(train, test) int32 indices into the N = ``num`` views: test = every
-    ``holdout_every``-th (``i % holdout_every == 0``), none when 0; SceneError when no training
-    view is left."""
-    idx = np.arange(num, dtype=np.int32)
-    if holdout_every > 0:
-        test_mask = idx % holdout_every == 0
-    else:
-        test_mask = np.zeros(num, bool)
-    train_indices, test_indices = idx[~test_mask], idx[test_mask]
-    if train_indices.size == 0:
-        raise SceneError(
-            f"data.holdout_every={holdout_every} holds out all {num} image(s) of {scene}, "
-            "leaving nothing to train on: set data.holdout_every=0 (no test views) or a larger "
-            "value")
-    return train_indices, test_indices
-
-
-def _check_int_setting(name: str, value: Any, *, minimum: int) -> int:
-    """``value`` as an int >= ``minimum`` (integral floats accepted); SceneError otherwise."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        if isinstance(value, float) and value.is_integer():
-            value = int(value)
-        else:
-            raise SceneError(f"{name}={value!r} must be an integer >= {minimum}")
-    if value < minimum:
-        raise SceneError(f"{name}={value} must be an integer >= {minimum}")
-    return int(value)
 
 
 # --------------------------------------------------------------------------------------------

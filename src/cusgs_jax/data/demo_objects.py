@@ -42,7 +42,7 @@ import warnings
 import numpy as np
 
 from cusgs_jax.data.demo_colmap import write_sfm_model
-from cusgs_jax.data.demo_render import _camera_rays, _look_at, build_scene, cast_rays, surface_colour
+from cusgs_jax.data.demo_render import camera_rays, look_at, build_scene, cast_rays, surface_colour
 
 __all__ = ["OBJECTS", "ANGLE_X", "build_objects_scene", "object_cameras", "render_rgba",
            "generate_object_scenes"]
@@ -80,7 +80,7 @@ def object_cameras(scene, num_views: int, seed: int, radius: float):
     poses = []
     for az, el in zip(azimuth, elevation):
         eye = centre + radius * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        R = _look_at(eye, centre, 0.0)
+        R = look_at(eye, centre, 0.0)
         poses.append((R, -R @ eye))
     return poses, centre
 
@@ -93,12 +93,12 @@ def render_rgba(scene, R, t, width, height, K):
       of the pixel-centre ray, 0 = none) and face ids int64 [H, W] (-1 = none).
     """
     centre = -R.T @ t
-    (d_c,) = _camera_rays(R, width, height, K, [(0.5, 0.5)])
+    (d_c,) = camera_rays(R, width, height, K, [(0.5, 0.5)])
     tc, fc = cast_rays(scene, centre, d_c)
     depth = np.where(fc >= 0, tc, 0.0).astype(np.float32).reshape(height, width)
     colour = np.zeros((width * height, 3))
     hits = np.zeros(width * height)
-    for d in _camera_rays(R, width, height, K, _SUBSAMPLES):
+    for d in camera_rays(R, width, height, K, _SUBSAMPLES):
         ts, fs = cast_rays(scene, centre, d)
         ok = fs >= 0
         colour[ok] += surface_colour(scene, centre + ts[ok, None] * d[ok], fs[ok])
@@ -112,7 +112,7 @@ def render_rgba(scene, R, t, width, height, K):
 
 def composite_white(rgba: np.ndarray) -> np.ndarray:
     """uint8 [H, W, 4] → uint8 [H, W, 3] on white, the Blender loader's formula
-    (:func:`cusgs_jax.data.images._to_rgb_uint8`): ``round(rgb·a + 255·(1 − a))``, ``a = alpha/255``."""
+    (:func:`cusgs_jax.data.images.to_rgb_uint8`): ``round(rgb·a + 255·(1 − a))``, ``a = alpha/255``."""
     a = rgba[..., 3:].astype(np.float64) / 255.0
     out = rgba[..., :3].astype(np.float64) * a + 255.0 * (1.0 - a)
     return np.clip(np.round(out), 0, 255).astype(np.uint8)

@@ -298,7 +298,7 @@ def surface_colour(scene, points, face):
     return c * scene.face_shade[face][:, None]
 
 
-def _camera_rays(R, width, height, K, offsets):
+def camera_rays(R, width, height, K, offsets):
     """World-space ray directions with camera-space z = 1 (so the ray parameter t is the depth).
 
     Returns [len(offsets), H*W, 3] for sub-pixel offsets (dx, dy) within each pixel.
@@ -331,13 +331,13 @@ def render_view(scene, R, t, width, height, K, supersample=True):
       object ids uint8 [H, W] (0 = none), face ids int64 [H, W] (-1 = none).
     """
     centre = -R.T @ t
-    (d_c,) = _camera_rays(R, width, height, K, [(0.5, 0.5)])
+    (d_c,) = camera_rays(R, width, height, K, [(0.5, 0.5)])
     tc, fc = cast_rays(scene, centre, d_c)
     hit = fc >= 0
     depth = np.where(hit, tc, 0.0).astype(np.float32).reshape(height, width)
     obj = np.where(hit, scene.face_obj[np.maximum(fc, 0)], 0).astype(np.uint8)
     if supersample:  # 2x2 supersampling of the colour only
-        dirs = _camera_rays(R, width, height, K,
+        dirs = camera_rays(R, width, height, K,
                             [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)])
     else:
         dirs = d_c[None]
@@ -350,7 +350,7 @@ def render_view(scene, R, t, width, height, K, supersample=True):
 # Cameras
 # ---------------------------------------------------------------------------------------------
 
-def _look_at(centre, target, roll):
+def look_at(centre, target, roll):
     """World->camera rotation (OpenCV: x right, y down, z forward) looking from centre at target."""
     f = target - centre
     f /= np.linalg.norm(f)
@@ -381,6 +381,6 @@ def make_cameras(scene, num_views, seed):
         if inside.any():  # cannot happen with the fixed layout; keep generation honest anyway
             raise RuntimeError(f"camera {k} at {centre} is inside an object")
         target = TABLE_CENTRE + rng.normal(0, [0.12, 0.12, 0.06])
-        R = _look_at(centre, target, rng.normal(0, np.deg2rad(2.0)))
+        R = look_at(centre, target, rng.normal(0, np.deg2rad(2.0)))
         poses.append((R, -R @ centre))
     return poses

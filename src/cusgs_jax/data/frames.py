@@ -24,7 +24,7 @@ from typing import Any, NamedTuple, Sequence
 import numpy as np
 
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import (_downscale, _to_rgb_uint8, _warn_alpha, read_image_file, require_loadable_size,
+from cusgs_jax.data.images import (downscale_image, to_rgb_uint8, warn_alpha, read_image_file, require_loadable_size,
                                    scaled_size)
 
 __all__ = ["FrameImage", "read_json", "require_key", "frame_list", "frame_path", "frame_name",
@@ -165,7 +165,7 @@ class FrameImage(NamedTuple):
 
 
 def _read(path: pathlib.Path, background) -> tuple[np.ndarray, np.ndarray | None]:
-    return _to_rgb_uint8(read_image_file(path, "delete its frame"), path, background)
+    return to_rgb_uint8(read_image_file(path, "delete its frame"), path, background)
 
 
 def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, background: tuple[float, float, float],
@@ -208,7 +208,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
                 "w and h in the JSON")
         out_hw = (scaled_size(expected[1], downscale), scaled_size(expected[0], downscale))
         if not frame.prescaled and downscale > 1:
-            img = _downscale(img, downscale, out_hw)
+            img = downscale_image(img, downscale, out_hw)
         if alpha is not None:
             with_alpha.append(frame.name)
             transparent += bool(np.any(alpha < 1.0))
@@ -223,7 +223,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
         images[i] = img
     assert images is not None and full is not None
     if with_alpha:
-        _warn_alpha(json_path.parent, with_alpha, transparent, len(frames), background)
+        warn_alpha(json_path.parent, with_alpha, transparent, len(frames), background)
     return images, (int(full[0]), int(full[1]))
 
 

@@ -124,7 +124,7 @@ def _to_255(x: np.ndarray, path: pathlib.Path) -> np.ndarray:
                      "an 8-bit PNG or JPEG")
 
 
-def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path,
+def to_rgb_uint8(img: np.ndarray, path: pathlib.Path,
                   background: tuple[float, float, float] = (0.0, 0.0, 0.0),
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """A decoded image ([H, W], [H, W, 1|2|3|4]; uint8/16, bool, int or float in [0, 1]) →
@@ -144,7 +144,7 @@ def _to_rgb_uint8(img: np.ndarray, path: pathlib.Path,
     return np.clip(np.round(out), 0, 255).astype(np.uint8), a[..., 0]
 
 
-def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
+def downscale_image(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
     """Anti-aliased downscale of a uint8 [H, W, 3] image to out_hw (≈ size / factor)."""
     h, w = img.shape[:2]
     oh, ow = out_hw
@@ -158,10 +158,10 @@ def _downscale(img: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndar
 
 
 def downscale_mask(mask: np.ndarray, factor: int, out_hw: tuple[int, int]) -> np.ndarray:
-    """A valid-pixel mask [H, W] bool downscaled like the images (:func:`_downscale`) to ``out_hw``:
+    """A valid-pixel mask [H, W] bool downscaled like the images (:func:`downscale_image`) to ``out_hw``:
     a pixel stays valid only when the downscaled image there mixes in no invalid pixel."""
     rgb = np.repeat(np.where(mask, 255, 0).astype(np.uint8)[..., None], 3, axis=-1)
-    return _downscale(rgb, factor, out_hw)[..., 0] == 255
+    return downscale_image(rgb, factor, out_hw)[..., 0] == 255
 
 
 def _size_hint(img_w: int, cam: dict, from_prescaled: bool, downscale: int, folder: pathlib.Path,
@@ -235,7 +235,7 @@ def _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
             f"copy it into {folder} or remove the image from the reconstruction (data.path="
             f"{scene})")
     raw = read_image_file(path, "remove the image from the reconstruction")
-    img, alpha = _to_rgb_uint8(raw, path, background)
+    img, alpha = to_rgb_uint8(raw, path, background)
     h, w = img.shape[:2]
 
     # Expected size of the file as read: the camera size, or the camera size / d for images_d.
@@ -250,7 +250,7 @@ def _load_image(folder, name, cam, camera_id, downscale, from_prescaled, scene,
     if not from_prescaled and downscale > 1:
         # Reduce the image to round(camera size / d) (anti-aliased).
         out_hw = (scaled_size(cam["height"], downscale), scaled_size(cam["width"], downscale))
-        img = _downscale(img, downscale, out_hw)
+        img = downscale_image(img, downscale, out_hw)
     return img, alpha
 
 
@@ -289,11 +289,11 @@ def load_images(folder: pathlib.Path, views: list[tuple[str, int]], cameras: dic
         images[i] = img
     assert images is not None
     if with_alpha:
-        _warn_alpha(folder, with_alpha, transparent, len(views), background)
+        warn_alpha(folder, with_alpha, transparent, len(views), background)
     return images
 
 
-def _warn_alpha(folder: pathlib.Path, with_alpha: list[str], transparent: int, total: int,
+def warn_alpha(folder: pathlib.Path, with_alpha: list[str], transparent: int, total: int,
                 background: tuple[float, float, float]) -> None:
     """The one warning per scene about images with an alpha channel (names: ``with_alpha``, of
     which ``transparent`` have a pixel with alpha < 1) composited onto ``background``."""

@@ -1,7 +1,7 @@
 """``data.path`` in any of the layouts captures come in: COLMAP, Blender (NeRF-synthetic), nerfstudio.
 
 :func:`detect_format` tells them apart by the files present; :func:`load_any_scene` loads one
-into a :class:`~cusgs_jax.data.colmap.SceneData` whose ``dataset_format`` and ``split`` say what
+into a :class:`~cusgs_jax.data.scene_data.SceneData` whose ``dataset_format`` and ``split`` say what
 was read and which views were held out.
 
 Detection (``data.format=auto``), first match wins:
@@ -21,18 +21,17 @@ images were composited onto in ``SceneData.background``, which the run then rend
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import os
 import pathlib
 
 from cusgs_jax.config import DATASET_FORMATS
 from cusgs_jax.data.blender import load_blender_scene
-from cusgs_jax.data.colmap import SceneData, load_scene
+from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import check_background
-from cusgs_jax.data.nerfstudio import load_nerfstudio_scene, split_name
+from cusgs_jax.data.nerfstudio import load_nerfstudio_scene
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS
+from cusgs_jax.data.scene_data import SceneData
 
 __all__ = ["DATASET_FORMATS", "detect_format", "load_any_scene", "default_background"]
 
@@ -119,6 +118,4 @@ def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: 
                                      num_random_points=num_random_points, seed=seed, undistort=undistort,
                                      random_init=random_init)
 
-    scene = load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg, undistort=undistort)
-    return dataclasses.replace(scene, dataset_format="colmap", split=split_name(holdout_every),
-                               background=check_background(bg))
+    return load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg, undistort=undistort)

@@ -1,4 +1,4 @@
-"""Load a nerfstudio scene (``transforms.json``) into a :class:`~cusgs_jax.data.colmap.SceneData`.
+"""Load a nerfstudio scene (``transforms.json``) into a :class:`~cusgs_jax.data.scene_data.SceneData`.
 
 Layout (``data.path``), as ``ns-process-data`` writes it::
 
@@ -52,17 +52,16 @@ from typing import NamedTuple
 
 import numpy as np
 
-from cusgs_jax.data.colmap import SceneData, _check_int_setting, _holdout_split
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
-from cusgs_jax.data.normalize import camera_centers, camera_extent
+from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
 from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images, undistorted_masks
 
-__all__ = ["load_nerfstudio_scene", "split_name", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
+__all__ = ["load_nerfstudio_scene", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
            "UNSUPPORTED_MODELS"]
 
 log = logging.getLogger("cusgs_jax")
@@ -99,15 +98,6 @@ class FrameCamera(NamedTuple):
     width: int
     height: int
     distortion: dict  # {k1, k2, k3, k4, p1, p2: value} of the keys present
-
-
-def split_name(holdout_every: int) -> str:
-    """The ``split`` of an every-n-th hold-out: ``"every_8th"``, ``"every_2nd"``, ...; ``"none"`` for 0."""
-    n = int(holdout_every)
-    if n <= 0:
-        return "none"
-    suffix = "th" if 10 <= n % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
-    return f"every_{n}{suffix}"
 
 
 def _number(value, key: str, where: str, json_path: pathlib.Path) -> float:
@@ -293,9 +283,9 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         unknown camera model, distortion COLMAP cannot undistort, differing image sizes — naming the file
         and the fix.
     """
-    downscale = _check_int_setting("data.downscale", downscale, minimum=1)
-    holdout_every = _check_int_setting("data.holdout_every", holdout_every, minimum=0)
-    num_random_points = _check_int_setting("data.random_points", num_random_points, minimum=2)
+    downscale = check_int_setting("data.downscale", downscale, minimum=1)
+    holdout_every = check_int_setting("data.holdout_every", holdout_every, minimum=0)
+    num_random_points = check_int_setting("data.random_points", num_random_points, minimum=2)
     background = (0.0, 0.0, 0.0) if background is None else check_background(background)
     scene = pathlib.Path(path).expanduser()
     json_path = scene / TRANSFORMS_FILE
@@ -333,7 +323,7 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
     d = float(downscale)
     Ks = np.array([[[c.fx / d, 0.0, c.cx / d], [0.0, c.fy / d, c.cy / d], [0.0, 0.0, 1.0]] for c in cameras])
     viewmats = np.stack(viewmats)
-    train_indices, test_indices = _holdout_split(len(names), holdout_every, scene)
+    train_indices, test_indices = holdout_split(len(names), holdout_every, scene)
 
     loaded = _points(scene, meta, json_path)
     rule = None
@@ -347,13 +337,10 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdou
         source = f"{len(points)} points from {meta['ply_file_path']}"
     log.info("nerfstudio scene %s: %d train / %d held-out views at %dx%d; %s", scene, len(train_indices),
              len(test_indices), width, height, source)
-    extent, _ = camera_extent(camera_centers(viewmats), points)
-    return SceneData(
-        path=scene, names=tuple(names), images=images, viewmats=viewmats.astype(np.float64),
-        Ks=Ks.astype(np.float32), width=int(width), height=int(height), points=points, point_colors=colors,
-        train_indices=train_indices, test_indices=test_indices, extent=extent, dataset_format="nerfstudio",
-        split=split_name(holdout_every), background=tuple(background), random_points=rule, valid=valid,
-        lens=lens)
+    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
+                      point_colors=colors, train_indices=train_indices, test_indices=test_indices,
+                      dataset_format="nerfstudio", split=split_name(holdout_every), background=background,
+                      random_points=rule, valid=valid, lens=lens)
 
 
 def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,

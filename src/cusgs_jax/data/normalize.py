@@ -144,7 +144,7 @@ def camera_extent(camera_centers: np.ndarray, points: np.ndarray) -> tuple[float
 
 
 def normalize_scene(scene, align: str = "none"):
-    """(scene in the normalised frame, :class:`WorldTransform`) of a :class:`~cusgs_jax.data.colmap.SceneData`.
+    """(scene in the normalised frame, :class:`WorldTransform`) of a :class:`~cusgs_jax.data.scene_data.SceneData`.
 
     Images, intrinsics and the view split are untouched; ``points`` and
     ``viewmats`` move to the normalised frame and ``extent`` becomes 1.

@@ -33,7 +33,7 @@ dependency — no OpenCV.
   mask* per camera (``masks/camera_<id>.png``, 255 where the pixel's source location lies inside
   the distorted image: COLMAP's warp of an all-255 image, which leaves 0 outside) says which of
   the frame's pixels hold image content. :func:`undistorted_masks` reads it;
-  :class:`~cusgs_jax.data.colmap.SceneData` carries it as ``valid``, and the training loss, the
+  :class:`~cusgs_jax.data.scene_data.SceneData` carries it as ``valid``, and the training loss, the
   held-out metrics and the feature targets ignore the pixels outside it
   (:func:`cusgs_jax.losses.image_loss`, :mod:`cusgs_jax.eval.views`).
 

@@ -32,7 +32,7 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
     Args:
       render: ``render(anchors, nets, camera, appearance_index) -> (image [H,W,3],)``
         (:func:`cusgs_jax.training.render.make_render_fn`, which never drops work).
-      scene: :class:`cusgs_jax.data.colmap.SceneData`. With a valid-pixel mask (``scene.valid``),
+      scene: :class:`cusgs_jax.data.scene_data.SceneData`. With a valid-pixel mask (``scene.valid``),
         PSNR and SSIM run over the valid pixels (:func:`cusgs_jax.eval.metrics.psnr`, ``ssim``'s
         ``mask``) and LPIPS compares the two with the invalid pixels set to 0 in both.
       out_dir: if given, writes ``<name>.png`` with render | ground truth side by side.

@@ -50,7 +50,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.config import DataConfig
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.demo_lens import LENS_MAPS, MASKED_MAPS  # the lens demo's maps in the masked / lens frame
 from cusgs_jax.data.features import (
     META_FILE,
@@ -207,31 +208,25 @@ def _check_request(scene_path: str | os.PathLike, model: str,
     return resolution
 
 
-def feature_frame(scene) -> str:
-    """The frame a scene's images were loaded in, as features record it: "mask" (``data.undistort=mask``
-    of distorted cameras), "lens" (``data.undistort=lens`` of distorted cameras) or "crop" (pinhole
-    cameras in any mode, or distorted ones cropped): ``SceneData.camera_frame`` with "pinhole" → "crop"."""
-    return "crop" if scene.camera_frame == "pinhole" else scene.camera_frame
-
-
 def extract(scene_path: str | os.PathLike, model: str, *,
-            resolution: tuple[int, int] | None = None, downscale: int = 1,
-            dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = "auto",
-            undistort: str = "crop", **options) -> ExtractSummary:
+            resolution: tuple[int, int] | None = None, downscale: int = DataConfig.downscale,
+            dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = DataConfig.format,
+            undistort: str = DataConfig.undistort, **options) -> ExtractSummary:
     """Extract dense features of ``model`` for every image of a scene and write them to
     ``<scene>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
 
     Args:
-      scene_path: scene folder (COLMAP, Blender or nerfstudio), loaded with ``load_any_scene``
-        (its layout detected; images with alpha on the layout's default background).
+      scene_path: scene folder (COLMAP, Blender or nerfstudio), loaded as the trainer loads it
+        (:func:`cusgs_jax.data.loader.load_scene`: its layout detected; images with alpha on the layout's
+        default background).
       model: one of :data:`MODELS`.
       resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
         (vgg16) or the patch grid (clip, dinov2).
-      downscale: ``load_any_scene`` downscale factor of the images described.
+      downscale: ``data.downscale`` of the images described.
       undistort: ``data.undistort`` ("crop", "mask" or "lens") for a scene with distorted cameras; the
         features describe the images loaded that way, and the meta of a masked or lens scene records
-        ``"undistort": "mask"`` / ``"lens"`` (:func:`feature_frame`) so that a run with another mode refuses them
-        (:func:`cusgs_jax.data.run_inputs.load_feature_targets`).
+        ``"undistort": "mask"`` / ``"lens"`` (``SceneData.camera_frame``) so that a run with another mode refuses them
+        (:func:`cusgs_jax.training.inputs.load_feature_targets`).
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
@@ -251,11 +246,12 @@ def extract(scene_path: str | os.PathLike, model: str, *,
     t_start = time.perf_counter()
     resolution = _check_request(scene_path, model, resolution, overwrite)
     extractor = _EXTRACTORS[model](model, dict(options))
-    scene = load_any_scene(scene_path, format=format, downscale=downscale, holdout_every=0, num_random_points=2,
-                           undistort=undistort)
+    # every view (no hold-out) as the trainer loads the scene; its points are not needed (2 random ones suffice)
+    scene = load_scene(scene_path, DataConfig(path=str(scene_path), format=format, downscale=downscale, holdout_every=0,
+                                              random_points=2, undistort=undistort))
 
     # the demo's object ids in the frame of these images: the lens demo keeps the masked frame's apart
-    mode = feature_frame(scene)
+    mode = scene.camera_frame
     maps = {"mask": scene.path / MASKED_MAPS, "lens": scene.path / LENS_MAPS}.get(mode)
     extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
              **({"undistort": mode} if mode != "crop" else {}),

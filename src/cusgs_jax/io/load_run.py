@@ -43,8 +43,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from cusgs_jax.config import Config, from_dict, from_omegaconf
-from cusgs_jax.data.colmap import load_cameras
-from cusgs_jax.data.demo_lens import configured_demo
+from cusgs_jax.data.loader import load_scene, scene_folder
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
 from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
@@ -269,20 +268,18 @@ def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tup
     if world is None:
         return None, None
     data = cfg.data
-    if data.path:
-        path = pathlib.Path(str(data.path)).expanduser()
-    else:
-        path = configured_demo(data.demo)
+    path = scene_folder(data.path, data, generate=False)
     if not path.is_dir():
         return None, None
-    try:
-        viewmats, Ks, width, height, train = load_cameras(path, downscale=data.downscale, undistort=data.undistort,
-                                                          holdout_every=data.holdout_every)
+    try:  # the run's scene in any layout, as the run loaded it
+        scene = load_scene(path, data, background=cfg.splat.background, seed=cfg.train.seed)
     except UserError as e:
         log.warning("the run's scene %s cannot give the training cameras (%s)", path, e)
         return None, None
-    viewmats = world.viewmats(viewmats[train]).astype(np.float32)
-    return Camera(jnp.asarray(Ks[train]), jnp.asarray(viewmats), int(width), int(height)), str(path)
+    train = scene.train_indices
+    viewmats = world.viewmats(scene.viewmats[train]).astype(np.float32)
+    lens = None if scene.lens is None else Lens.of_views(scene.lens, train)
+    return Camera(jnp.asarray(scene.Ks[train]), jnp.asarray(viewmats), scene.width, scene.height, lens), str(path)
 
 
 def _stored_cameras(stored: Any) -> Camera | None:

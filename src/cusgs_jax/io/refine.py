@@ -224,7 +224,7 @@ def refine_splats(model: SplatModel, scene, steps: int, *, background=None, sh_d
 
     Args:
       model: G Gaussians in the frame of ``scene``'s cameras (e.g. a baked export).
-      scene: a :class:`~cusgs_jax.data.colmap.SceneData` (any layout): ``images`` [V, H, W, 3]
+      scene: a :class:`~cusgs_jax.data.scene_data.SceneData` (any layout): ``images`` [V, H, W, 3]
         uint8, ``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3], ``train_indices``. Only the training
         views are used (never ``test_indices``).
       steps: optimisation steps (≥ 0; 0 returns ``model`` unchanged), one training view each,

@@ -116,7 +116,7 @@ def recentre_splats(model: SplatModel, centre) -> tuple[SplatModel, np.ndarray]:
 def scene_camera(scene, view: int, shift) -> Camera:
     """The scene's camera ``view`` in the frame moved by −``shift`` [3]: x_cam = R(x + shift) + t (float64).
 
-    ``scene``: a :class:`~cusgs_jax.data.colmap.SceneData` (``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3],
+    ``scene``: a :class:`~cusgs_jax.data.scene_data.SceneData` (``viewmats`` [V, 4, 4], ``Ks`` [V, 3, 3],
     ``lens``: the view's lens is kept, so a ``data.undistort=lens`` scene renders through it).
     """
     viewmat = np.array(scene.viewmats[view], np.float64)

@@ -82,7 +82,7 @@ def image_pixel_of(row, col, feature_hw: tuple[int, int], image_hw: tuple[int, i
       image_hw: (H, W) of the image.
     Returns:
       ([P] int32 image rows, [P] int32 image columns). What :func:`sampled_feature_loss` samples and
-      what :func:`cusgs_jax.data.run_inputs.mask_feature_maps` masks by.
+      what :func:`cusgs_jax.training.inputs.mask_feature_maps` masks by.
     """
     (fh, fw), (height, width) = feature_hw, image_hw
     img_row = jnp.minimum(((jnp.asarray(row) + 0.5) * height / fh).astype(jnp.int32), height - 1)

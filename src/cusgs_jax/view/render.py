@@ -32,7 +32,7 @@ from cusgs_jax.view.camera import scene_up
 from cusgs_jax.view.modes import Frame
 
 if TYPE_CHECKING:  # annotations only
-    from cusgs_jax.data.colmap import SceneData
+    from cusgs_jax.data.scene_data import SceneData
     from cusgs_jax.io.load_run import TrainedModel
     from cusgs_jax.model.anchors import AnchorState
     from cusgs_jax.types import Camera

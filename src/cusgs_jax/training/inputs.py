@@ -15,16 +15,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import Config, FeatureConfig
-from cusgs_jax.data.colmap import SceneData
-from cusgs_jax.data.demo_lens import configured_demo
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet, feature_dir, feature_file, load_features
-from cusgs_jax.data.images import scaled_size
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.loader import load_scene, scene_folder
 from cusgs_jax.data.normalize import WorldTransform, normalize_scene
+from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
-from cusgs_jax.extract.scene import feature_frame
-from cusgs_jax.losses import gaussian_window
 from cusgs_jax.memory import psc
 from cusgs_jax.model.field import image_pixel_of
 
@@ -35,47 +31,20 @@ def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
     """The scene of ``data.path`` (or the built-in demo scene when it is None) in the normalised frame.
 
     ``data.path`` is read in its layout (``data.format``: COLMAP, Blender or nerfstudio, ``auto`` =
-    detected; :func:`cusgs_jax.data.layouts.load_any_scene`).
+    detected; :func:`cusgs_jax.data.loader.load_scene`).
 
     Returns:
-      (:class:`cusgs_jax.data.colmap.SceneData` with extent 1, :class:`cusgs_jax.data.normalize.WorldTransform`
+      (:class:`cusgs_jax.data.scene_data.SceneData` with extent 1, :class:`cusgs_jax.data.normalize.WorldTransform`
       from the scene's frame to it). Images with an alpha channel are composited on ``splat.background``, or
       when it is not set (None) on the layout's default (white for Blender, black otherwise), which
       ``scene.background`` records (:func:`resolve_background`).
     """
     data = cfg.data
-    path = data.path
-    if not path:
-        demo = data.demo
-        path = configured_demo(demo, generate=True)
-        log.info("using the built-in demo scene%s at %s",
-                 "" if demo.lens == "pinhole" else f" through the {demo.lens} lens", path)
-    scene = load_any_scene(path, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=cfg.splat.background, num_random_points=data.random_points,
-                           seed=cfg.train.seed, undistort=data.undistort, random_init=data.random_init)
-    require_ssim_size(scene, data.downscale, "data.downscale")
+    if not data.path:
+        log.info("using the built-in demo scene%s at %s", "" if data.demo.lens == "pinhole"
+                 else f" through the {data.demo.lens} lens", scene_folder(None, data))
+    scene = load_scene(data.path, data, background=cfg.splat.background, seed=cfg.train.seed)
     return normalize_scene(scene, align=data.align)
-
-
-def require_ssim_size(scene: SceneData, downscale: int, option: str) -> None:
-    """SceneError unless ``scene``'s images are at least as large as the SSIM window (11×11 pixels).
-
-    The training loss and every evaluation take the SSIM of whole images, which cannot be computed
-    on images smaller than its window; ``option`` names the downscale setting in the message
-    (``data.downscale`` for ``cusgs-train``, ``--downscale`` for ``cusgs-render-ply``).
-    """
-    k = len(gaussian_window())
-    if scene.width >= k and scene.height >= k:
-        return
-    if downscale > 1:
-        smallest = (min(scene.width, scene.height) - 0.5) * downscale  # the full-size side is at least this
-        fits = [d for d in range(1, downscale) if scaled_size(int(smallest), d) >= k]
-        fix = (f"use a smaller {option} (e.g. {option}={max(fits)})" if fits
-               else f"use {option}=1 (full-size images), or give it images of at least {k}x{k} pixels")
-    else:
-        fix = f"give it images of at least {k}x{k} pixels"
-    raise SceneError(f"{scene.path}: its images load at {scene.width}x{scene.height} pixels with {option}={downscale}, "
-                     f"smaller than the {k}x{k} pixels of the SSIM window that training and evaluation need; {fix}")
 
 
 def resolve_background(cfg: Config, scene: SceneData) -> Config:
@@ -101,7 +70,7 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int, stage
 
     A scene with distorted cameras needs features extracted from its images as this run loads them
     (their ``meta.json`` says ``"undistort": "mask"`` or ``"lens"``, nothing for crop:
-    :func:`cusgs_jax.extract.scene.feature_frame`; SceneError otherwise); with a valid-pixel mask
+    ``SceneData.camera_frame``; SceneError otherwise); with a valid-pixel mask
     (``data.undistort=mask``) the target vectors whose pixel lies outside it are zeroed — "no target"
     (:func:`mask_feature_maps`).
 
@@ -114,7 +83,7 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int, stage
     stage = stage or (lambda name: contextlib.nullcontext())
     maps, banks = {}, {}
     masked = scene.valid is not None
-    frame = feature_frame(scene)
+    frame = scene.camera_frame
     for index, model in enumerate(fcfg.model_list):
         # locked: the jobs of a parallel sweep share the demo scene's cache
         if fcfg.auto_extract and model.name in BUILT_IN_EXTRACTORS and ensure_extracted(

@@ -1,4 +1,4 @@
-"""What a run reads (data/run_inputs.py): any layout loads in the normalised frame with the background resolved;
+"""What a run reads (training/inputs.py): any layout loads in the normalised frame with the background resolved;
 feature targets keep every value float16 cannot hold; images smaller than the SSIM window are refused at load;
 feature targets far larger than the extractors' are warned about; the view order is a permutation per epoch."""
 
@@ -10,7 +10,7 @@ import pytest
 from cusgs_jax.config import Config, DataConfig, compose_config
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
-from cusgs_jax.data.run_inputs import (FLOAT16_MAX, feature_targets, load_data, load_feature_targets,
+from cusgs_jax.training.inputs import (FLOAT16_MAX, feature_targets, load_data, load_feature_targets,
                                        mask_feature_maps, resolve_background, view_order)
 from cusgs_jax.testing.transforms_scenes import write_blender_scene
 

@@ -1,0 +1,77 @@
+"""The one entry to a scene: :func:`load_scene` ``(path, data)`` is the scene ``cusgs-train data.path=path`` trains on.
+
+Every caller — the trainer, feature extraction, ``cusgs-export``'s refinement, ``cusgs-render-ply``,
+research code — passes a :class:`~cusgs_jax.config.DataConfig` (the run's own, or ``DataConfig()``
+for the defaults ``cusgs-train`` uses), so the same settings give the same scene everywhere: the
+layout is detected (:mod:`.layouts`), read, and checked once. The scene is in its own frame;
+:func:`cusgs_jax.data.normalize.normalize_scene` moves it into the training frame.
+"""
+
+from __future__ import annotations
+
+import os
+import pathlib
+
+from cusgs_jax.config import DataConfig
+from cusgs_jax.data.demo_lens import configured_demo
+from cusgs_jax.data.errors import SceneError
+from cusgs_jax.data.images import scaled_size
+from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.scene_data import SceneData
+
+__all__ = ["load_scene", "require_ssim_size", "scene_folder"]
+
+SSIM_WINDOW = 11  # pixels per side of the SSIM window (cusgs_jax.losses.gaussian_window)
+
+
+def scene_folder(path: str | os.PathLike | None, data: DataConfig, *, generate: bool = True) -> pathlib.Path:
+    """The folder ``path`` names, or — when it is None or empty — the built-in demo scene of ``data.demo``
+    (generated into the cache on first use when ``generate``)."""
+    if path:
+        return pathlib.Path(path).expanduser()
+    return configured_demo(data.demo, generate=generate)
+
+
+def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = None, *,
+               background: tuple[float, float, float] | None = None, seed: int = 0) -> SceneData:
+    """The scene of ``path`` (default ``data.path``; neither: the built-in demo) as ``data`` loads it.
+
+    Args:
+      path: a scene folder in any layout (COLMAP, Blender, nerfstudio), or None.
+      data: the settings (``format``, ``downscale``, ``holdout_every``, ``undistort``, ``random_points``,
+        ``random_init``, ``demo``); None: ``DataConfig()``, the defaults ``cusgs-train`` uses.
+      background: ``splat.background`` (images with alpha are composited on it), or None for the layout's.
+      seed: ``train.seed``, which draws the random initial points of layouts without points.
+    Returns:
+      :class:`~cusgs_jax.data.scene_data.SceneData` in the scene's own frame.
+    Raises:
+      SceneError: anything wrong with the files or these settings, naming the file or option.
+    """
+    data = DataConfig() if data is None else data
+    folder = scene_folder(data.path if path is None else path, data)
+    scene = load_any_scene(folder, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
+                           background=background, num_random_points=data.random_points, seed=seed,
+                           undistort=data.undistort, random_init=data.random_init)
+    require_ssim_size(scene, data.downscale, "data.downscale")
+    return scene
+
+
+def require_ssim_size(scene: SceneData, downscale: int, option: str) -> None:
+    """SceneError unless ``scene``'s images are at least as large as the SSIM window (11×11 pixels).
+
+    The training loss and every evaluation take the SSIM of whole images, which cannot be computed
+    on images smaller than its window; ``option`` names the downscale setting in the message
+    (``data.downscale`` for ``cusgs-train``, ``--downscale`` for ``cusgs-render-ply``).
+    """
+    k = SSIM_WINDOW
+    if scene.width >= k and scene.height >= k:
+        return
+    if downscale > 1:
+        smallest = (min(scene.width, scene.height) - 0.5) * downscale  # the full-size side is at least this
+        fits = [d for d in range(1, downscale) if scaled_size(int(smallest), d) >= k]
+        fix = (f"use a smaller {option} (e.g. {option}={max(fits)})" if fits
+               else f"use {option}=1 (full-size images), or give it images of at least {k}x{k} pixels")
+    else:
+        fix = f"give it images of at least {k}x{k} pixels"
+    raise SceneError(f"{scene.path}: its images load at {scene.width}x{scene.height} pixels with {option}={downscale}, "
+                     f"smaller than the {k}x{k} pixels of the SSIM window that training and evaluation need; {fix}")
