@@ -82,11 +82,11 @@ class DataConfig:
     # Where those points go (data/random_points.py): "cube" (3DGS's cube, sized to what the cameras look at),
     # "cube_and_rays" (half there, half along the training rays: reaches the walls of a room-scale capture) or
     # "auto": cube for Blender scenes (object-centric, NeRF-synthetic's protocol), cube_and_rays for nerfstudio
-    # scenes without a PLY (real captures). Demo room: 13.97 -> 18.34 dB; demo objects (2 seeds): 29.22 -> 29.15 dB.
+    # scenes without a PLY (real captures). Their scores: experiments/README.md (random_init_rays.sh).
     random_init: str = "auto"
     # Distorted cameras: "lens" (default) keeps the images as captured and rasterises through the lens model
-    # (splat/lens.py: no resampling blur, every pixel trained and scored; on the lens demo within 0.2 dB of the
-    # pinhole demo, experiments/README.md); "crop" undistorts to the largest valid rectangle (data/undistort.py,
+    # (splat/lens.py: no resampling blur, every pixel trained and scored; against the pinhole demo:
+    # experiments/README.md); "crop" undistorts to the largest valid rectangle (data/undistort.py,
     # COLMAP's image_undistorter, as gsplat and nerfstudio do: scores comparable with published ones); "mask"
     # undistorts to the source frame and leaves its invalid pixels out of the loss, the metrics and the targets.
     undistort: str = "lens"

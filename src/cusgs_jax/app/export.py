@@ -40,9 +40,8 @@ PROG = "cusgs-export"
 
 DEFAULT_REFINE_EPOCHS = 30
 """Passes over the training views when ``--refine`` is not given: K = 30 × the scene's training views
-(:func:`default_refine_steps`). Chosen on two scenes (benchmarks/results/refine/, docs/export.md): a
-fixed K = 1000 was 30 epochs of the 26-view demo room but 17 of the 60-view object scene, which
-stayed 0.65 dB below its run; every view needs about as many updates, whatever their number."""
+(:func:`default_refine_steps`): every view needs about as many updates, whatever their number, so a
+fixed K under-refines scenes with many views (docs/export.md)."""
 
 
 def default_refine_steps(train_views: int) -> int:
@@ -153,7 +152,7 @@ def export_run(run_dir, out, *, sh_degree: int = 3, directions: int = 64, min_op
     # lazy (these import JAX): keeps cusgs-export --help free of JAX
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.io import write_ply
-    from cusgs_jax.io.atomic import require_writable
+    from cusgs_jax.atomic import require_writable
     from cusgs_jax.io.spz import require_gsply, write_spz
     from cusgs_jax.model.bake import bake_splats, to_colmap_frame
     from cusgs_jax.splat.sh import num_sh_coeffs

@@ -52,6 +52,8 @@ from pathlib import Path
 
 import yaml
 
+from cusgs_jax.errors import UserError
+from cusgs_jax.run_folder import CURVE_FILE, EVAL_FILE, FAILED_FILE, METRICS_FILE, EvalRecord
 from cusgs_jax.app.paper_tables import CSV_COLUMNS, paper_fields, table1_markdown, table2_markdown
 from cusgs_jax.eval.sweep_plots import finite_or_none, pareto_front, write_plots
 
@@ -77,7 +79,7 @@ METRICS = [
      "render time per view of the model just before the first pruning pass (pruning runs only; it has "
      "fewer anchors than the final model when growing continues afterwards)"),
 ]
-MARKERS = (".hydra/config.yaml", "eval.json", "failed.json")
+MARKERS = (".hydra/config.yaml", EVAL_FILE, FAILED_FILE)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -185,23 +187,25 @@ def load_job(path, root=None) -> dict:
                   path=path, overrides=_read_overrides(path), status="incomplete",
                   **{key: None for key, *_ in METRICS}, **{key: None for key in CSV_COLUMNS},
                   param_split={}, feature_models={})
-    record["curve"] = _read_jsonl(path / "eval_curve.jsonl")
-    record["anchor_curve"] = [(r["step"], r["alive_anchors"]) for r in _read_jsonl(path / "metrics.jsonl")
+    record["curve"] = _read_jsonl(path / CURVE_FILE)
+    record["anchor_curve"] = [(r["step"], r["alive_anchors"]) for r in _read_jsonl(path / METRICS_FILE)
                               if finite_or_none(r.get("step")) is not None
                               and finite_or_none(r.get("alive_anchors")) is not None]
-    if (path / "failed.json").is_file():
+    if (path / FAILED_FILE).is_file():
         try:
-            error = json.loads((path / "failed.json").read_text()).get("error") or "unknown error"
+            error = json.loads((path / FAILED_FILE).read_text()).get("error") or "unknown error"
         except (OSError, ValueError, AttributeError) as exc:
-            error = f"unreadable failed.json ({type(exc).__name__}: {_first_line(exc)})"
+            error = f"unreadable {FAILED_FILE} ({type(exc).__name__}: {_first_line(exc)})"
         record["status"] = "failed: " + _first_line(error)
-    elif (path / "eval.json").is_file():
+    elif (path / EVAL_FILE).is_file():
         try:
-            result = json.loads((path / "eval.json").read_text())
-            if not isinstance(result, dict):
-                raise TypeError(f"expected a JSON object, got {type(result).__name__}")
-        except (OSError, ValueError, TypeError) as exc:
-            record["status"] = f"failed: unreadable eval.json ({type(exc).__name__}: {_first_line(exc)})"
+            text = (path / EVAL_FILE).read_text()
+            parsed = json.loads(text)
+            if not isinstance(parsed, dict):
+                raise TypeError(f"expected a JSON object, got {type(parsed).__name__}")
+            result = EvalRecord.from_json(parsed, str(path / EVAL_FILE)).to_json()  # run_folder.py
+        except (OSError, ValueError, TypeError, UserError) as exc:
+            record["status"] = f"failed: unreadable {EVAL_FILE} ({type(exc).__name__}: {_first_line(exc)})"
         else:
             record.update(_eval_metrics(result), **paper_fields(result, path), status="ok")
             curve = [p for p in result.get("curve") or [] if isinstance(p, dict)]

@@ -75,7 +75,8 @@ from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import run_features
-from cusgs_jax.io.load_run import BANKS_FILE
+from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
+                                      PLOT_FILE, RENDERS_DIR, CheckpointMeta, EvalRecord, write_eval)
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -146,7 +147,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
-    ckpt = Checkpointer(cfg.train.checkpoint_dir or out / "checkpoints")
+    ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
     latest = ckpt.latest_step()
     require(not cfg.train.resume or latest is not None, "train.resume", True,
             f"there is no checkpoint to resume in {ckpt.directory}",
@@ -258,33 +259,34 @@ def _resume(session: Session) -> None:
 
     session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(session.state.step)
+    meta = CheckpointMeta.from_json(meta, f"checkpoint {session.ckpt.directory / str(step)}")  # run_folder.py
     _require_same_scene(session, meta, step)
     _require_not_past(session.cfg, step, session.ckpt.directory)
-    session.capacities = session.capacities.restored(meta.get("capacities"))
-    session.clock = Clock(float(meta["wall_s"]))
-    session.curve = list(meta["curve"])
-    session.tallies.update({name: Tally.from_dict(record) for name, record in meta.get("densify", {}).items()})
-    if "densify" not in meta and "prune" in meta:  # written before the strategies kept tallies (issue 23)
+    session.capacities = session.capacities.restored(meta.capacities)
+    session.clock = Clock(float(meta.wall_s))
+    session.curve = list(meta.curve)
+    session.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
+    if meta.densify is None and "prune" in meta.extra:  # written before the strategies kept tallies
         log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
                     "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
-    session.recompilations = int(meta.get("recompilations", 0))
-    session.replays = int(meta.get("replays", 0))
-    _trim_jsonl(session.out / "metrics.jsonl", step)
-    _trim_jsonl(session.out / "eval_curve.jsonl", step)
+    session.recompilations = int(meta.recompilations or 0)
+    session.replays = int(meta.replays or 0)
+    _trim_jsonl(session.out / METRICS_FILE, step)
+    _trim_jsonl(session.out / CURVE_FILE, step)
     log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
 
 
-def _require_same_scene(session: Session, meta: dict, step: int) -> None:
+def _require_same_scene(session: Session, meta: CheckpointMeta, step: int) -> None:
     """A resumed run continues on the scene it was trained on: refuse another one (its recorded training
     cameras, :func:`cusgs_jax.data.identity.same_cameras`), even one with as many views."""
-    recorded = meta.get("train_cameras")
+    recorded = meta.train_cameras
     if not recorded:  # a checkpoint written before the cameras were recorded: nothing to compare
         return
     scene, idx = session.scene, session.train_idx
     differs = same_cameras(recorded, scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
     if differs is None:
         return
-    trained_on = (meta.get("config") or {}).get("data", {}).get("path") or "the built-in demo scene"
+    trained_on = (meta.config or {}).get("data", {}).get("path") or "the built-in demo scene"
     require(False, "data.path", session.cfg.data.path or "the built-in demo scene",
             f"is not the scene the checkpoint of step {step} in {session.ckpt.directory} was trained on "
             f"({trained_on}): its cameras differ ({differs})",
@@ -322,8 +324,8 @@ def train(session: Session, progress_label: str = "train") -> None:
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
-    with open(session.out / "metrics.jsonl", "a") as metrics_file, \
-            open(session.out / "eval_curve.jsonl", "a") as curve_file, live_view(cfg.train, snapshot) as live:
+    with open(session.out / METRICS_FILE, "a") as metrics_file, \
+            open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.clock:
                 with session.budget.stage("train_steps"):
@@ -561,15 +563,16 @@ def _psnr_label(session: Session) -> str:
 
 
 def _save(session: Session, step: int) -> None:
-    meta = dict(step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
-                densify={name: tally.as_dict() for name, tally in session.tallies.items()},
-                recompilations=session.recompilations, replays=session.replays,
-                capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
-                # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
-                world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
-                train_cameras=_cameras(session, session.train_idx), scene_digest=_digest(session),
-                held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list
-    session.ckpt.save(step, session.state, meta)
+    meta = CheckpointMeta(
+        step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
+        densify={name: tally.as_dict() for name, tally in session.tallies.items()},
+        recompilations=session.recompilations, replays=session.replays,
+        capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
+        # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
+        world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
+        train_cameras=_cameras(session, session.train_idx), scene_digest=_digest(session),
+        held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list
+    session.ckpt.save(step, session.state, meta.to_json())
     if session.banks is not None and not (session.out / BANKS_FILE).is_file():  # what cusgs-view renders with
         np.savez(session.out / BANKS_FILE, **{name: np.asarray(b) for name, b in session.banks.items()})
 
@@ -602,7 +605,7 @@ def finalise(session: Session) -> dict:
     with budget.stage("evaluation"):
         lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
         anchors = state.anchors
-        final = _evaluate(session, anchors, out_dir=out / "renders" if save else None, time_renders=True,
+        final = _evaluate(session, anchors, out_dir=out / RENDERS_DIR if save else None, time_renders=True,
                           lpips=lpips)
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
@@ -632,18 +635,19 @@ def finalise(session: Session) -> dict:
     )
     if session.banks is not None:
         with budget.stage("evaluation"):
-            result["features"] = _evaluate_features(session, anchors, out_dir=out / "features" if save else None)
+            result["features"] = _evaluate_features(session, anchors, out_dir=out / FEATURES_DIR if save else None)
     with budget.stage("report"):
         if session.banks is not None:
-            (out / "features.md").write_text(result["features"]["markdown"])
-        plot_error_vs_time(session.curve, out / "error_vs_time.png",
+            (out / FEATURES_MD).write_text(result["features"]["markdown"])
+        plot_error_vs_time(session.curve, out / PLOT_FILE,
                            title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
     with budget.stage("checkpoints"):
         session.ckpt.close()
     result["accelerator"] = accelerator_record()
     result["compilations"] = _compilations(budget.compiles)
     result["time"] = budget.as_dict()
-    (out / "eval.json").write_text(json.dumps(result, indent=1))
+    result = EvalRecord.from_json(result).to_json()  # the typed, versioned record (run_folder.py)
+    write_eval(out, EvalRecord.from_json(result))
     log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
              result["ssim"], result["alive_anchors"], result["train_wall_s"])
     compiles = result["compilations"]

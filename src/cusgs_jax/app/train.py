@@ -40,6 +40,7 @@ from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.config import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
+from cusgs_jax.run_folder import FAILED_FILE
 from cusgs_jax.sweep.pareto import result_objectives
 
 log = logging.getLogger("cusgs_jax")
@@ -49,7 +50,7 @@ PROG = "cusgs-train"
 
 def record_failure(output_dir: str | pathlib.Path, error: BaseException) -> pathlib.Path:
     """Write ``failed.json`` ({"error": "Type: message", "user_error": bool, "traceback": ...}) into a job folder."""
-    path = pathlib.Path(output_dir) / "failed.json"
+    path = pathlib.Path(output_dir) / FAILED_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps({
         "error": f"{type(error).__name__}: {error}",
@@ -67,7 +68,7 @@ class FailedJobs(Callback):
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = pathlib.Path(str(config.hydra.sweep.dir))
         FailedJobs.found = [dict(json.loads(path.read_text()), path=str(path))
-                            for path in sorted(sweep_dir.glob("*/failed.json"))]
+                            for path in sorted(sweep_dir.glob(f"*/{FAILED_FILE}"))]
 
 
 def _parallel_jobs(hydra_cfg) -> int | None:

@@ -31,8 +31,8 @@ Modules: this one (generation, cache folder), :mod:`.demo_render` (room geometry
 casting, cameras), :mod:`.demo_colmap` (SfM-like points, observations, COLMAP writing); the
 ``cusgs-demo-scene`` command is :mod:`cusgs_jax.app.demo_scene`. :mod:`.demo_objects` renders the
 furniture without the room, with alpha, from the upper hemisphere, in Blender and COLMAP layouts
-(an object-centric scene for random initialisation, issue 21); :mod:`.demo_lens` renders the room
-through a distorting COLMAP lens (``data.demo.lens``, issue 21).
+(an object-centric scene for random initialisation); :mod:`.demo_lens` renders the room
+through a distorting COLMAP lens (``data.demo.lens``).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The demo room seen through a distorting lens, ray cast through the lens (issue 21).
+"""The demo room seen through a distorting lens, ray cast through the lens.
 
 :mod:`cusgs_jax.data.demo` renders the room through a PINHOLE camera. This module renders the
 same room, from the same poses, through any COLMAP camera model: the colour of pixel ``(i, j)`` is

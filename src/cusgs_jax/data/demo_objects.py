@@ -1,4 +1,4 @@
-"""The demo's furniture without the room, as an object-centric capture in two layouts (issue 21).
+"""The demo's furniture without the room, as an object-centric capture in two layouts.
 
 :mod:`cusgs_jax.data.demo` renders a closed room. This module renders only the furniture group in
 the middle of it — the table (top and legs), the three boxes on it, the chair and the box on the

@@ -5,7 +5,7 @@ capture can come out 1000× larger or smaller depending on the SfM run. The
 method has quantities written in absolute world units — the voxel size ``l``,
 the near plane, the volume regulariser ``mean(prod(scale))`` (cubic in the
 unit), the grown cells ``l·16/4^i`` — so without care the same scene trains to
-a different result at another scale (docs/formats.md#scene-scale: ×1000 trained to 9.8 dB).
+a different result at another scale (docs/formats.md#scene-scale).
 
 **What we do** (gsplat's ``normalize_world_space``, translation and scale only):
 every run works in the frame

@@ -22,8 +22,7 @@ origin assumed:
    - ``cube``: ``num`` (default 100 000) uniform in the cube ``x ± h``. That is what the cameras of an
      object-centric capture (NeRF-synthetic) look at, but a room-scale capture's walls, floor and
      ceiling lie outside it: the training views are then fitted by floaters inside the cube, which the
-     held-out views expose (14.3 dB on the demo room against 27.6 dB from SfM points,
-     ``experiments/README.md``).
+     held-out views expose (``experiments/README.md``).
    - ``cube_and_rays``: half the points in the cube as above, the other half along the training
      cameras' rays — a uniform camera, a uniform pixel, a depth (along the optical axis) uniform in
      ``[½ D, 2½ D]`` with ``D = median_i ‖x − C_i‖`` the distance the cameras look at — so that
@@ -35,11 +34,8 @@ origin assumed:
      real captures with walls or a background around the cameras (:func:`resolve_random_init`).
 
    Only the training cameras are used (never the held-out ones), for the cube as for the rays.
-   Measured (``experiments/random_init_rays.sh``, 1500 steps, 100 000 points): on the demo room in the
-   Blender layout ``cube_and_rays`` reaches 18.34 dB held-out against 13.97 for ``cube`` (SfM points: 27.6;
-   one seed); on the demo objects the two rules are level, 29.09 / 29.20 against 29.67 / 28.78 dB over
-   seeds 0 / 1 (SfM points: 31.3). ``auto`` keeps the cube on Blender scenes because it is the published
-   NeRF-synthetic protocol, not because it scored higher.
+   ``auto`` keeps the cube on Blender scenes because it is the published NeRF-synthetic protocol, not
+   because it scored higher (the two rules' scores: ``experiments/README.md``, ``random_init_rays.sh``).
 
 **Voxel size.** ``model.voxel_size=auto`` is *not* the median nearest-neighbour spacing of these points
 (:func:`cusgs_jax.model.anchors.auto_voxel_size`, the rule for SfM points): for N uniform points in a cube
@@ -51,9 +47,8 @@ the distance the cameras look at**, ``0.5 × median_i ‖x − C_i‖ / median_i
 ``f_i = max(fx, fy)`` in pixels). On the demo objects (128 px, distance 4.5, FoV 0.69) it is 0.0127 m =
 0.0023 × the extent — the SfM points' spacing; on NeRF-synthetic at 800 px, 0.0018 (Scaffold-GS uses
 0.001 there). Nearly every random point then becomes an anchor (Scaffold-GS's one anchor per point); the
-anchors in empty space are pruned by the growing schedule within the first ~500 steps. Measured on the
-demo objects (``experiments/random_init_objects.py``, 1500 steps): 10 000 random points with the spacing
-rule 28.14 dB held-out (seed 0), with this rule 28.74 / 28.76 dB (seeds 0 / 1); SfM points 31.32 / 31.34 dB.
+anchors in empty space are pruned by the growing schedule within the first ~500 steps. Against the
+spacing rule on the demo objects: ``experiments/README.md`` (``random_init_objects.py``).
 """
 
 from __future__ import annotations

@@ -31,7 +31,6 @@ latent size, V training views, E appearance size.
 from __future__ import annotations
 
 import dataclasses
-import json
 import logging
 import os
 import pathlib
@@ -46,6 +45,7 @@ from cusgs_jax.config import Config, from_dict, from_omegaconf
 from cusgs_jax.data.loader import load_scene, scene_folder
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
+from cusgs_jax.run_folder import BANKS_FILE, CheckpointMeta, read_eval
 from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
 from cusgs_jax.splat.lens import Lens
 from cusgs_jax.training.checkpoint import read_arrays
@@ -53,8 +53,6 @@ from cusgs_jax.types import Camera
 
 __all__ = ["TrainedModel", "load_trained", "BANKS_FILE"]
 
-BANKS_FILE = "feature_banks.npz"
-"""The run folder's PSC banks of the feature models ({model: [M, D]}), written with the first checkpoint."""
 
 log = logging.getLogger("cusgs_jax")
 
@@ -135,10 +133,12 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
     if not run.is_dir():
         raise UserError(f"{run} is not a folder: pass the output folder of a cusgs-train run "
                         "(it holds checkpoints/ and eval.json)")
-    evaluation = _read_json(run / "eval.json")
+    record = read_eval(run)  # the run's eval.json through the run-folder contract (run_folder.py)
+    evaluation = None if record is None else record.to_json()
     cfg_file = _hydra_config(run)
     ckpt_dir = _checkpoint_dir(run, cfg_file)
     step, arrays, meta = read_arrays(ckpt_dir, ("anchors", "nets"), step=step)
+    meta = CheckpointMeta.from_json(meta, f"checkpoint {ckpt_dir / str(step)}")
 
     try:
         stored = arrays["anchors"]
@@ -173,18 +173,6 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
 
 
 # --- helpers ---------------------------------------------------------------------------------
-
-
-def _read_json(path: pathlib.Path) -> dict | None:
-    if not path.is_file():
-        return None
-    try:
-        value = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise UserError(f"{path} cannot be read as JSON ({e}): is the run folder damaged?") from e
-    if not isinstance(value, dict):
-        raise UserError(f"{path} is not a JSON object: is the run folder damaged?")
-    return value
 
 
 def _hydra_config(run: pathlib.Path) -> DictConfig | None:
@@ -232,7 +220,7 @@ def _decoder_shape(anchors: AnchorState, nets: dict[str, Any]) -> dict[str, Any]
     return shape
 
 
-def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: dict, shape: dict[str, Any]) -> Config:
+def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: CheckpointMeta, shape: dict[str, Any]) -> Config:
     """The run's Config (Hydra's file, else the checkpoint's record, else defaults) with the stored decoder shape."""
     source = None
     try:
@@ -241,7 +229,7 @@ def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: dict, shape: d
             cfg = from_omegaconf(cfg_file)
         elif isinstance(meta.get("config"), dict):
             source = f"the checkpoint metadata of {run}"
-            cfg = from_dict(meta["config"])
+            cfg = from_dict(meta.get("config"))
         else:
             cfg = Config()
             log.warning("%s records no configuration (no .hydra/config.yaml): using the defaults, with the "
@@ -257,7 +245,8 @@ def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: dict, shape: d
     return cfg.replace(model=shape) if differs else cfg
 
 
-def _train_cameras(meta: dict, cfg: Config, world: WorldTransform | None) -> tuple[Camera | None, str | None]:
+def _train_cameras(meta: CheckpointMeta, cfg: Config,
+                   world: WorldTransform | None) -> tuple[Camera | None, str | None]:
     """(batched Camera of the training views in the normalised frame, where from) or (None, None)."""
     stored = meta.get("train_cameras")
     if isinstance(stored, dict):

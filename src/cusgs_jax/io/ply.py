@@ -29,7 +29,7 @@ import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
 from cusgs_jax.errors import UserError
-from cusgs_jax.io.atomic import atomic_path
+from cusgs_jax.atomic import atomic_path
 
 __all__ = ["PlyError", "SplatModel", "read_ply", "write_ply", "ply_property_names"]
 

@@ -2,7 +2,7 @@
 
 :mod:`cusgs_jax.model.bake` turns the view-dependent Scaffold-GS Gaussians into one
 opacity, one covariance and a least-squares SH fit each; the averages cost
-0.5–2.3 dB of held-out PSNR. :func:`refine_splats` takes such a
+held-out PSNR (docs/export.md). :func:`refine_splats` takes such a
 :class:`~cusgs_jax.io.ply.SplatModel` (or any standard 3DGS PLY read with
 :func:`~cusgs_jax.io.read_ply`) and optimises it directly, as the 3DGS paper
 trains (Kerbl et al. 2023, §5 and graphdeco ``arguments/__init__.py``): the
@@ -70,12 +70,8 @@ class RefineSettings:
     3DGS over 30k steps, here over the refinement's steps), ``opacity_lr`` 0.05. The colour
     and shape rates are **4× 3DGS's**: SH DC 1e-2 (``feature_lr`` 2.5e-3), higher orders
     1e-2 / 20, scaling 2e-2 (5e-3), rotation 4e-3 (1e-3). A refinement has a few thousand
-    steps, not 30k, to move a bake's averaged shapes and colours. Measured after 1000 steps
-    from the bake (1500-step runs; held-out PSNR / training-view PSNR on 8 views): object
-    scene 3DGS's rates 30.67 / 32.07 dB, 2× 30.79 / 32.39, 4× 30.87 / 32.69, 8× 30.85 /
-    32.87; demo room 28.53 / 32.53, 2× 28.55 / 32.88, 4× 28.59 / 32.97
-    (benchmarks/results/refine/rates_1000_steps.json). 8× still lowers the training loss
-    but no longer the held-out error.
+    steps, not 30k, to move a bake's averaged shapes and colours; beyond 4× the training
+    loss still falls but the held-out error no longer does (docs/benchmarks.md#baking).
 
     Attributes:
       steps: optimisation steps (one training view each).

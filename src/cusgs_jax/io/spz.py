@@ -23,7 +23,7 @@ import pathlib
 import numpy as np
 
 from cusgs_jax.errors import UserError
-from cusgs_jax.io.atomic import atomic_path
+from cusgs_jax.atomic import atomic_path
 from cusgs_jax.io.ply import SplatModel
 
 __all__ = ["write_spz", "read_spz", "spz_fractional_bits", "require_gsply", "SPZ_INSTALL_HINT"]

@@ -15,15 +15,13 @@ leaves open made here:
   scene records them): opacity and shape are averaged over the training
   cameras whose frustum holds the anchor (the views the decoder was trained
   on for it, decoded from each camera's own position) instead of over the
-  sphere, whose other directions the MLPs were never trained on. Measured on
-  the 3000-step demo room (run 27.71 dB held-out): 27.21 dB with the cameras
-  that see the anchor, 27.14 with all training cameras, 25.63 with the sphere.
-  An anchor that no camera holds is averaged over every camera.
+  sphere, whose other directions the MLPs were never trained on (the cameras that
+  see the anchor beat all training cameras, which beat the sphere:
+  docs/benchmarks.md#baking). An anchor that no camera holds is averaged over every camera.
 * **Appearance.** The colour head's per-camera embedding is the **mean of the
   training embeddings**: an exported model is seen from views that are none of
   the training cameras, and the mean belongs to no camera in particular (the
-  held-out evaluation instead borrows the nearest training camera's; −0.03 dB
-  on the demo room, whose views share one lighting).
+  held-out evaluation instead borrows the nearest training camera's).
 * **Colour → SH.** Least squares per Gaussian and channel over the D sphere
   directions: ``c = B⁺ (colour − 0.5)`` with ``B = sh_basis(dirs)`` [D, K] and its
   pseudo-inverse computed once (:func:`sh_fit_matrix`), so that
@@ -32,33 +30,26 @@ leaves open made here:
   (tested), and well-posed on the whole sphere, where a fit to the few
   directions of the training cameras would leave the high orders free to swing
   between them. (Rendering the exact decoded geometry with these SH colours
-  loses nothing measurable on the demo room: 27.68 dB either way.)
+  loses nothing measurable: docs/benchmarks.md#baking.)
 * **Opacity.** ``tanh`` opacities ≤ 0 switch a Gaussian off. The baked opacity
   is the mean of ``max(o, 0)`` over the views (cameras, or sphere directions). A
   Gaussian that is on from few of them gets a small opacity instead of a full
-  one everywhere (600-step demo run, sphere views: this mean 23.66 dB, the mean
-  over the views where it is on 23.43, the self-weighted mean Σo²/Σo 22.95, the
-  maximum 21.23). A Gaussian whose opacity is ≤ ``min_opacity`` from every view
-  is dropped.
+  one everywhere (it scored above the mean over the views where it is on, the
+  self-weighted mean Σo²/Σo and the maximum: docs/benchmarks.md#baking). A
+  Gaussian whose opacity is ≤ ``min_opacity`` from every view is dropped.
 * **Scale and rotation.** The covariance head depends on the direction too, and
-  this is where the bake loses most. Measured on the 1500-step object scene
-  (``data/demo_objects.py``, COLMAP layout; run 31.32 dB held-out), swapping one
-  baked part at a time into the Gaussians decoded for each held-out view: SH
-  colours 31.22 dB (nothing lost), baked opacity 30.63, baked shape 29.71,
-  everything baked 29.00 (shape: the mean shape of :func:`mean_shape`, below).
+  this is where the bake loses most (swapping one baked part at a time into the
+  Gaussians decoded for each held-out view: docs/benchmarks.md#baking).
   **With training cameras** (the exporter's default) the baked shape is the
   moment-matched Gaussian, the mean of the decoded covariances
-  ``R diag(σ²) Rᵀ`` weighted by ``max(o, 0)`` (:func:`mean_covariance`): bake
-  29.00 → 29.51 dB on the object scene, 27.14 → 27.17 on the 1500-step demo room
-  (run 27.61), against the mean rotation and geometric-mean scales below
-  (arithmetic-mean scales 29.14, weights ``o²`` 29.07, the eigenvector
-  quaternion mean 29.00, on the object scene). **Over the sphere** the
-  mean shape is kept, as measured before the camera views existed: scales by their weighted geometric mean (the mean of
+  ``R diag(σ²) Rᵀ`` weighted by ``max(o, 0)`` (:func:`mean_covariance`), which
+  scored above the mean rotation with geometric-mean scales below, arithmetic-mean
+  scales, ``o²`` weights and the eigenvector quaternion mean. **Over the sphere**
+  the mean shape is kept: scales by their weighted geometric mean (the mean of
   log σ), rotations by the weighted mean of the unit quaternions, each first
   given the sign of the most opaque view's (q and −q are one rotation), then
-  normalised (:func:`mean_shape`); there the moment-matched covariance inflated
-  the ellipsoids that turn or change size with the view, and blurred
-  (600-step run, sphere: 23.49 dB against 23.66).
+  normalised (:func:`mean_shape`); there the moment-matched covariance inflates
+  the ellipsoids that turn or change size with the view, and blurs.
 * **Position** ``μ = x_v + Δx·exp(s[:3])`` does not depend on the view.
 
 Everything here is pure; :func:`bake_anchors` is jitted over a chunk of anchors.

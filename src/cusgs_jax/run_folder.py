@@ -1,0 +1,210 @@
+"""The run folder's contract: every file a run writes, and its two records, typed and versioned.
+
+A run folder (``outputs/<date>/<time>/``, or a sweep job's) holds:
+
+=========================  ==============================================================================
+``eval.json``              :class:`EvalRecord`: held-out metrics, size, time budget, compilations, protocol
+``metrics.jsonl``          the training log, one row per ``train.log_every`` steps
+``eval_curve.jsonl``       held-out PSNR (and feature errors) every ``eval.every`` steps
+``error_vs_time.png``      that curve against the training clock
+``renders/``, ``features/``  held-out renders and feature maps (PNG); ``features.md`` the feature metrics
+``checkpoints/``           orbax checkpoints, each with a :class:`CheckpointMeta` as its JSON metadata
+``feature_banks.npz``      the PSC banks of the feature models, for renderers without the scene
+``failed.json``            a sweep job that raised: its error and traceback
+=========================  ==============================================================================
+
+The trainer writes the records through :func:`write_eval` and :meth:`CheckpointMeta.to_json`; the
+readers (``cusgs-report``, ``load_trained`` and through it ``cusgs-export`` and ``cusgs-view``) read
+them through :func:`read_eval` and :meth:`CheckpointMeta.from_json`. Both records carry
+``version`` (:data:`VERSION`). A record without one was written before the contract (version 1, up
+to revision 7f1a80c): it reads, its newer fields None. A record of a newer version is refused with
+one line naming both versions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import pathlib
+from typing import Any
+
+from cusgs_jax.errors import UserError
+from cusgs_jax.atomic import atomic_path
+
+__all__ = ["VERSION", "EVAL_FILE", "METRICS_FILE", "CURVE_FILE", "PLOT_FILE", "RENDERS_DIR", "FEATURES_DIR",
+           "FEATURES_MD", "CHECKPOINTS_DIR", "BANKS_FILE", "FAILED_FILE", "EvalRecord", "CheckpointMeta",
+           "read_eval", "write_eval"]
+
+#: The run-folder version this code writes; it reads every version up to it (1: unversioned records).
+VERSION = 2
+
+EVAL_FILE = "eval.json"
+METRICS_FILE = "metrics.jsonl"
+CURVE_FILE = "eval_curve.jsonl"
+PLOT_FILE = "error_vs_time.png"
+RENDERS_DIR = "renders"
+FEATURES_DIR = "features"
+FEATURES_MD = "features.md"
+CHECKPOINTS_DIR = "checkpoints"
+BANKS_FILE = "feature_banks.npz"
+FAILED_FILE = "failed.json"
+
+
+def _version(data: dict, where: str) -> int:
+    version = data.get("version", 1)
+    if not isinstance(version, int) or version < 1:
+        raise UserError(f"{where}: version {version!r} is not a run-folder version (whole numbers from 1)")
+    if version > VERSION:
+        raise UserError(f"{where} was written by a newer cusgs-jax (run-folder version {version}; this one reads "
+                        f"versions 1-{VERSION}): upgrade cusgs-jax to read it")
+    return version
+
+
+def _split(cls, data: dict) -> tuple[dict, dict]:
+    """(the fields of dataclass ``cls`` found in ``data``, every other key)."""
+    names = {f.name for f in dataclasses.fields(cls)} - {"extra"}
+    return {k: v for k, v in data.items() if k in names}, {k: v for k, v in data.items() if k not in names}
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalRecord:
+    """``eval.json``. The fields every run writes are typed here; ``extra`` holds what a strategy or an
+    optional part adds at the top level (``prune``, ``render_ms_before_prune``, ``densify``, the LPIPS
+    keys ``lpips_vgg`` / ``lpips_alex``, ``features``), written flat beside them. Fields a version-1
+    record lacks are None."""
+
+    psnr: float | None = None
+    ssim: float | None = None
+    per_view: list | None = None
+    params: Any | None = None
+    alive_anchors: int | None = None
+    capacity: int | None = None
+    model_bytes: int | None = None
+    checkpoint_bytes: int | None = None
+    train_wall_s: float | None = None
+    render_ms_per_view: float | None = None
+    iterations: int | None = None
+    width: int | None = None
+    height: int | None = None
+    held_out_views: int | None = None
+    evaluated_on: str | None = None
+    dataset_format: str | None = None
+    split: str | None = None
+    background: list | None = None
+    curve: list = dataclasses.field(default_factory=list)
+    skipped_updates: int = 0
+    dropped_anchors: int = 0
+    dropped_gaussians: int = 0
+    dropped_pairs: int = 0
+    replayed_steps: int = 0
+    recompilations: int = 0
+    capacities: dict | None = None
+    voxel_size: float | None = None
+    world_transform: dict | None = None
+    batch_size: int = 1
+    devices: int = 1
+    camera_frame: str | None = None
+    initial_points: str | None = None
+    valid_pixels: float | None = None
+    # version 2
+    curve_clock: str | None = None
+    scene_digest: str | None = None
+    accelerator: dict | None = None
+    compilations: dict | None = None
+    time: dict | None = None
+    version: int = VERSION
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, data: dict, where: str = EVAL_FILE) -> EvalRecord:
+        """The record of a parsed ``eval.json`` (``where`` names it in messages); UserError for a newer
+        version. Every field may be absent (None): an unfinished or older record still reads."""
+        if not isinstance(data, dict):
+            raise UserError(f"{where} holds {type(data).__name__}, not the run's record (a JSON object)")
+        version = _version(data, where)
+        known, extra = _split(cls, data)
+        return cls(**{**known, "version": version}, extra=extra)
+
+    def to_json(self) -> dict:
+        """The JSON object ``eval.json`` holds: the fields, then ``extra`` flat beside them."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        return {**out, **self.extra}
+
+    def get(self, key: str, default=None):
+        """A field, or an ``extra`` key, by name (the dict-style access the report uses)."""
+        if key != "extra" and key in {f.name for f in dataclasses.fields(self)}:
+            return getattr(self, key)
+        return self.extra.get(key, default)
+
+
+def read_eval(folder: str | os.PathLike) -> EvalRecord | None:
+    """The run's :class:`EvalRecord`, or None when the run has not finished (no ``eval.json``).
+
+    Raises:
+      UserError: an unreadable or newer ``eval.json``, naming the file.
+    """
+    path = pathlib.Path(folder) / EVAL_FILE
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise UserError(f"{path} cannot be read ({type(e).__name__}: {e}): the run's record is damaged") from e
+    return EvalRecord.from_json(data, str(path))
+
+
+def write_eval(folder: str | os.PathLike, record: EvalRecord) -> pathlib.Path:
+    """Write ``eval.json`` whole (:func:`cusgs_jax.atomic.atomic_path`); returns its path."""
+    path = pathlib.Path(folder) / EVAL_FILE
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(record.to_json(), indent=1))
+    return path
+
+
+@dataclasses.dataclass(frozen=True)
+class CheckpointMeta:
+    """A checkpoint's JSON metadata: what resuming, ``cusgs-export`` and ``cusgs-view`` need besides the arrays.
+
+    ``config`` is the run's configuration as a dict; ``train_cameras`` / ``held_out_cameras`` are
+    ``{"viewmats", "Ks", "width", "height"[, "lens"]}`` in the normalised frame. Fields a version-1
+    record lacks are None; keys this version does not know are kept in ``extra``.
+    """
+
+    step: int | None = None
+    capacity: int | None = None
+    wall_s: float | None = None
+    curve: list = dataclasses.field(default_factory=list)
+    densify: dict | None = None
+    recompilations: int = 0
+    replays: int = 0
+    capacities: dict | None = None
+    voxel_size: float | None = None
+    world_transform: dict | None = None
+    config: dict | None = None
+    train_cameras: dict | None = None
+    held_out_cameras: dict | None = None
+    # version 2
+    scene_digest: str | None = None
+    version: int = VERSION
+    extra: dict = dataclasses.field(default_factory=dict)
+
+    @classmethod
+    def from_json(cls, data: dict, where: str = "checkpoint metadata") -> CheckpointMeta:
+        """The metadata of a parsed checkpoint (UserError for a newer version; absent fields are None)."""
+        if not isinstance(data, dict):
+            raise UserError(f"{where} holds {type(data).__name__}, not a checkpoint's metadata (a JSON object)")
+        version = _version(data, where)
+        known, extra = _split(cls, data)
+        return cls(**{**known, "version": version}, extra=extra)
+
+    def to_json(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        return {**out, **self.extra}
+
+    def get(self, key: str, default=None):
+        """A field (None counts as absent) or an ``extra`` key, by name."""
+        if key != "extra" and key in {f.name for f in dataclasses.fields(self)}:
+            value = getattr(self, key)
+            return default if value is None else value
+        return self.extra.get(key, default)
