@@ -30,7 +30,7 @@ from cusgs_jax.splat import rasterize  # noqa: E402
 from cusgs_jax.splat.lens import Lens  # noqa: E402
 
 KEYS = ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")
-LENSES = {  # the lens demo's OPENCV coefficients (data/demo_lens.py) and a mild fisheye; boxes wide enough
+LENSES = {  # the lens demo's OPENCV coefficients (data/demo/lens.py) and a mild fisheye; boxes wide enough
     "pinhole": None,
     "opencv": Lens(jnp.asarray([0.09, 0.02, 0, 0, 0.001, -0.0015], jnp.float32), jnp.asarray([-3.0, 3, -3, 3])),
     "fisheye": Lens(jnp.asarray([0.05, -0.01, 0.003, -0.001, 0, 0], jnp.float32), jnp.asarray([-3.0, 3, -3, 3]),

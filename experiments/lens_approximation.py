@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import pycolmap
 
-from cusgs_jax.data.demo_lens import lens_demo_path
+from cusgs_jax.data.demo.lens import lens_demo_path
 from cusgs_jax.data.layouts import load_any_scene
 from cusgs_jax.io import read_ply, recentre_splats, render_splats_exact, scene_camera
 from cusgs_jax.types import Camera

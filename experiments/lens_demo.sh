@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Issue 21: the demo room through a pinhole, an OPENCV and a SIMPLE_RADIAL lens (data.demo.lens, data/demo_lens.py),
+# Issue 21: the demo room through a pinhole, an OPENCV and a SIMPLE_RADIAL lens (data.demo.lens, data/demo/lens.py),
 # trained with identical settings (RGB only, 1500 steps: what CPU time allows), one run after another.
 # The distorted scenes are generated into the cache and undistorted on load: no manual step.
 #   bash experiments/lens_demo.sh [OUT]

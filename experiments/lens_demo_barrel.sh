@@ -11,7 +11,7 @@ PY=${PY:-.venv/bin/python}
 CACHE=${CUSGS_CACHE_DIR:-$HOME/.cache/cusgs_jax}
 SCENE=$OUT/control/barrel
 if [ ! -f "$SCENE/scene.json" ]; then
-  PYTHONPATH=src $PY -c "from cusgs_jax.data.demo_lens import write_lens_demo as w; w('$SCENE', 'SIMPLE_RADIAL', [128.0, 80.0, 60.0, -0.09], lens_name='barrel')"
+  PYTHONPATH=src $PY -c "from cusgs_jax.data.demo.lens import write_lens_demo as w; w('$SCENE', 'SIMPLE_RADIAL', [128.0, 80.0, 60.0, -0.09], lens_name='barrel')"
 fi
 name=barrel_lens_s0
 PYTHONPATH=src $PY -c "from cusgs_jax.app.train import main; main()" data.path="$SCENE" data.undistort=lens \

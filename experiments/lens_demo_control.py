@@ -25,8 +25,8 @@ import numpy as np
 import pycolmap
 
 from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.demo_lens import lens_demo_path, render_lens_view
-from cusgs_jax.data.demo_render import build_scene
+from cusgs_jax.data.demo.lens import lens_demo_path, render_lens_view
+from cusgs_jax.data.demo.render import build_scene
 from cusgs_jax.data.undistort import undistorted_cameras
 
 

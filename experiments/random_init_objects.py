@@ -1,6 +1,6 @@
 """Random initial points vs SfM points on an object-centric capture (issue 21).
 
-Writes the demo's furniture group without the room (:mod:`cusgs_jax.data.demo_objects`: RGBA, no
+Writes the demo's furniture group without the room (:mod:`cusgs_jax.data.demo.objects`: RGBA, no
 walls or floor, 70 views on the upper hemisphere, 128×128) twice from the same renders — Blender
 layout (60 train / 10 test, no points → ``data.random_points`` uniform points) and COLMAP layout
 (the same images on white, SfM-style surface points; ``data.holdout_every=7`` holds out the same 10
@@ -20,7 +20,7 @@ import pathlib
 import subprocess
 import sys
 
-from cusgs_jax.data.demo_objects import generate_object_scenes
+from cusgs_jax.data.demo.objects import generate_object_scenes
 
 COMMON = ["train.iterations=1500", "features=none", "train.progress=false", "eval.save_renders=false"]
 

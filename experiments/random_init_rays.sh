@@ -11,7 +11,7 @@ OUT=$(realpath -m "${1:-experiments/results/random_init_rays}")
 mkdir -p "$OUT/scenes"
 [ -f "$OUT/scenes/room/transforms_train.json" ] || python experiments/random_init_blender.py "$OUT/scenes/room"
 [ -f "$OUT/scenes/objects/blender/scene.json" ] || python -c \
-  "import sys; from cusgs_jax.data.demo_objects import generate_object_scenes as g; g(sys.argv[1])" "$OUT/scenes/objects"
+  "import sys; from cusgs_jax.data.demo.objects import generate_object_scenes as g; g(sys.argv[1])" "$OUT/scenes/objects"
 SEED_ARGS=(); TAG=""
 if [ -n "${SEED-}" ]; then SEED_ARGS=("train.seed=$SEED"); TAG="_s$SEED"; fi
 run() {  # name, then overrides

@@ -48,14 +48,14 @@ RANDOM_INITS = ("auto",) + RANDOM_POINT_RULES  # data.random_init: a rule, or au
 @dataclasses.dataclass(frozen=True)
 class DemoConfig:
     """The built-in demo scene (used when ``data.path`` is null). ``lens``: the lens it is ray cast
-    through (:mod:`cusgs_jax.data.demo_lens`): ``pinhole`` (the demo), ``opencv`` or ``simple_radial``
+    through (:mod:`cusgs_jax.data.demo.lens`): ``pinhole`` (the demo), ``opencv`` or ``simple_radial``
     (distorted COLMAP cameras, undistorted on load)."""
 
     views: int = 30
     width: int = 160
     height: int = 120
     seed: int = 0
-    lens: str = "pinhole"  # pinhole | opencv | simple_radial (data/demo_lens.py LENSES)
+    lens: str = "pinhole"  # pinhole | opencv | simple_radial (data/demo/lens.py LENSES)
 
     def __post_init__(self):
         _at_least(self, "data.demo", 2, "views", "width", "height")

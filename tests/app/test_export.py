@@ -248,7 +248,7 @@ def test_run_scene_of_a_lens_demo_run(tmp_path, monkeypatch):
     from types import SimpleNamespace
 
     from cusgs_jax.app.export import _run_scene
-    from cusgs_jax.data.demo_lens import lens_demo_path
+    from cusgs_jax.data.demo.lens import lens_demo_path
 
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path))
     cfg = compose_config(["data.demo.lens=simple_radial", "data.demo.views=2", "data.demo.width=32",

@@ -118,7 +118,7 @@ def test_undistort_mask_keeps_the_frame_and_scores_its_valid_pixels(scene_and_pl
     """--undistort mask on the demo through a SIMPLE_RADIAL lens (same poses and points as the scene of the
     PLY): the full 32x24 frame, scored on its valid pixels, as well as the pinhole scene is (the same
     Gaussians, the same views); --undistort crop scores a smaller image."""
-    from cusgs_jax.data.demo_lens import lens_camera, write_lens_demo
+    from cusgs_jax.data.demo.lens import lens_camera, write_lens_demo
 
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
     scene_dir, ply = scene_and_ply
@@ -140,7 +140,7 @@ def test_undistort_lens_renders_through_the_lens_over_the_whole_frame(scene_and_
     """--undistort lens on the demo through an OPENCV lens: the PLY (fitted to the pinhole scene) is drawn
     through the lens itself and scored on every pixel of the images as captured, about as well as on the
     pinhole scene."""
-    from cusgs_jax.data.demo_lens import lens_camera, write_lens_demo
+    from cusgs_jax.data.demo.lens import lens_camera, write_lens_demo
 
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "cache"))
     scene_dir, ply = scene_and_ply

@@ -11,7 +11,7 @@ import pytest
 
 from cusgs_jax.data import demo
 from cusgs_jax.data.demo import FORMAT_VERSION, demo_scene_path, generate_demo_scene
-from cusgs_jax.data.demo_render import TABLE_CENTRE
+from cusgs_jax.data.demo.render import TABLE_CENTRE
 
 TINY = dict(num_views=6, width=40, height=30)
 # 6 views spaced 60 degrees apart see little of the room twice at 40x30, so sample more

@@ -1,4 +1,4 @@
-"""The demo room through a distorting lens (cusgs_jax.data.demo_lens), at a tiny size.
+"""The demo room through a distorting lens (cusgs_jax.data.demo.lens), at a tiny size.
 
 The strongest check is end to end: the lens images, undistorted by the COLMAP loader, must show
 what a pinhole camera with the undistorted intrinsics sees from the same pose (the pinhole demo's
@@ -21,9 +21,9 @@ pycolmap = pytest.importorskip("pycolmap")
 from cusgs_jax.config import DemoConfig  # noqa: E402
 from cusgs_jax.data.colmap import load_scene  # noqa: E402
 from cusgs_jax.data.demo import generate_demo_scene  # noqa: E402
-from cusgs_jax.data.demo_lens import (LENSES, configured_demo, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
+from cusgs_jax.data.demo.lens import (LENSES, configured_demo, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
                                       render_lens_view, write_lens_demo)
-from cusgs_jax.data.demo_render import build_scene, render_view  # noqa: E402
+from cusgs_jax.data.demo.render import build_scene, render_view  # noqa: E402
 
 TINY = dict(num_views=3, width=64, height=48, num_points=800)
 # Mean |difference| (0-255) of the undistorted lens image and the pinhole render, both blurred with

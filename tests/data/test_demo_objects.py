@@ -1,4 +1,4 @@
-"""The object-centric demo capture (cusgs_jax.data.demo_objects) on a tiny version: 14 views at 32x24."""
+"""The object-centric demo capture (cusgs_jax.data.demo.objects) on a tiny version: 14 views at 32x24."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from cusgs_jax.data.blender import load_blender_scene
 from cusgs_jax.data.colmap import load_scene
-from cusgs_jax.data.demo_objects import OBJECTS, composite_white, generate_object_scenes
+from cusgs_jax.data.demo.objects import OBJECTS, composite_white, generate_object_scenes
 
 
 @pytest.fixture(scope="module")

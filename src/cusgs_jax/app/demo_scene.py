@@ -1,5 +1,5 @@
 """``cusgs-demo-scene``: generate the synthetic demo room (:mod:`cusgs_jax.data.demo`) as a
-COLMAP scene folder, through a pinhole or a distorting lens (``--lens``, :mod:`cusgs_jax.data.demo_lens`)."""
+COLMAP scene folder, through a pinhole or a distorting lens (``--lens``, :mod:`cusgs_jax.data.demo.lens`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import time
 from collections.abc import Sequence
 
 from cusgs_jax.data.demo import generate_demo_scene
-from cusgs_jax.data.demo_lens import LENSES, lens_camera, write_lens_demo
+from cusgs_jax.data.demo.lens import LENSES, lens_camera, write_lens_demo
 
 __all__ = ["main"]
 

@@ -30,7 +30,7 @@ import pathlib
 from collections.abc import Sequence
 
 from cusgs_jax.app.argtypes import int_at_least, number_in
-from cusgs_jax.data.demo_lens import configured_demo
+from cusgs_jax.data.demo.lens import configured_demo
 from cusgs_jax.data.loader import load_scene
 from cusgs_jax.errors import UserError
 

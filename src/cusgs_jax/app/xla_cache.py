@@ -18,7 +18,7 @@ import pathlib
 
 import jax
 
-from cusgs_jax.data.demo import default_cache_dir
+from cusgs_jax.cache import default_cache_dir
 
 log = logging.getLogger("cusgs_jax")
 

@@ -13,7 +13,7 @@ import os
 import pathlib
 
 from cusgs_jax.config import DataConfig
-from cusgs_jax.data.demo_lens import configured_demo
+from cusgs_jax.data.demo.lens import configured_demo
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import scaled_size
 from cusgs_jax.data.layouts import load_any_scene

@@ -41,7 +41,7 @@ origin assumed:
 (:func:`cusgs_jax.model.anchors.auto_voxel_size`, the rule for SfM points): for N uniform points in a cube
 of side 2h that spacing is ``2h·(3 ln 2 / 4πN)^{1/3}`` — it says how many points were drawn, not how
 fine the scene is (0.0151 × the extent for 10 000 points on the demo objects of
-:mod:`cusgs_jax.data.demo_objects`, 6.6 × the 0.0023 that their SfM points give). Instead
+:mod:`cusgs_jax.data.demo.objects`, 6.6 × the 0.0023 that their SfM points give). Instead
 (:func:`random_voxel_size`, used when ``SceneData.random_points`` is set): **half a pixel's footprint at
 the distance the cameras look at**, ``0.5 × median_i ‖x − C_i‖ / median_i f_i`` (``x`` the centre above,
 ``f_i = max(fx, fy)`` in pixels). On the demo objects (128 px, distance 4.5, FoV 0.69) it is 0.0127 m =

@@ -90,7 +90,7 @@ from typing import Any
 
 import numpy as np
 
-from cusgs_jax.data.demo import default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
+from cusgs_jax.cache import default_cache_dir  # $CUSGS_CACHE_DIR or ~/.cache/cusgs_jax
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import downscale_mask, scaled_size
 

@@ -52,7 +52,7 @@ import numpy as np
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.loader import load_scene
-from cusgs_jax.data.demo_lens import LENS_MAPS, MASKED_MAPS  # the lens demo's maps in the masked / lens frame
+from cusgs_jax.data.demo.lens import LENS_MAPS, MASKED_MAPS  # the lens demo's maps in the masked / lens frame
 from cusgs_jax.data.features import (
     META_FILE,
     FeatureError,

@@ -27,11 +27,11 @@ Folder layout written by :func:`generate_demo_scene`::
     OUT/objects.json                 [{"id", "name", "texture", "boxes"}, ...]
     OUT/scene.json                   generation parameters and summary
 
-Modules: this one (generation, cache folder), :mod:`.demo_render` (room geometry, textures, ray
-casting, cameras), :mod:`.demo_colmap` (SfM-like points, observations, COLMAP writing); the
-``cusgs-demo-scene`` command is :mod:`cusgs_jax.app.demo_scene`. :mod:`.demo_objects` renders the
+Modules: this one (generation, cache folder), :mod:`.demo.render` (room geometry, textures, ray
+casting, cameras), :mod:`.demo.sfm` (SfM-like points, observations, COLMAP writing); the
+``cusgs-demo-scene`` command is :mod:`cusgs_jax.app.demo_scene`. :mod:`.demo.objects` renders the
 furniture without the room, with alpha, from the upper hemisphere, in Blender and COLMAP layouts
-(an object-centric scene for random initialisation); :mod:`.demo_lens` renders the room
+(an object-centric scene for random initialisation); :mod:`.demo.lens` renders the room
 through a distorting COLMAP lens (``data.demo.lens``).
 """
 
@@ -47,8 +47,9 @@ import warnings
 
 import numpy as np
 
-from cusgs_jax.data.demo_colmap import write_sfm_model
-from cusgs_jax.data.demo_render import (
+from cusgs_jax.cache import default_cache_dir
+from cusgs_jax.data.demo.sfm import write_sfm_model
+from cusgs_jax.data.demo.render import (
     ROOM,
     TABLE_CENTRE,
     build_scene,
@@ -88,7 +89,7 @@ def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120,
     if num_views < 2 or width < 2 or height < 2 or num_points < 1:
         raise ValueError("need num_views >= 2, width/height >= 2 and num_points >= 1")
     out = pathlib.Path(out_dir)
-    _clear_outputs(out, overwrite)
+    clear_outputs(out, overwrite)
 
     t0 = time.perf_counter()
     scene = build_scene()
@@ -116,7 +117,7 @@ def generate_demo_scene(out_dir, *, seed=0, num_views=30, width=160, height=120,
     return out
 
 
-def _clear_outputs(out: pathlib.Path, overwrite: bool) -> None:
+def clear_outputs(out: pathlib.Path, overwrite: bool) -> None:
     """Remove the scene entries (_OUTPUTS) already in ``out``; FileExistsError if there are any
     and not ``overwrite``. Nothing else in the folder is touched."""
     existing = [e for e in _OUTPUTS if (out / e).exists()]
@@ -145,12 +146,6 @@ def _write_views(out: pathlib.Path, scene, poses, names, width, height, K):
         depths.append(depth)
         face_maps.append(faces)
     return depths, face_maps
-
-
-def default_cache_dir() -> pathlib.Path:
-    """``$CUSGS_CACHE_DIR``, or ``~/.cache/cusgs_jax`` when unset."""
-    env = os.environ.get("CUSGS_CACHE_DIR")
-    return pathlib.Path(env) if env else pathlib.Path.home() / ".cache" / "cusgs_jax"
 
 
 def write_view_files(out: pathlib.Path, name: str, image: np.ndarray, depth: np.ndarray, obj: np.ndarray) -> None:

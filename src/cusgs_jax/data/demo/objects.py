@@ -15,7 +15,7 @@ twice, so a run on each differs only in how it is initialised:
     exactly as the Blender loader composites them (``round(rgb·a + 255·(1 − a))``, so both loaders
     give byte-identical images) — and ``sparse/0/`` with one PINHOLE camera of the same focal
     length and SfM-style points sampled on the visible object surfaces (seen in ≥ 2 views, from all
-    views, as SfM would; :mod:`cusgs_jax.data.demo_colmap`).
+    views, as SfM would; :mod:`cusgs_jax.data.demo.sfm`).
 
 View ``k`` (of ``num_views``) is ``view_{k:03d}.png`` in COLMAP and ``r_{k:03d}.png`` in Blender;
 the held-out views are those with ``k % holdout_every == 0`` — exactly what the COLMAP loader holds
@@ -41,20 +41,20 @@ import warnings
 
 import numpy as np
 
-from cusgs_jax.data.demo_colmap import write_sfm_model
-from cusgs_jax.data.demo_render import camera_rays, look_at, build_scene, cast_rays, surface_colour
+from cusgs_jax.data.demo.sfm import write_sfm_model
+from cusgs_jax.data.demo.render import camera_rays, look_at, build_scene, cast_rays, surface_colour
 
 __all__ = ["OBJECTS", "ANGLE_X", "build_objects_scene", "object_cameras", "render_rgba",
            "generate_object_scenes"]
 
-# The furniture group around the table (names of demo_render._OBJECTS).
+# The furniture group around the table (names of demo.render._OBJECTS).
 OBJECTS = ("table_top", "table_legs", "box_cat", "box_tall", "box_flat", "box_floor", "chair")
 ANGLE_X = 0.6911112070083618  # NeRF-synthetic's camera_angle_x
 _SUBSAMPLES = [(0.25, 0.25), (0.75, 0.25), (0.25, 0.75), (0.75, 0.75)]
 
 
 def build_objects_scene():
-    """The demo scene (:func:`~cusgs_jax.data.demo_render.build_scene`) reduced to :data:`OBJECTS`:
+    """The demo scene (:func:`~cusgs_jax.data.demo.render.build_scene`) reduced to :data:`OBJECTS`:
     the room box and every other object's boxes (and their six faces each) removed; face ids are
     re-indexed ``6 * box + ...`` over the kept boxes, object ids, textures and shading unchanged."""
     full = build_scene()
@@ -173,7 +173,7 @@ def generate_object_scenes(out_dir, *, num_views: int = 70, holdout_every: int =
     names = [f"view_{k:03d}.png" for k in range(num_views)]
     xyz, visible = write_sfm_model(colmap / "sparse" / "0", scene, poses, K, width, height, names, depths, face_maps,
                                    num_points, seed)
-    info = {"generator": "cusgs_jax.data.demo_objects", "objects": list(OBJECTS), "num_views": num_views,
+    info = {"generator": "cusgs_jax.data.demo.objects", "objects": list(OBJECTS), "num_views": num_views,
             "holdout_every": holdout_every, "width": width, "height": height, "radius": radius,
             "camera_angle_x": ANGLE_X, "seed": seed, "num_points": int(xyz.shape[0]),
             "centre": centre.tolist(), "train": train, "test": test}

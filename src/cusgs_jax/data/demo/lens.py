@@ -12,7 +12,7 @@ then line up with the undistorted images. The maps of the other two loading mode
 ``masked/`` (:data:`MASKED_MAPS`, the frame of ``data.undistort=mask``) and ``lens/`` (:data:`LENS_MAPS`,
 the images as captured, for ``data.undistort=lens``: the pixel-centre rays of the lens itself). The SfM points and their tracks are the pinhole
 demo's (same seed → the same points), with every keypoint the lens's projection of its point
-(:func:`cusgs_jax.data.demo_colmap.write_sfm_model`). The folder is the demo's layout
+(:func:`cusgs_jax.data.demo.sfm.write_sfm_model`). The folder is the demo's layout
 (:mod:`cusgs_jax.data.demo`) with ``sparse/0/cameras.bin`` holding the lens's model, so the COLMAP
 loader treats it like any distorted capture: rendered through the lens (``data.undistort=lens``, the
 default) or undistorted (:mod:`cusgs_jax.data.undistort`).
@@ -38,18 +38,18 @@ import time
 
 import numpy as np
 
-from cusgs_jax.data.demo import (
+from cusgs_jax.cache import default_cache_dir
+from cusgs_jax.data.demo.room import (
     FOCAL_FACTOR,
-    _clear_outputs,
     cached_scene,
-    default_cache_dir,
+    clear_outputs,
     demo_scene_folder,
     demo_scene_path,
     write_view_files,
     write_view_maps,
 )
-from cusgs_jax.data.demo_colmap import write_sfm_model
-from cusgs_jax.data.demo_render import build_scene, cast_rays, make_cameras, mean_colour, render_view
+from cusgs_jax.data.demo.sfm import write_sfm_model
+from cusgs_jax.data.demo.render import build_scene, cast_rays, make_cameras, mean_colour, render_view
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras
 
 __all__ = ["LENSES", "LENS_MAPS", "MASKED_MAPS", "configured_demo", "lens_camera", "lens_demo_folder", "lens_demo_path", "render_lens_view",
@@ -143,7 +143,7 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
     masked = undistorted_cameras({1: camera}, mode="mask")[1] if distorted else None
     K_loaded = _intrinsics(loaded)
     out = pathlib.Path(out_dir)
-    _clear_outputs(out, overwrite)
+    clear_outputs(out, overwrite)
 
     t0 = time.perf_counter()
     scene = build_scene()
@@ -173,7 +173,7 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
     (out / "objects.json").write_text(json.dumps(scene.objects, indent=1) + "\n")
     track_len = visible.sum(axis=0)
     info = {
-        "generator": "cusgs_jax.data.demo_lens", "format_version": LENS_FORMAT_VERSION,
+        "generator": "cusgs_jax.data.demo.lens", "format_version": LENS_FORMAT_VERSION,
         "lens": lens_name, "seed": seed, "num_views": num_views, "width": width, "height": height,
         "num_points_sampled": num_points, "num_points": int(xyz.shape[0]),
         "mean_track_length": float(track_len.mean()) if track_len.size else 0.0,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cusgs_jax.data.demo_render import cast_rays, surface_colour
+from cusgs_jax.data.demo.render import cast_rays, surface_colour
 
 __all__ = ["observe", "sample_points", "write_colmap", "write_sfm_model"]
 
@@ -134,7 +134,7 @@ def write_sfm_model(sparse_dir, scene, poses, K, width, height, names, depths, f
     [V, H, W]. With ``lens = (COLMAP model name, params)`` the model's camera is that lens instead
     and every keypoint is the lens's projection of its point (``img_from_cam``; it may then lie
     just outside the image, where the lens sees less than the pinhole): the same points and
-    tracks, seen through another camera (:mod:`cusgs_jax.data.demo_lens`).
+    tracks, seen through another camera (:mod:`cusgs_jax.data.demo.lens`).
 
     Returns:
       (xyz [P, 3] kept points, visible [V, P] bool observations).
