@@ -10,7 +10,7 @@ import pytest
 
 from cusgs_jax.config import Config, DecoderConfig, FeatureConfig, FeatureModelConfig, GrowConfig, ModelConfig
 from cusgs_jax.densify.factory import make_strategies
-from cusgs_jax.model.anchors import AnchorParams, AnchorState
+from cusgs_jax.model.anchors import AnchorParams
 from cusgs_jax.model.bake import bake_anchors, fibonacci_sphere, sh_fit_matrix
 from cusgs_jax.model.decode import decode_gaussians, init_decoder
 from cusgs_jax.splat import rasterize

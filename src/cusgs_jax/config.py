@@ -1,15 +1,11 @@
 """Configuration: frozen dataclasses, the ONLY place a default value is written.
 
-``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the
-3000-step demo schedule). Hydra's schema is built from the same classes
-(:class:`HydraSchema`, registered in its ConfigStore as ``base_config`` by :func:`register_configs`),
-``conf/config.yaml`` composes it first, and the YAML group options under
-``conf/`` (``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps)
-hold only *overrides* of these values. Unknown keys and values of the wrong
-type are rejected by Hydra against this schema.
-
-Configuration is closed over by factories (``make_train_step(cfg, …)``) and
-never traced; the frozen classes make that safe.
+``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the 3000-step demo schedule). Hydra's
+schema is built from the same classes (:class:`HydraSchema`, registered as ``base_config`` by
+:func:`register_configs`), ``conf/config.yaml`` composes it first, and the YAML group options under ``conf/``
+(``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps) hold only *overrides* of these values.
+Unknown keys and values of the wrong type are rejected by Hydra against this schema. Configuration is closed
+over by factories (``make_train_step(cfg, …)``) and never traced; the frozen classes make that safe.
 
 Fields hold what their type says; :func:`from_dict`, which every composed or stored configuration
 passes, converts the two YAML spellings of :data:`YAML_SPELLINGS`: ``model.voxel_size=auto`` → None,
@@ -35,10 +31,7 @@ from cusgs_jax.errors import ConfigError
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
-# data.undistort, and the frame a scene's images are in wherever it is recorded (SceneData.camera_frame, eval.json's
-# camera_frame, a feature set's meta): "crop" (pinhole images: as captured, or undistorted and cropped), "mask"
-# (undistorted in the source frame, invalid pixels masked), "lens" (as captured, rendered through the lens).
-CAMERA_FRAMES = ("crop", "mask", "lens")
+CAMERA_FRAMES = ("crop", "mask", "lens")  # data.undistort; a scene's camera_frame (data/scene_data.py)
 MATMUL_PRECISIONS = ("highest", "default")  # model.matmul_precision (cusgs_jax/precision.py)
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
@@ -79,16 +72,12 @@ class DataConfig:
     # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
     align: str = "none"
     random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
-    # Where those points go (data/random_points.py): "cube" (3DGS's cube, sized to what the cameras look at),
-    # "cube_and_rays" (half there, half along the training rays: reaches the walls of a room-scale capture) or
-    # "auto": cube for Blender scenes (object-centric, NeRF-synthetic's protocol), cube_and_rays for nerfstudio
-    # scenes without a PLY (real captures). Their scores: experiments/README.md (random_init_rays.sh).
+    # Where those points go (data/random_points.py): "cube" (3DGS's), "cube_and_rays" (half along the training rays:
+    # a room's walls) or "auto": cube for Blender scenes, cube_and_rays for nerfstudio scenes without a PLY.
     random_init: str = "auto"
-    # Distorted cameras: "lens" (default) keeps the images as captured and rasterises through the lens model
-    # (splat/lens.py: no resampling blur, every pixel trained and scored; against the pinhole demo:
-    # experiments/README.md); "crop" undistorts to the largest valid rectangle (data/undistort.py,
-    # COLMAP's image_undistorter, as gsplat and nerfstudio do: scores comparable with published ones); "mask"
-    # undistorts to the source frame and leaves its invalid pixels out of the loss, the metrics and the targets.
+    # Distorted cameras: "lens" keeps the images and rasterises through the lens (splat/lens.py: no resampling blur);
+    # "crop" undistorts to the largest valid rectangle (data/undistort.py, COLMAP's undistorter, as gsplat does);
+    # "mask" undistorts to the source frame and leaves its invalid pixels out of the loss, metrics and targets.
     undistort: str = "lens"
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
@@ -129,9 +118,7 @@ class TrainOptions:
     viewer: bool = False  # serve a live web viewer of the model while training (cusgs_jax/view/live.py)
     viewer_port: int = 8080  # 0: a free port (the address is logged)
     viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
-    # JAX's persistent compilation cache (app/xla_cache.py): "auto" = $CUSGS_CACHE_DIR/xla or ~/.cache/cusgs_jax/xla
-    # (or the folder this process already uses), a folder, or None (null: off). It holds compiled code.
-    compilation_cache: Optional[str] = "auto"
+    compilation_cache: Optional[str] = "auto"  # persistent XLA cache: auto, a folder or None (app/xla_cache.py)
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,
@@ -191,9 +178,8 @@ class ModelConfig:
     visible_fraction: float = 0.6
     # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
     query_granularity: str = "per_anchor"
-    # Matmul precision of the networks (decoder and query heads; cusgs_jax/precision.py): "highest" gives the
-    # same numbers on every backend; "default" lets the backend choose (TF32 on NVIDIA GPUs since Ampere).
-    # Geometry is at full float32 whatever this says.
+    # The networks' matmuls (precision.py): "highest" = the same numbers on every backend; "default" = the
+    # backend's choice (TF32 on NVIDIA GPUs since Ampere). Geometry is at full float32 whatever this says.
     matmul_precision: str = "highest"
 
     def __post_init__(self):

@@ -1,24 +1,10 @@
 """The training run (imperative shell): setup → loop → finalise.
 
-``run(cfg, output_dir)`` takes a :class:`cusgs_jax.config.Config` and writes into ``output_dir``:
-
-* ``metrics.jsonl`` — step, wall seconds, loss, train PSNR, alive anchors, ``dropped_anchors``,
-  ``dropped_gaussians`` and ``dropped_pairs`` (0 by construction: a step that would drop work is replayed with larger
-  capacities, :mod:`cusgs_jax.training.capacity`), ``pruned`` (feature-aware pruning), ``densify``
-  ({strategy name: :class:`cusgs_jax.densify.base.Tally` as a dict}), … (a resumed run first drops the rows after
-  the restored step, so steps stay unique and increasing)
-* ``eval_curve.jsonl`` — held-out PSNR (and feature errors) every ``eval.every`` steps with wall seconds
-* ``eval.json`` — per-view and mean PSNR/SSIM (and LPIPS ``lpips_vgg`` / ``lpips_alex`` with the
-  ``lpips`` extra), model size (``model_bytes``: parameters and PSC banks, no optimiser state; and
-  ``checkpoint_bytes``), times, pruning summary (``prune``, ``render_ms_before_prune``; ``densify``: every
-  strategy's tally), the scene's layout (``dataset_format``: colmap, blender, nerfstudio), its held-out
-  ``split`` (``every_8th``, ``transforms_test``, ``none``) and the ``background`` rendered on
-* ``renders/`` — held-out renders beside ground truth (PNG)
-* ``error_vs_time.png`` — held-out PSNR against training wall-clock time
-* ``checkpoints/`` — orbax checkpoints (periodic and final); their metadata records the training and
-  held-out cameras
-* ``feature_banks.npz`` — the PSC banks of the feature models ({model: [M, D]}), for renderers that
-  read the run folder without the scene (``cusgs-view``)
+``run(cfg, output_dir)`` takes a :class:`cusgs_jax.config.Config` and writes the run folder that
+:mod:`cusgs_jax.run_folder` describes: the training log (``metrics.jsonl``: a step that would drop work
+is replayed with larger capacities, :mod:`cusgs_jax.training.capacity`, so its ``dropped_*`` are 0;
+a resumed run first drops the rows after the restored step), the held-out curve, ``eval.json``
+(:class:`~cusgs_jax.run_folder.EvalRecord`), renders, checkpoints and the PSC banks.
 
 The shell names no concrete strategy: it calls every strategy's hooks the same way
 (:class:`cusgs_jax.densify.base.Strategy`: ``due``, ``before_first_update``, ``update`` → ``UpdateInfo``,
@@ -29,9 +15,8 @@ with its alive mask, at the step's work capacities (with feature models, the fea
 RGB is the evaluated image), so an evaluation compiles again only when the anchor capacity changes
 (the step recompiles then too), never because the model grew inside it.
 
-``eval.json`` also holds ``time`` (seconds per stage, :mod:`cusgs_jax.app.budget`) and
-``compilations`` (every XLA compilation of the run: count, seconds, by function,
-:mod:`cusgs_jax.app.compiles`); the log's last line prints the time budget.
+``eval.json``'s ``time`` (seconds per stage, :mod:`cusgs_jax.app.budget`) and ``compilations`` (every
+XLA compilation: count, seconds, by function, :mod:`cusgs_jax.app.compiles`) close the log too.
 
 The run trains in the normalised world frame of :mod:`cusgs_jax.data.normalize`
 (``eval.json`` records the transform as ``world_transform``), so lengths in the
@@ -44,7 +29,6 @@ import dataclasses
 import functools
 import json
 import logging
-import math
 import pathlib
 import time
 from collections.abc import Callable
@@ -56,15 +40,17 @@ import optax
 from tqdm import tqdm
 
 from cusgs_jax.app.accelerator import accelerator_record
+from cusgs_jax.app.alarms import loss_alarms
 from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.compiles import CompileLog
+from cusgs_jax.app.resume import require_not_past, resume
 from cusgs_jax.app.xla_cache import use_compilation_cache
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
-from cusgs_jax.data.identity import same_cameras, scene_digest
+from cusgs_jax.data.identity import scene_digest
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
 from cusgs_jax.densify import ops
@@ -93,8 +79,6 @@ from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_mod
 log = logging.getLogger("cusgs_jax")
 STEP_FUNCTION = "jit(train_step)"  # the jitted step's name in the compile log (training/step.py)
 EVAL_RENDER_FUNCTIONS = ("jit(render_rgb)", "jit(render_rgb_features)")  # training/render.py
-LOSS_ALARM = 1.0  # 0.8·L1 + 0.2·(1 − SSIM) of images in [0, 1] starts near 0.3 and stays below ~1
-FEATURE_L2_ALARM = 100.0  # mean squared error per feature component; the extractors' targets keep it below ~10
 
 
 @dataclasses.dataclass
@@ -156,7 +140,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     require(cfg.train.resume or latest is None, "train.resume", False,
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
-    _require_not_past(cfg, latest, ckpt.directory)
+    require_not_past(cfg, latest, ckpt.directory)
     with budget.stage("load"):
         cfg = dataclasses.replace(cfg, features=run_features(cfg))
         scene, world = load_data(cfg)
@@ -193,7 +177,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
         session.capacities = _fitted_capacities(session)
     if cfg.train.resume:
         with budget.stage("checkpoints"):
-            _resume(session)
+            resume(session)
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
@@ -245,70 +229,6 @@ def _output_folder(output_dir) -> pathlib.Path:
 def _spread(indices: np.ndarray, count: int) -> np.ndarray:
     """Up to ``count`` entries of ``indices`` spread evenly over it."""
     return indices[np.unique(np.linspace(0, len(indices) - 1, min(count, len(indices))).round().astype(int))]
-
-
-def _resume(session: Session) -> None:
-    """Restore the newest checkpoint that restores cleanly and trim the logs to its step."""
-    def template(meta: dict):
-        fresh, saved = session.state, int(meta["capacity"])
-        if saved == fresh.anchors.capacity:
-            return fresh
-        if saved > fresh.anchors.capacity:
-            return ops.grow_capacity(fresh, session.tx, saved)
-        return ops.resize_capacity(fresh, session.tx, saved, keep=np.arange(saved))  # shapes only: restored over
-
-    session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
-    step = int(session.state.step)
-    meta = CheckpointMeta.from_json(meta, f"checkpoint {session.ckpt.directory / str(step)}")  # run_folder.py
-    _require_same_scene(session, meta, step)
-    _require_not_past(session.cfg, step, session.ckpt.directory)
-    session.capacities = session.capacities.restored(meta.capacities)
-    session.clock = Clock(float(meta.wall_s))
-    session.curve = list(meta.curve)
-    session.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
-    if meta.densify is None and "prune" in meta.extra:  # written before the strategies kept tallies
-        log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
-                    "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
-    session.recompilations = int(meta.recompilations or 0)
-    session.replays = int(meta.replays or 0)
-    _trim_jsonl(session.out / METRICS_FILE, step)
-    _trim_jsonl(session.out / CURVE_FILE, step)
-    log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
-
-
-def _require_same_scene(session: Session, meta: CheckpointMeta, step: int) -> None:
-    """A resumed run continues on the scene it was trained on: refuse another one (its recorded training
-    cameras, :func:`cusgs_jax.data.identity.same_cameras`), even one with as many views."""
-    recorded = meta.train_cameras
-    if not recorded:  # a checkpoint written before the cameras were recorded: nothing to compare
-        return
-    scene, idx = session.scene, session.train_idx
-    differs = same_cameras(recorded, scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
-    if differs is None:
-        return
-    trained_on = (meta.config or {}).get("data", {}).get("path") or "the built-in demo scene"
-    require(False, "data.path", session.cfg.data.path or "the built-in demo scene",
-            f"is not the scene the checkpoint of step {step} in {session.ckpt.directory} was trained on "
-            f"({trained_on}): its cameras differ ({differs})",
-            "resume with the run's own scene and settings, or train this scene in a new folder (hydra.run.dir=...)")
-
-
-def _require_not_past(cfg: Config, step: int | None, directory) -> None:
-    """A resumed run cannot train backwards: refuse a checkpoint already past ``train.iterations``."""
-    require(not cfg.train.resume or step is None or step <= cfg.train.iterations, "train.iterations",
-            cfg.train.iterations, f"the run to resume in {directory} is already at step {step}, past the asked "
-            "iterations (resuming cannot undo steps, and its eval.json would report a model of more steps)",
-            f"set train.iterations={step} or more to continue it, or train {cfg.train.iterations} steps in a new "
-            "output folder (hydra.run.dir=...)")
-
-
-def _trim_jsonl(path: pathlib.Path, last_step: int) -> None:
-    """Keep the rows of ``path`` with ``step ≤ last_step`` (rows written after the checkpoint go)."""
-    if not path.is_file():
-        return
-    rows = [line for line in path.read_text().splitlines() if line.strip()]
-    kept = [line for line in rows if json.loads(line)["step"] <= last_step]
-    path.write_text("".join(line + "\n" for line in kept))
 
 
 # --- the loop -------------------------------------------------------------------------------
@@ -501,37 +421,8 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
                dropped_gaussians=int(metrics["dropped_gaussians"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
                recompilations=session.recompilations, step_s=round(step_s, 4))
-    _loss_alarms(session, step, metrics)
+    loss_alarms(session.alarmed, step, metrics)
     return row
-
-
-def _loss_alarms(session: Session, step: int, metrics: dict) -> None:
-    """Warn (once per loss term and run) when a logged step's loss term is far outside its normal range.
-
-    Every term of ``metrics`` is looked at: the image loss (:data:`LOSS_ALARM`), each feature model's
-    L2 term (:data:`FEATURE_L2_ALARM`) and any term that is not finite.
-    """
-    for key, value in metrics.items():
-        if not key.startswith("loss") or key in session.alarmed:
-            continue
-        value = float(value)
-        if key == "loss_image" and value > LOSS_ALARM:
-            log.warning("step %d: image loss %.4g is far above the normal range (< %g for images in [0, 1]): check "
-                        "the scene (poses, images) and model.voxel_size / loss.volume_weight, which are in units of "
-                        "the scene extent", step, value, LOSS_ALARM)
-        elif key.startswith("loss_feat_") and key.endswith("_l2") and value > FEATURE_L2_ALARM:
-            name = key[len("loss_feat_"):-len("_l2")]
-            log.warning("step %d: the L2 feature loss of model %s is %.4g, far above the normal range (< %g for "
-                        "the targets the extractors produce): its target maps (features/%s/ of the scene) hold "
-                        "values far too large (a stray value or a scale factor; see the warning on their norms at "
-                        "load); fix or re-extract them with cusgs-extract", step, name, value, FEATURE_L2_ALARM,
-                        name)
-        elif not math.isfinite(value):
-            log.warning("step %d: the loss term %s is %s (the step's update was skipped): check the scene's images "
-                        "and feature targets for non-finite values", step, key.removeprefix("loss_") or key, value)
-        else:
-            continue
-        session.alarmed.add(key)
 
 
 def _evaluate(session: Session, anchors, **kwargs) -> dict:

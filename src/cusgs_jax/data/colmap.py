@@ -29,7 +29,6 @@ offending file and what to do about it. The image files are read by :mod:`.image
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import pathlib
 from typing import Any, NamedTuple

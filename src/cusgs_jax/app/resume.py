@@ -1,0 +1,88 @@
+"""Resuming a run (``train.resume=true``): the newest checkpoint restored, checked against the run at hand.
+
+A resumed run continues the same run: on the scene it trained on (its recorded training cameras,
+:func:`require_same_scene`), never backwards (:func:`require_not_past`), with its logs trimmed to the
+restored step so every step stays logged once (:func:`trim_jsonl`).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import pathlib
+
+import numpy as np
+
+from cusgs_jax.app.clock import Clock
+from cusgs_jax.config import Config, require
+from cusgs_jax.data.identity import same_cameras
+from cusgs_jax.densify import ops
+from cusgs_jax.densify.base import Tally
+from cusgs_jax.run_folder import CURVE_FILE, METRICS_FILE, CheckpointMeta
+
+log = logging.getLogger("cusgs_jax")
+
+
+def resume(session) -> None:
+    """Restore the newest checkpoint of ``session`` (:class:`cusgs_jax.app.run.Session`) that restores cleanly
+    into its state, capacities, clock, curve and tallies, and trim the logs to its step."""
+    def template(meta: dict):
+        fresh, saved = session.state, int(meta["capacity"])
+        if saved == fresh.anchors.capacity:
+            return fresh
+        if saved > fresh.anchors.capacity:
+            return ops.grow_capacity(fresh, session.tx, saved)
+        return ops.resize_capacity(fresh, session.tx, saved, keep=np.arange(saved))  # shapes only: restored over
+
+    session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
+    step = int(session.state.step)
+    meta = CheckpointMeta.from_json(meta, f"checkpoint {session.ckpt.directory / str(step)}")  # run_folder.py
+    require_same_scene(session, meta, step)
+    require_not_past(session.cfg, step, session.ckpt.directory)
+    session.capacities = session.capacities.restored(meta.capacities)
+    session.clock = Clock(float(meta.wall_s))
+    session.curve = list(meta.curve)
+    session.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
+    if meta.densify is None and "prune" in meta.extra:  # written before the strategies kept tallies
+        log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
+                    "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
+    session.recompilations = int(meta.recompilations or 0)
+    session.replays = int(meta.replays or 0)
+    trim_jsonl(session.out / METRICS_FILE, step)
+    trim_jsonl(session.out / CURVE_FILE, step)
+    log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+
+
+def require_same_scene(session, meta: CheckpointMeta, step: int) -> None:
+    """A resumed run continues on the scene it was trained on: refuse another one (its recorded training
+    cameras, :func:`cusgs_jax.data.identity.same_cameras`), even one with as many views."""
+    recorded = meta.train_cameras
+    if not recorded:  # a checkpoint written before the cameras were recorded: nothing to compare
+        return
+    scene, idx = session.scene, session.train_idx
+    differs = same_cameras(recorded, scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
+    if differs is None:
+        return
+    trained_on = (meta.config or {}).get("data", {}).get("path") or "the built-in demo scene"
+    require(False, "data.path", session.cfg.data.path or "the built-in demo scene",
+            f"is not the scene the checkpoint of step {step} in {session.ckpt.directory} was trained on "
+            f"({trained_on}): its cameras differ ({differs})",
+            "resume with the run's own scene and settings, or train this scene in a new folder (hydra.run.dir=...)")
+
+
+def require_not_past(cfg: Config, step: int | None, directory) -> None:
+    """A resumed run cannot train backwards: refuse a checkpoint already past ``train.iterations``."""
+    require(not cfg.train.resume or step is None or step <= cfg.train.iterations, "train.iterations",
+            cfg.train.iterations, f"the run to resume in {directory} is already at step {step}, past the asked "
+            "iterations (resuming cannot undo steps, and its eval.json would report a model of more steps)",
+            f"set train.iterations={step} or more to continue it, or train {cfg.train.iterations} steps in a new "
+            "output folder (hydra.run.dir=...)")
+
+
+def trim_jsonl(path: pathlib.Path, last_step: int) -> None:
+    """Keep the rows of ``path`` with ``step ≤ last_step`` (rows written after the checkpoint go)."""
+    if not path.is_file():
+        return
+    rows = [line for line in path.read_text().splitlines() if line.strip()]
+    kept = [line for line in rows if json.loads(line)["step"] <= last_step]
+    path.write_text("".join(line + "\n" for line in kept))
