@@ -71,7 +71,7 @@ def test_pinhole_lens_is_the_demo(tmp_path):
 def test_undistorted_lens_images_are_the_pinhole_renders(tmp_path, lens, room):
     root = write_lens_demo(tmp_path / lens, *lens_camera(lens, 64, 48), **TINY)
     raw = iio.imread(root / "images" / "view_000.png")
-    scene = load_scene(root, holdout_every=0)
+    scene = load_scene(root, holdout_every=0, undistort="crop")
     assert scene.width < 64 and scene.height < 48  # pincushion: cropped, no blank border
     for v in range(TINY["num_views"]):
         R, t = scene.viewmats[v][:3, :3], scene.viewmats[v][:3, 3]
@@ -115,7 +115,7 @@ def test_keypoints_see_their_points(tmp_path, room):
 def test_maps_line_up_with_the_loaded_images(tmp_path, room):
     """depth/ and object_ids/ are the ray casts of the undistorted camera the loader gives."""
     root = write_lens_demo(tmp_path / "s", *lens_camera("simple_radial", 64, 48), **TINY)
-    scene = load_scene(root, holdout_every=0)
+    scene = load_scene(root, holdout_every=0, undistort="crop")
     K = scene.Ks[1].astype(np.float64)
     _, depth, ids, _ = render_view(room, scene.viewmats[1][:3, :3], scene.viewmats[1][:3, 3], scene.width,
                                    scene.height, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), supersample=False)

@@ -134,7 +134,7 @@ def test_lens_mode_downscale_scales_K_and_keeps_the_lens(tmp_path):
 
 def test_lens_mode_on_pinhole_cameras_is_the_plain_scene(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("PINHOLE", (50.0, 50.0, 32.0, 24.0))])
-    plain = load_scene(tmp_path / "s", holdout_every=0)
+    plain = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
     lens = load_scene(tmp_path / "s", holdout_every=0, undistort="lens")
     assert lens.lens is None
     np.testing.assert_array_equal(lens.images, plain.images)

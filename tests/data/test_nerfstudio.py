@@ -117,7 +117,7 @@ def test_downscale_prefers_images_d(tmp_path):
 
 def test_zero_distortion_opencv_loads(tmp_path):
     truth = write_nerfstudio_scene(tmp_path / "s", distortion=dict(k1=0.0, k2=0.0, k3=0.0, k4=0.0, p1=0.0, p2=0.0))
-    assert load_nerfstudio_scene(truth["root"]).num_images == 6
+    assert load_nerfstudio_scene(truth["root"], undistort="crop").num_images == 6
 
 
 # --- errors: each a SceneError naming the file and the fix ----------------------------------
@@ -175,7 +175,7 @@ def test_three_by_four_matrix_accepted(ns):
 def test_error_unknown_camera_model(ns):
     _edit(ns["root"], lambda m: m.update(camera_model="KANNALA"))
     with pytest.raises(SceneError, match=r"unknown camera_model 'KANNALA' in .*transforms.json.*OPENCV_FISHEYE"):
-        load_nerfstudio_scene(ns["root"])
+        load_nerfstudio_scene(ns["root"], undistort="crop")
 
 
 @pytest.mark.parametrize("model, fix", [("FISHEYE624", "ln -s colmap/sparse .*data.format=colmap"),
@@ -240,8 +240,8 @@ def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkey
     colmap_root = tmp_path / "colmap"
     distorted_colmap_scene(colmap_root, cameras)
     root = nerfstudio_copy(colmap_root, tmp_path / "ns")
-    scene = load_nerfstudio_scene(root, holdout_every=0)
-    reference = load_scene(colmap_root, holdout_every=0)
+    scene = load_nerfstudio_scene(root, holdout_every=0, undistort="crop")
+    reference = load_scene(colmap_root, holdout_every=0, undistort="crop")
     assert scene.names == tuple(f"images/{n}" for n in reference.names)
     np.testing.assert_allclose(scene.Ks, reference.Ks, rtol=1e-6)
     np.testing.assert_array_equal(scene.images, reference.images)
@@ -251,8 +251,8 @@ def test_distorted_frames_are_undistorted_like_the_colmap_scene(tmp_path, monkey
     for name in os.listdir(root / "images"):  # distorted pre-downscaled copies must be ignored
         (root / "images_2").mkdir(exist_ok=True)
         iio.imwrite(root / "images_2" / name, np.zeros((H // 2, W // 2, 3), np.uint8))
-    half = load_nerfstudio_scene(root, holdout_every=0, downscale=2)
-    np.testing.assert_array_equal(half.images, load_scene(colmap_root, holdout_every=0, downscale=2).images)
+    half = load_nerfstudio_scene(root, holdout_every=0, downscale=2, undistort="crop")
+    np.testing.assert_array_equal(half.images, load_scene(colmap_root, holdout_every=0, downscale=2, undistort="crop").images)
     # data.undistort=mask: the same source-frame images and valid-pixel masks as the COLMAP scene's
     masked = load_nerfstudio_scene(root, holdout_every=0, undistort="mask")
     reference = load_scene(colmap_root, holdout_every=0, undistort="mask")
@@ -279,7 +279,7 @@ def test_error_distortion_colmaps_model_does_not_have(tmp_path, model, extra, st
     _edit(truth["root"], lambda m: m.update(camera_model=model))
     with pytest.raises(SceneError, match=rf"\(camera_model {model}\) has {stray}, which COLMAP's {model} model does "
                                          r"not have.*data.format=colmap"):
-        load_nerfstudio_scene(truth["root"])
+        load_nerfstudio_scene(truth["root"], undistort="crop")
 
 
 def test_error_distorted_frames_outside_images(tmp_path, monkeypatch):
@@ -289,4 +289,4 @@ def test_error_distorted_frames_outside_images(tmp_path, monkeypatch):
     _edit(truth["root"], lambda m: [f.update(file_path=f["file_path"].replace("images/", "frames/"))
                                     for f in m["frames"]])
     with pytest.raises(SceneError, match=r"is distorted and lies outside .*images: COLMAP's undistorter reads"):
-        load_nerfstudio_scene(truth["root"])
+        load_nerfstudio_scene(truth["root"], undistort="crop")

@@ -55,7 +55,7 @@ MIXED = [("OPENCV", CAMERAS["OPENCV"]), ("OPENCV", (50.0, 51.0, 31.8, 24.2, -0.2
                          ids=list(CAMERAS) + ["mixed_sizes", "mixed_sizes_jpeg"])
 def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
     distorted_colmap_scene(tmp_path / "s", cameras, subfolder=len(cameras) > 1, ext=ext)
-    scene = load_scene(tmp_path / "s", holdout_every=0)
+    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
     assert len(calls) == 1 and scene.images.shape == (N_VIEWS, scene.height, scene.width, 3)
     # Pinhole K of COLMAP's undistorted camera (centre-cropped to the common size when mixed).
     full = {cid: pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(),
@@ -81,7 +81,7 @@ def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
 def test_no_black_border(tmp_path, model):
     """Crop, not mask: a uniformly bright source gives uniformly bright undistorted images."""
     distorted_colmap_scene(tmp_path / "s", [(model, CAMERAS[model])], uniform=True)
-    images = load_scene(tmp_path / "s", holdout_every=0).images.astype(int)
+    images = load_scene(tmp_path / "s", holdout_every=0, undistort="crop").images.astype(int)
     borders = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
     assert borders.min() >= BACKGROUND - 1, f"dark border pixel {borders.min()}"
     assert np.abs(images - BACKGROUND).max() <= 1
@@ -90,7 +90,7 @@ def test_no_black_border(tmp_path, model):
 def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     with caplog.at_level(logging.INFO, logger="cusgs_jax"):
-        first = load_scene(tmp_path / "s")
+        first = load_scene(tmp_path / "s", undistort="crop")
         assert len(calls) == 1
         line = f"undistorted {N_VIEWS} images OPENCV → PINHOLE {first.width}×{first.height}, cached in"
         assert line in caplog.text
@@ -98,7 +98,7 @@ def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
         assert len(folders) == 1 and folders[0].name.startswith("s-")
         assert sorted(p.name for p in folders[0].iterdir()) == ["images", "undistort.json"]
         caplog.clear()
-        second = load_scene(tmp_path / "s")
+        second = load_scene(tmp_path / "s", undistort="crop")
         assert len(calls) == 1 and "using cached undistorted images" in caplog.text
     np.testing.assert_array_equal(first.images, second.images)
     np.testing.assert_array_equal(first.Ks, second.Ks)
@@ -106,7 +106,7 @@ def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
     path = tmp_path / "s" / "images" / "v03.png"
     iio.imwrite(path, np.full((H, W, 3), 7, np.uint8))
     os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
-    third = load_scene(tmp_path / "s")
+    third = load_scene(tmp_path / "s", undistort="crop")
     assert len(calls) == 2 and len(list((cache_dir / "undistorted").iterdir())) == 2
     assert third.images[3].max() <= 8 and np.array_equal(third.images[2], first.images[2])
     assert not list((cache_dir / "undistorted").glob(".*tmp-*"))  # temporary folders renamed
@@ -123,7 +123,7 @@ def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
         shutil.copytree(tmp, final)  # the other job got there first
 
     monkeypatch.setattr(undistort, "_undistort_into", racing)
-    scene = load_scene(tmp_path / "s", holdout_every=0)
+    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
     assert [p.name.startswith("s-") for p in (cache_dir / "undistorted").iterdir()] == [True]
     assert max(marker_errors(scene)) < 0.25
 
@@ -141,7 +141,7 @@ def test_read_only_scene(tmp_path, cache_dir):
     for p in modes:
         p.chmod(stat.S_IMODE(modes[p]) & ~0o222)
     try:
-        scene = load_scene(scene_dir)
+        scene = load_scene(scene_dir, undistort="crop")
     finally:
         for p, mode in modes.items():
             p.chmod(stat.S_IMODE(mode))
@@ -159,18 +159,18 @@ def test_unsupported_model(tmp_path, model, params, calls):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"]), (model, params)], uniform=True)
     with pytest.raises(SceneError, match=rf"camera 2 in .*cameras\.bin uses the {model} camera "
                                          r"model.*colmap image_undistorter"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
     with pytest.raises(SceneError, match=model):
-        load_cameras(tmp_path / "s")
+        load_cameras(tmp_path / "s", undistort="crop")
     assert not calls
 
 
 @pytest.mark.parametrize("downscale", [1, 2])
 def test_load_cameras_agrees_with_load_scene(tmp_path, calls, downscale):
     distorted_colmap_scene(tmp_path / "s", MIXED)
-    viewmats, Ks, width, height, train = load_cameras(tmp_path / "s", downscale=downscale)
+    viewmats, Ks, width, height, train = load_cameras(tmp_path / "s", downscale=downscale, undistort="crop")
     assert not calls  # no image is undistorted (or read) for the cameras
-    scene = load_scene(tmp_path / "s", downscale=downscale)
+    scene = load_scene(tmp_path / "s", downscale=downscale, undistort="crop")
     assert (width, height) == (scene.width, scene.height)
     np.testing.assert_array_equal(Ks, scene.Ks)
     np.testing.assert_array_equal(viewmats, scene.viewmats)
@@ -184,8 +184,8 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
     shutil.copytree(tmp_path / "s" / "images", tmp_path / "s" / "images_2")
     for p in (tmp_path / "s" / "images_2").iterdir():
         iio.imwrite(p, np.zeros((H // 2, W // 2, 3), np.uint8))  # would be black if used
-    full = load_scene(tmp_path / "s", holdout_every=0)
-    half = load_scene(tmp_path / "s", downscale=2, holdout_every=0)
+    full = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
+    half = load_scene(tmp_path / "s", downscale=2, holdout_every=0, undistort="crop")
     out_hw = (scaled_size(full.height, 2), scaled_size(full.width, 2))
     assert (half.height, half.width) == out_hw
     for a, b in zip(full.images, half.images):
@@ -195,7 +195,7 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
 
 def test_zero_distortion_is_a_pinhole(tmp_path, calls):
     distorted_colmap_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, 0.0))])
-    scene = load_scene(tmp_path / "s", holdout_every=0)
+    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
     assert not calls and (scene.width, scene.height) == (W, H)
     np.testing.assert_allclose(scene.Ks[0], [[50, 0, 32], [0, 50, 24], [0, 0, 1]])
     assert max(marker_errors(scene)) < 0.25
@@ -205,7 +205,7 @@ def test_invalid_distorted_camera(tmp_path, calls):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", (50.0, 52.0, 32.0, 24.0, np.nan, 0.0, 0.0, 0.0))],
                uniform=True)
     with pytest.raises(SceneError, match=r"camera 1 in .*cameras\.bin has invalid parameters \(OPENCV"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
     assert not calls
 
 
@@ -213,13 +213,13 @@ def test_missing_and_corrupt_images(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     (tmp_path / "s" / "images" / "v02.png").unlink()
     with pytest.raises(SceneError, match=r"'v02\.png' .*missing"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
     (tmp_path / "s" / "images" / "v02.png").write_bytes(b"not an image")
     with pytest.raises(SceneError, match=r"undistorter could not read image .*v02\.png"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
     shutil.rmtree(tmp_path / "s" / "images")
     with pytest.raises(SceneError, match=r"images does not exist.*distorted"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
 
 
 def test_unwritable_cache(tmp_path, monkeypatch):
@@ -227,7 +227,7 @@ def test_unwritable_cache(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "file"))  # a file, not a folder
     with pytest.raises(SceneError, match=r"cannot write the undistorted images.*CUSGS_CACHE_DIR"):
-        load_scene(tmp_path / "s")
+        load_scene(tmp_path / "s", undistort="crop")
 
 
 def _rgba(seed):
@@ -249,7 +249,7 @@ def test_alpha_kept_and_composited(tmp_path, background, caplog):
     rgba = _rgba(1)
     iio.imwrite(tmp_path / "s" / "images" / "v01.png", rgba)
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        scene = load_scene(tmp_path / "s", holdout_every=0, background=background)
+        scene = load_scene(tmp_path / "s", holdout_every=0, background=background, undistort="crop")
     assert "drops it" not in caplog.text and "1 of 8 images" in caplog.text  # the loader's own warning
     cam = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H, params=list(CAMERAS["OPENCV"]))
     a = rgba[..., 3:] / 255.0
@@ -320,7 +320,7 @@ def test_mask_mode_keeps_the_frame(tmp_path, model):
     _, Ks, width, height, _ = load_cameras(tmp_path / "m", holdout_every=0, undistort="mask")
     assert (width, height) == (W, H) and np.allclose(Ks, marked.Ks)
     # crop mode has no mask and its own cache folder
-    assert load_scene(tmp_path / "m", holdout_every=0).valid is None
+    assert load_scene(tmp_path / "m", holdout_every=0, undistort="crop").valid is None
 
 
 def test_mask_mode_downscale_is_conservative(tmp_path):

@@ -62,9 +62,10 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
-def evaluate_ply(ply, scene_path, *, downscale: int = 1, holdout_every: int = 8, all_views: bool = False,
+def evaluate_ply(ply, scene_path, *, downscale: int = DataConfig.downscale, holdout_every: int = DataConfig.holdout_every,
+                 all_views: bool = False,
                  out_dir=None, background=None, sh_degree: int | None = None,
-                 antialiased: bool = False, progress: bool = True, format: str = "auto",
+                 antialiased: bool = False, progress: bool = True, format: str = DataConfig.format,
                  undistort: str = DataConfig.undistort) -> dict:
     """Render ``ply`` at the scene's held-out (or every) camera; PSNR/SSIM per view and mean.
 

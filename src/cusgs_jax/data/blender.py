@@ -41,12 +41,13 @@ import pathlib
 
 import numpy as np
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, fov_focal, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background
 from cusgs_jax.data.scene_data import SceneData, check_int_setting, make_scene
-from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
+from cusgs_jax.data.random_points import random_points, resolve_random_init
 
 __all__ = ["load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
 
@@ -92,10 +93,10 @@ def _read_split(scene: pathlib.Path, json_path: pathlib.Path, *, required: bool)
     return _Split(json_path, views, np.stack(viewmats) if viewmats else np.zeros((0, 4, 4)), float(angle))
 
 
-def load_blender_scene(path: str | os.PathLike, *, downscale: int = 1,
+def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
                        background: tuple[float, float, float] | None = None,
-                       num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
-                       random_init: str = "auto") -> SceneData:
+                       num_random_points: int = DataConfig.random_points, seed: int = 0,
+                       random_init: str = DataConfig.random_init) -> SceneData:
     """Load a Blender / NeRF-synthetic scene folder (see the module docstring for the layout).
 
     Args:

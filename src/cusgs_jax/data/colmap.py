@@ -36,6 +36,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from cusgs_jax.data.colmap_binary import check_binary_files
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
 from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
@@ -66,8 +67,9 @@ _UNDISTORT_HINT = (
 # --------------------------------------------------------------------------------------------
 
 
-def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
-               background: tuple[float, float, float] = (0.0, 0.0, 0.0), undistort: str = "crop") -> SceneData:
+def load_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
+               holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               undistort: str = DataConfig.undistort) -> SceneData:
     """Load a COLMAP scene folder.
 
     Args:
@@ -110,8 +112,9 @@ def load_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: in
                       lens=lens)
 
 
-def load_cameras(path: str | os.PathLike, *, downscale: int = 1, undistort: str = "crop",
-                 holdout_every: int = 8) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
+def load_cameras(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
+                 undistort: str = DataConfig.undistort,
+                 holdout_every: int = DataConfig.holdout_every) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
     """The cameras of a COLMAP scene as :func:`load_scene` gives them, without reading any image.
 
     For tools that have a trained model and need its views (an exporter, a viewer):
@@ -148,7 +151,7 @@ class _Model(NamedTuple):
     lens: SceneLens | None  # data.undistort=lens with a distorted camera: the per-view lenses; else None
 
 
-def _read_model(path, downscale: int, mode: str = "crop") -> _Model:
+def _read_model(path, downscale: int, mode: str) -> _Model:
     """Read and check the COLMAP model of ``path``: registered images with unique names, supported
     cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise.
     Distorted cameras are replaced by their undistorted PINHOLE cameras (:mod:`.undistort`)."""

@@ -25,12 +25,11 @@ import logging
 import os
 import pathlib
 
-from cusgs_jax.config import DATASET_FORMATS
+from cusgs_jax.config import DATASET_FORMATS, DataConfig
 from cusgs_jax.data.blender import load_blender_scene
 from cusgs_jax.data.colmap import load_scene
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.nerfstudio import load_nerfstudio_scene
-from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS
 from cusgs_jax.data.scene_data import SceneData
 
 __all__ = ["DATASET_FORMATS", "detect_format", "load_any_scene", "default_background"]
@@ -84,10 +83,10 @@ def detect_format(path: str | os.PathLike) -> str:
         "what that layout is missing")
 
 
-def load_any_scene(path: str | os.PathLike, *, format: str = "auto", downscale: int = 1, holdout_every: int = 8,
-                   background: tuple[float, float, float] | None = None,
-                   num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0, undistort: str = "crop",
-                   random_init: str = "auto") -> SceneData:
+def load_any_scene(path: str | os.PathLike, *, format: str = DataConfig.format, downscale: int = DataConfig.downscale,
+                   holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] | None = None,
+                   num_random_points: int = DataConfig.random_points, seed: int = 0,
+                   undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
     """Load the scene folder ``path`` in its layout (``data.format``; ``"auto"``: :func:`detect_format`).
 
     Args:

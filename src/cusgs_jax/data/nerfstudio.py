@@ -52,13 +52,14 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
 from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
                                    load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import check_background, scaled_size
 from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
-from cusgs_jax.data.random_points import DEFAULT_NUM_POINTS, random_points, resolve_random_init
+from cusgs_jax.data.random_points import random_points, resolve_random_init
 from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images, undistorted_masks
 
 __all__ = ["load_nerfstudio_scene", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
@@ -162,7 +163,7 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
                            params=params)
 
 
-def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode: str = "crop"
+def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode: str
                ) -> tuple[list, tuple[pathlib.Path, list[int]] | None, SceneLens | None]:
     """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are
     (and with ``mode="lens"`` always as they are, with their lenses).
@@ -259,10 +260,11 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
     return xyz[keep], rgb.reshape(-1, 3)
 
 
-def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = 1, holdout_every: int = 8,
+def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
+                          holdout_every: int = DataConfig.holdout_every,
                           background: tuple[float, float, float] | None = None,
-                          num_random_points: int = DEFAULT_NUM_POINTS, seed: int = 0,
-                          undistort: str = "crop", random_init: str = "auto") -> SceneData:
+                          num_random_points: int = DataConfig.random_points, seed: int = 0,
+                          undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
     """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
 
     Args:

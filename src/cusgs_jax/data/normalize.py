@@ -45,6 +45,8 @@ import dataclasses
 
 import numpy as np
 
+from cusgs_jax.config import DataConfig
+
 __all__ = ["WorldTransform", "normalize_scene", "camera_centers", "camera_extent", "principal_axes", "ALIGNMENTS"]
 
 ALIGNMENTS = ("none", "principal")
@@ -143,7 +145,7 @@ def camera_extent(camera_centers: np.ndarray, points: np.ndarray) -> tuple[float
     return extent, center
 
 
-def normalize_scene(scene, align: str = "none"):
+def normalize_scene(scene, align: str = DataConfig.align):
     """(scene in the normalised frame, :class:`WorldTransform`) of a :class:`~cusgs_jax.data.scene_data.SceneData`.
 
     Images, intrinsics and the view split are untouched; ``points`` and

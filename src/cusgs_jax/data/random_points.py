@@ -58,10 +58,9 @@ import numpy as np
 from cusgs_jax.config import RANDOM_POINT_RULES
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 
-__all__ = ["DEFAULT_NUM_POINTS", "GREY", "random_box", "random_points", "random_voxel_size", "ray_points",
+__all__ = ["GREY", "random_box", "random_points", "random_voxel_size", "ray_points",
            "resolve_random_init"]
 
-DEFAULT_NUM_POINTS = 100_000
 GREY = 128
 RAY_DEPTHS = (0.5, 2.5)  # the rays' depth range, in units of the distance the cameras look at
 _MIN_SPREAD = 0.02  # smallest eigenvalue of Σ(I − d dᵀ) / V for the axes' nearest point to be trusted
@@ -167,7 +166,7 @@ def ray_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, nu
 
 
 def random_points(viewmats: np.ndarray, Ks: np.ndarray, width: int, height: int, *,
-                  num: int = DEFAULT_NUM_POINTS, seed: int = 0, init: str = "cube") -> tuple[np.ndarray, np.ndarray]:
+                  num: int = DataConfig.random_points, seed: int = 0, init: str = "cube") -> tuple[np.ndarray, np.ndarray]:
     """``num`` random initial points for the training cameras ``viewmats``, ``Ks`` by the rule ``init``.
 
     Args:

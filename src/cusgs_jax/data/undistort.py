@@ -126,7 +126,7 @@ def needs_undistortion(camera) -> bool:
     return bool(np.any(params[list(camera.extra_params_idxs())] != 0.0))
 
 
-def undistort_options(mode: str = "crop"):
+def undistort_options(mode: str):
     """COLMAP's ``UndistortCameraOptions`` for ``data.undistort=mode`` (module docstring): its
     defaults (``blank_pixels=0``, crop to the valid rectangle) for ``crop``; the source frame
     kept (``blank_pixels=1``, scale fixed at 1) for ``mask``."""
@@ -139,7 +139,7 @@ def undistort_options(mode: str = "crop"):
     return pycolmap.UndistortCameraOptions()
 
 
-def _options(options, mode: str = "crop"):
+def _options(options, mode: str):
     return options if options is not None else undistort_options(mode)
 
 
@@ -176,7 +176,7 @@ def _plan(cameras: dict[int, Any], options) -> dict[int, _Plan]:
     return plans
 
 
-def undistorted_cameras(cameras: dict[int, Any], options=None, *, mode: str = "crop") -> dict[int, Any]:
+def undistorted_cameras(cameras: dict[int, Any], options=None, *, mode: str) -> dict[int, Any]:
     """The PINHOLE cameras that :func:`undistorted_images` undistorts to, without any I/O.
 
     Args:
@@ -198,7 +198,7 @@ def undistorted_cameras(cameras: dict[int, Any], options=None, *, mode: str = "c
 
 def undistorted_images(scene: pathlib.Path, model_dir: pathlib.Path, views: list[tuple[str, int]],
                        cameras: dict[int, Any], *, cache_dir=None, options=None,
-                       mode: str = "crop") -> pathlib.Path:
+                       mode: str) -> pathlib.Path:
     """The cached folder whose ``images/`` hold the images of ``views`` undistorted to
     :func:`undistorted_cameras` ``(cameras)``, undistorting them first when not cached yet.
 
@@ -475,7 +475,7 @@ def _read_mask(path: pathlib.Path) -> np.ndarray:
         return np.asarray(im.convert("L"))
 
 
-def undistorted_masks(folder: pathlib.Path, camera_ids: list[int], downscale: int = 1) -> np.ndarray | None:
+def undistorted_masks(folder: pathlib.Path, camera_ids: list[int], downscale: int) -> np.ndarray | None:
     """The valid-pixel masks of an undistorted folder, one per view, at the loaded size.
 
     Args:

@@ -139,7 +139,7 @@ def write_lens_demo(out_dir, model: str, params, *, seed=0, num_views=30, width=
     # the cameras the loader undistorts to (data.undistort=crop, and =mask): the frames of the depth and
     # object-id maps in depth/ and object_ids/, and in masked/depth/ and masked/object_ids/
     distorted = needs_undistortion(camera)
-    loaded = undistorted_cameras({1: camera})[1] if distorted else camera
+    loaded = undistorted_cameras({1: camera}, mode="crop")[1] if distorted else camera
     masked = undistorted_cameras({1: camera}, mode="mask")[1] if distorted else None
     K_loaded = _intrinsics(loaded)
     out = pathlib.Path(out_dir)
