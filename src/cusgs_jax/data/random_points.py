@@ -55,7 +55,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from cusgs_jax.config import RANDOM_POINT_RULES
+from cusgs_jax.config import RANDOM_POINT_RULES, DataConfig
 from cusgs_jax.data.normalize import camera_centers, camera_extent
 
 __all__ = ["GREY", "random_box", "random_points", "random_voxel_size", "ray_points",
