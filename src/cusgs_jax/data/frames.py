@@ -169,7 +169,7 @@ def _read(path: pathlib.Path, background) -> tuple[np.ndarray, np.ndarray | None
 
 
 def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, background: tuple[float, float, float],
-                      json_path: pathlib.Path) -> tuple[np.ndarray, tuple[int, int]]:
+                      json_path: pathlib.Path | str) -> tuple[np.ndarray, tuple[int, int]]:
     """Read, composite and downscale the images of ``frames``.
 
     Each file must have its ``size`` (±1 px, like COLMAP scenes), or — with ``size`` None — exactly
