@@ -96,7 +96,8 @@ def evaluate_ply(ply, scene_path, *, downscale: int = DataConfig.downscale, hold
     every = 0 if all_views or holdout_every <= 1 else holdout_every
     # the scene as cusgs-train loads it with these settings (SSIM's 11x11 pixels checked before any render)
     data = DataConfig(path=str(scene_path), format=format, downscale=downscale, holdout_every=every, undistort=undistort)
-    scene = load_scene(scene_path, data, background=None if background is None else tuple(background))
+    scene = load_scene(scene_path, data, background=None if background is None else tuple(background),
+                       downscale_option="--downscale")
     background = scene.background
     views = scene.test_indices if every else np.arange(scene.num_images)
     degree = model.sh_degree if sh_degree is None else sh_degree

@@ -130,7 +130,8 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.d
     frames = [FrameImage(name, image, None) for s in splits for name, image in s.views]
     # the frames of both files share one size: a message about it names both files
     files = train.json_path if test is None else f"{train.json_path} and {test.json_path}"
-    images, (width, height) = load_frame_images(frames, downscale=downscale, background=background, json_path=files)
+    images, (width, height) = load_frame_images(frames, downscale=downscale, background=background,
+                                                json_path=train.json_path, files=files)
     d = float(downscale)
     Ks = np.concatenate([np.repeat(_K(width, height, s.angle_x, d)[None], len(s.views), axis=0) for s in splits])
     viewmats = np.concatenate([s.viewmats for s in splits])

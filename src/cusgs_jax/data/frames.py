@@ -169,7 +169,7 @@ def _read(path: pathlib.Path, background) -> tuple[np.ndarray, np.ndarray | None
 
 
 def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, background: tuple[float, float, float],
-                      json_path: pathlib.Path | str) -> tuple[np.ndarray, tuple[int, int]]:
+                      json_path: pathlib.Path, files: str | None = None) -> tuple[np.ndarray, tuple[int, int]]:
     """Read, composite and downscale the images of ``frames``.
 
     Each file must have its ``size`` (±1 px, like COLMAP scenes), or — with ``size`` None — exactly
@@ -181,7 +181,8 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
     Returns:
       (images [V, H, W, 3] uint8, (W0, H0) the full size: the first frame's ``size``, or its file's).
     Raises:
-      SceneError: unreadable file, wrong or differing sizes (naming ``json_path`` and both images).
+      SceneError: unreadable file, wrong or differing sizes (naming ``json_path`` — or ``files``, the
+        transforms files the frames come from, when there are several — and both images).
     """
     images, full = None, None
     with_alpha, transparent = [], 0
@@ -198,7 +199,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
         if abs(w - exp_w) > tol or abs(h - exp_h) > tol:
             if frame.size is None:
                 raise SceneError(
-                    f"the images of {json_path} do not share one size: {frames[0].name!r} is {full[0]}x{full[1]} "
+                    f"the images of {files or json_path} do not share one size: {frames[0].name!r} is {full[0]}x{full[1]} "
                     f"but {frame.name!r} ({frame.path}) is {w}x{h}; all frames must have one resolution — "
                     "resize the odd ones (the field of view is per file, so keep the aspect ratio)")
             what = f"{downscale}x downscaled from {expected[0]}x{expected[1]}" if frame.prescaled else "its w, h"

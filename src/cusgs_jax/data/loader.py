@@ -33,7 +33,8 @@ def scene_folder(path: str | os.PathLike | None, data: DataConfig, *, generate: 
 
 
 def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = None, *,
-               background: tuple[float, float, float] | None = None, seed: int = 0) -> SceneData:
+               background: tuple[float, float, float] | None = None, seed: int = 0,
+               downscale_option: str = "data.downscale") -> SceneData:
     """The scene of ``path`` (default ``data.path``; neither: the built-in demo) as ``data`` loads it.
 
     Args:
@@ -42,6 +43,7 @@ def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = 
         ``random_init``, ``demo``); None: ``DataConfig()``, the defaults ``cusgs-train`` uses.
       background: ``splat.background`` (images with alpha are composited on it), or None for the layout's.
       seed: ``train.seed``, which draws the random initial points of layouts without points.
+      downscale_option: how a message names the downscale setting (a CLI's own flag, e.g. ``--downscale``).
     Returns:
       :class:`~cusgs_jax.data.scene_data.SceneData` in the scene's own frame.
     Raises:
@@ -52,7 +54,7 @@ def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = 
     scene = load_any_scene(folder, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
                            background=background, num_random_points=data.random_points, seed=seed,
                            undistort=data.undistort, random_init=data.random_init)
-    require_ssim_size(scene, data.downscale, "data.downscale")
+    require_ssim_size(scene, data.downscale, downscale_option)
     return scene
 
 
