@@ -32,11 +32,34 @@ def to_tf32(x: jax.Array) -> jax.Array:
     return jax.lax.bitcast_convert_type(rounded, jnp.float32)
 
 
+@jax.custom_vjp
+def matmul_tf32(a: jax.Array, b: jax.Array) -> jax.Array:
+    """``a @ b`` as a TF32 GEMM computes it: both operands rounded to TF32, products summed in float32. The
+    backward pass's two GEMMs (``g @ bᵀ``, ``aᵀ @ g``) round their operands the same way, as on the GPU (a
+    bit cast has no derivative, so the rounding needs this custom VJP)."""
+    return jnp.matmul(to_tf32(a), to_tf32(b), precision=HIGHEST)
+
+
+def _matmul_tf32_fwd(a, b):
+    return matmul_tf32(a, b), (a, b)
+
+
+def _matmul_tf32_bwd(res, g):
+    a, b = res
+    ga = jnp.matmul(to_tf32(g), to_tf32(jnp.swapaxes(b, -1, -2)), precision=HIGHEST)
+    a2 = a.reshape(-1, a.shape[-1])
+    gb = jnp.matmul(to_tf32(a2.T), to_tf32(g.reshape(-1, g.shape[-1])), precision=HIGHEST)
+    return ga, gb
+
+
+matmul_tf32.defvjp(_matmul_tf32_fwd, _matmul_tf32_bwd)
+
+
 def apply_mlp_tf32(params: dict, x: jax.Array, precision=None) -> jax.Array:
-    """:func:`cusgs_jax.nn.apply_mlp` with every matmul's operands in TF32 (``precision`` ignored)."""
+    """:func:`cusgs_jax.nn.apply_mlp` with every matmul a TF32 GEMM (:func:`matmul_tf32`; ``precision`` ignored)."""
     layers = len(params) // 2
     for i in range(layers):
-        x = jnp.matmul(to_tf32(x), to_tf32(params[f"w{i}"]), precision=HIGHEST) + params[f"b{i}"]
+        x = matmul_tf32(x, params[f"w{i}"]) + params[f"b{i}"]
         if i < layers - 1:
             x = jax.nn.relu(x)
     return x
