@@ -29,7 +29,8 @@ def main(argv=None) -> list[float]:
     args = parser.parse_args(argv)
 
     path = args.scene or cg.demo_scene_path(num_views=args.views, width=args.size[0], height=args.size[1])
-    scene, _ = cg.normalize_scene(cg.load_scene(path, holdout_every=0))  # camera extent 1, any COLMAP scale
+    # the scene as cusgs-train loads it, every view for training; then camera extent 1, any COLMAP scale
+    scene, _ = cg.normalize_scene(cg.load_scene(path, cg.DataConfig(holdout_every=0)))
     decoder_cfg = cg.DecoderConfig(n_offsets=5, latent_dim=16, hidden=32, appearance_dim=0)
     anchors = cg.init_anchors(scene.points, voxel_size=0.04, n_offsets=5, latent_dim=16)  # an AnchorState
     # learnable: the per-anchor arrays (offsets, scaling, latents) and the decoder MLPs; the

@@ -19,7 +19,7 @@ __version__ = "0.1.0"
 
 _EXPORTS = {
     # configuration and types
-    "Config": "config", "ModelConfig": "config", "SplatConfig": "config", "GrowConfig": "config",
+    "Config": "config", "DataConfig": "config", "ModelConfig": "config", "SplatConfig": "config", "GrowConfig": "config",
     "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "config",
     "Camera": "types",
     # data

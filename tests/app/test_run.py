@@ -373,6 +373,14 @@ def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, t
     assert (out / "eval.json").read_text() == before and _latest_checkpoint(out) == 30
 
 
+def test_the_run_folder_records_are_the_current_version(straight):
+    from cusgs_jax.run_folder import VERSION, read_eval
+
+    record = read_eval(straight[0])
+    assert record.version == VERSION == straight[1]["version"] and record.scene_digest and record.time["total"] > 0
+    assert record.camera_frame == "crop" and record.compilations["train_step"] >= 1
+
+
 def test_resuming_on_another_scene_with_as_many_views_is_refused(straight, tiny_scene, tmp_path):
     """The same demo with another seed (9 views too, other poses and points): refused, naming both scenes,
     before the checkpoints or logs change; the run's own scene resumes."""

@@ -63,6 +63,7 @@ from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import run_features
 from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
                                       PLOT_FILE, RENDERS_DIR, CheckpointMeta, EvalRecord, write_eval)
+from cusgs_jax.run_folder import VERSION as RUN_FOLDER_VERSION
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -537,8 +538,9 @@ def finalise(session: Session) -> dict:
     result["accelerator"] = accelerator_record()
     result["compilations"] = _compilations(budget.compiles)
     result["time"] = budget.as_dict()
-    result = EvalRecord.from_json(result).to_json()  # the typed, versioned record (run_folder.py)
-    write_eval(out, EvalRecord.from_json(result))
+    record = EvalRecord.from_json({**result, "version": RUN_FOLDER_VERSION})  # typed and versioned (run_folder.py)
+    write_eval(out, record)
+    result = record.to_json()
     log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
              result["ssim"], result["alive_anchors"], result["train_wall_s"])
     compiles = result["compilations"]
