@@ -22,7 +22,9 @@ def test_stages_add_up_to_the_total_and_nested_stages_charge_the_inner_one():
     time.sleep(0.03)  # outside every stage: "other"
     table = budget.as_dict()
     assert set(table) == set(STAGES) | {"compile", "other", "total"}
-    assert 0.07 <= table["load"] < 0.1 and 0.1 <= table["psc"] < 0.13 and table["other"] >= 0.03
+    # lower bounds only: a loaded machine oversleeps, never undersleeps
+    assert table["load"] >= 0.07 and table["psc"] >= 0.1 and table["other"] >= 0.03
+    assert table["load"] < table["load"] + table["psc"] <= table["total"]
     assert sum(v for k, v in table.items() if k != "total") == pytest.approx(table["total"], abs=0.005)
 
 
