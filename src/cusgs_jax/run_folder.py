@@ -61,14 +61,43 @@ def _version(data: dict, where: str) -> int:
     return version
 
 
-def _split(cls, data: dict) -> tuple[dict, dict]:
-    """(the fields of dataclass ``cls`` found in ``data``, every other key)."""
-    names = {f.name for f in dataclasses.fields(cls)} - {"extra"}
-    return {k: v for k, v in data.items() if k in names}, {k: v for k, v in data.items() if k not in names}
+class _Record:
+    """What both records share: read from and written to a JSON object with their fields typed and every key
+    they do not know kept in ``extra`` (written back flat beside the fields), checked for their version."""
+
+    _what = "a run-folder record"  # how a message names the kind of record
+
+    @classmethod
+    def _names(cls) -> set[str]:
+        return {f.name for f in dataclasses.fields(cls)} - {"extra"}
+
+    @classmethod
+    def from_json(cls, data: dict, where: str):
+        """The record of a parsed JSON object (``where`` names it in messages); UserError for a newer version.
+        Every field may be absent (None): an unfinished or older record still reads."""
+        if not isinstance(data, dict):
+            raise UserError(f"{where} holds {type(data).__name__}, not {cls._what} (a JSON object)")
+        version = _version(data, where)
+        names = cls._names()
+        known = {k: v for k, v in data.items() if k in names}
+        extra = {k: v for k, v in data.items() if k not in names}
+        return cls(**{**known, "version": version}, extra=extra)
+
+    def to_json(self) -> dict:
+        """The JSON object: the fields in their order, then ``extra`` flat beside them."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        return {**fields, **self.extra}
+
+    def get(self, key: str, default=None):
+        """A field (None counts as absent) or an ``extra`` key, by name."""
+        if key in self._names():
+            value = getattr(self, key)
+            return default if value is None else value
+        return self.extra.get(key, default)
 
 
 @dataclasses.dataclass(frozen=True)
-class EvalRecord:
+class EvalRecord(_Record):
     """``eval.json``. The fields every run writes are typed here; ``extra`` holds what a strategy or an
     optional part adds at the top level (``prune``, ``render_ms_before_prune``, ``densify``, the LPIPS
     keys ``lpips_vgg`` / ``lpips_alex``, ``features``), written flat beside them. Fields a version-1
@@ -116,26 +145,11 @@ class EvalRecord:
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 
+    _what = "the run's record"
+
     @classmethod
     def from_json(cls, data: dict, where: str = EVAL_FILE) -> EvalRecord:
-        """The record of a parsed ``eval.json`` (``where`` names it in messages); UserError for a newer
-        version. Every field may be absent (None): an unfinished or older record still reads."""
-        if not isinstance(data, dict):
-            raise UserError(f"{where} holds {type(data).__name__}, not the run's record (a JSON object)")
-        version = _version(data, where)
-        known, extra = _split(cls, data)
-        return cls(**{**known, "version": version}, extra=extra)
-
-    def to_json(self) -> dict:
-        """The JSON object ``eval.json`` holds: the fields, then ``extra`` flat beside them."""
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
-        return {**out, **self.extra}
-
-    def get(self, key: str, default=None):
-        """A field, or an ``extra`` key, by name (the dict-style access the report uses)."""
-        if key != "extra" and key in {f.name for f in dataclasses.fields(self)}:
-            return getattr(self, key)
-        return self.extra.get(key, default)
+        return super().from_json(data, where)
 
 
 def read_eval(folder: str | os.PathLike) -> EvalRecord | None:
@@ -163,7 +177,7 @@ def write_eval(folder: str | os.PathLike, record: EvalRecord) -> pathlib.Path:
 
 
 @dataclasses.dataclass(frozen=True)
-class CheckpointMeta:
+class CheckpointMeta(_Record):
     """A checkpoint's JSON metadata: what resuming, ``cusgs-export`` and ``cusgs-view`` need besides the arrays.
 
     ``config`` is the run's configuration as a dict; ``train_cameras`` / ``held_out_cameras`` are
@@ -189,22 +203,8 @@ class CheckpointMeta:
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 
+    _what = "a checkpoint's metadata"
+
     @classmethod
     def from_json(cls, data: dict, where: str = "checkpoint metadata") -> CheckpointMeta:
-        """The metadata of a parsed checkpoint (UserError for a newer version; absent fields are None)."""
-        if not isinstance(data, dict):
-            raise UserError(f"{where} holds {type(data).__name__}, not a checkpoint's metadata (a JSON object)")
-        version = _version(data, where)
-        known, extra = _split(cls, data)
-        return cls(**{**known, "version": version}, extra=extra)
-
-    def to_json(self) -> dict:
-        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
-        return {**out, **self.extra}
-
-    def get(self, key: str, default=None):
-        """A field (None counts as absent) or an ``extra`` key, by name."""
-        if key != "extra" and key in {f.name for f in dataclasses.fields(self)}:
-            value = getattr(self, key)
-            return default if value is None else value
-        return self.extra.get(key, default)
+        return super().from_json(data, where)

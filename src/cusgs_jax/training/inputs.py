@@ -40,10 +40,11 @@ def load_data(cfg: Config) -> tuple[SceneData, WorldTransform]:
       ``scene.background`` records (:func:`resolve_background`).
     """
     data = cfg.data
+    folder = scene_folder(data.path, data)  # the demo scene is generated here on first use
     if not data.path:
         log.info("using the built-in demo scene%s at %s", "" if data.demo.lens == "pinhole"
-                 else f" through the {data.demo.lens} lens", scene_folder(None, data))
-    scene = load_scene(data.path, data, background=cfg.splat.background, seed=cfg.train.seed)
+                 else f" through the {data.demo.lens} lens", folder)
+    scene = load_scene(folder, data, background=cfg.splat.background, seed=cfg.train.seed)
     return normalize_scene(scene, align=data.align)
 
 
