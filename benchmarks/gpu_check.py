@@ -12,7 +12,9 @@ by default):
 3. **main job** — ``cusgs-train`` with no overrides (the README's main job; 3000 steps, evaluation,
    report) into ``OUT/main_job``, then the same again into ``OUT/main_job_rerun`` (the persistent
    compilation cache warm): each run's process wall, ``eval.json``'s ``time`` budget,
-   ``compilations`` and held-out PSNR.
+   ``compilations`` and held-out PSNR;
+4. **sweep** — a two-job Hydra joblib sweep (``train.seed=0,1``, ``--sweep-steps`` steps each) on the
+   one device: both jobs must finish, each with the memory fraction the sweep gave it.
 
 Writes ``OUT/gpu_check.json`` (everything) and the logs beside it, and prints a short table last.
 ``OUT`` is ``--out`` (default ``$OUT`` — the device tool's folder that comes back — else
@@ -116,6 +118,27 @@ def run_main_job(out: pathlib.Path, name: str, timeout: float, smoke: bool) -> d
     return result
 
 
+def run_sweep(out: pathlib.Path, steps: int, timeout: float, smoke: bool) -> dict:
+    """Two jobs of one joblib sweep side by side on the default device (issue 29: one GPU, several jobs)."""
+    folder = out / "sweep"
+    cmd = [*TRAIN, "-m", "train.seed=0,1", f"train.iterations={steps}", f"eval.every={max(steps // 2, 1)}",
+           "train.progress=false", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={folder}",
+           *(SMOKE_MAIN[2:] if smoke else [])]
+    result = _run(cmd, out / "sweep.log", timeout)
+    jobs = []
+    for job in ("0", "1"):
+        evaluation = folder / job / "eval.json"
+        if evaluation.is_file():
+            data = json.loads(evaluation.read_text())
+            jobs.append(dict(job=job, psnr=data["psnr"], accelerator=data.get("accelerator"),
+                             total_s=(data.get("time") or {}).get("total")))
+        else:
+            jobs.append(dict(job=job, finished=False))
+    result["jobs"] = jobs
+    result["both_finished"] = all("psnr" in job for job in jobs)
+    return result
+
+
 def table(report: dict) -> str:
     lines = [f"gpu_check on {report['device']} (jax {report['jax']}, {report['backend']})"]
     tests = report.get("tests")
@@ -145,6 +168,13 @@ def table(report: dict) -> str:
             lines.append("  " + ", ".join(f"{k} {v:.1f}" for k, v in stages if v >= 0.1))
         elif job:
             lines.append(f"{name}: rc {job['rc']}, timed out {job['timed_out']} (log {job['log']})")
+    sweep = report.get("sweep")
+    if sweep:
+        lines.append(f"sweep (2 jobs, one device): rc {sweep['rc']}, wall {sweep['wall_s']:.0f} s, both finished "
+                     f"{sweep['both_finished']}; " + "; ".join(
+                         f"job {j['job']}: PSNR {j['psnr']:.2f}, memory fraction "
+                         f"{(j['accelerator'] or {}).get('memory_fraction')}" if "psnr" in j else f"job {j['job']}: -"
+                         for j in sweep["jobs"]))
     return "\n".join(lines)
 
 
@@ -154,8 +184,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--budget", type=float, default=480.0, help="seconds for all parts together")
     parser.add_argument("--workers", type=int, default=8, help="pytest-xdist workers for the tests")
     parser.add_argument("--splax-src", default=None, help="splax's src folder (peer_bench.py); none: splax skipped")
-    parser.add_argument("--parts", nargs="+", default=["tests", "splatter", "main_job"],
-                        choices=["tests", "splatter", "main_job"])
+    parser.add_argument("--parts", nargs="+", default=["tests", "splatter", "main_job", "sweep"],
+                        choices=["tests", "splatter", "main_job", "main_job_once", "sweep"],
+                        help="main_job: cold then warm cache; main_job_once: the cold run alone")
+    parser.add_argument("--sweep-steps", type=int, default=600, help="steps of each of the sweep's two jobs")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script on a CPU")
     args = parser.parse_args(argv)
     out = pathlib.Path(args.out).resolve()
@@ -165,17 +197,30 @@ def main(argv=None) -> dict:
     report = dict(benchmark="gpu_check", jax=jax.__version__, backend=jax.default_backend(),
                   device=str(jax.devices()[0]), smoke=args.smoke, budget_s=args.budget)
     deadline = time.perf_counter() + args.budget
-    shares = {"tests": 0.3, "splatter": 0.3, "main_job": 0.4}  # of the budget, in this order; leftovers carry over
+    shares = {"tests": 0.3, "splatter": 0.3, "main_job": 0.3}  # of the budget, in this order; leftovers carry over
     left = lambda: deadline - time.perf_counter()  # noqa: E731
+
+    def save(part: str) -> None:  # after every part, so a run stopped at its limit still brings its numbers back
+        (out / "gpu_check.json").write_text(json.dumps(report, indent=1))
+        print(f"[gpu_check] {part} done, {left():.0f} s of the budget left", flush=True)
+
     if "tests" in args.parts:
         report["tests"] = run_tests(out, args.workers, shares["tests"] * args.budget, args.smoke)
+        save("tests")
     if "splatter" in args.parts:
         report["splatter"] = run_splatter(out, min(left(), shares["splatter"] * args.budget + 30), args.smoke,
                                           args.splax_src)
-    if "main_job" in args.parts:
-        report["main_job"] = run_main_job(out, "main_job", left() * 0.7, args.smoke)
-        report["main_job_rerun"] = run_main_job(out, "main_job_rerun", left(), args.smoke)
-    (out / "gpu_check.json").write_text(json.dumps(report, indent=1))
+        save("splatter")
+    if "main_job" in args.parts or "main_job_once" in args.parts:
+        report["main_job"] = run_main_job(out, "main_job", left() * 0.6, args.smoke)
+        save("main_job")
+        if "main_job" in args.parts:
+            report["main_job_rerun"] = run_main_job(out, "main_job_rerun", left() * (0.5 if "sweep" in args.parts
+                                                                                      else 1.0), args.smoke)
+            save("main_job_rerun")
+    if "sweep" in args.parts:
+        report["sweep"] = run_sweep(out, 40 if args.smoke else args.sweep_steps, left(), args.smoke)
+        save("sweep")
     print(json.dumps(report, indent=1))
     print(table(report))
     return report
