@@ -32,6 +32,7 @@ M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 3
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
 CAMERA_FRAMES = ("crop", "mask", "lens")  # data.undistort; a scene's camera_frame (data/scene_data.py)
+COMPOSITORS = ("auto", "jax", "pallas")  # splat.backend; rasterize(backend=...) (splat/render.py)
 MATMUL_PRECISIONS = ("highest", "default")  # model.matmul_precision (cusgs_jax/precision.py)
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
@@ -227,6 +228,9 @@ class SplatConfig:
     active_fraction: float = 0.375
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
+    # The tile compositor (splat/render.py::resolve_backend): "auto" is the pure-JAX one everywhere until the
+    # Pallas kernels are measured faster on a GPU; "pallas" opts in (Triton on a GPU, the interpreter elsewhere).
+    backend: str = "auto"
     # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
     # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the
     # colour it used (training/inputs.py::resolve_background). Renderers read ``background_color``.
@@ -235,6 +239,7 @@ class SplatConfig:
     def __post_init__(self):
         _tuples(self)
         _at_least(self, "splat", 1, "tile_size", "chunk_size")
+        require(self.backend in COMPOSITORS, "splat.backend", self.backend, f"must be one of {', '.join(COMPOSITORS)}")
         require(_number(self.max_pairs_per_gaussian) and self.max_pairs_per_gaussian > 0,
                 "splat.max_pairs_per_gaussian", self.max_pairs_per_gaussian, "must be > 0")
         require(_number(self.active_fraction) and 0 < self.active_fraction <= 1, "splat.active_fraction",

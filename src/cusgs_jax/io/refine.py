@@ -81,7 +81,8 @@ class RefineSettings:
       l1_weight, ssim_weight: the loss ``l1_weight·L1 + ssim_weight·(1 − SSIM)`` (3DGS's λ = 0.2).
       sh_degree: SH degree rendered (None: the model's).
       antialiased: gsplat's antialiased mode (the run's ``splat.antialiased``).
-      tile_size, chunk_size: the rasteriser's static tiling (:class:`~cusgs_jax.config.SplatConfig`).
+      tile_size, chunk_size, backend: the rasteriser's static tiling and compositor
+        (:class:`~cusgs_jax.config.SplatConfig`).
     """
 
     steps: int
@@ -99,6 +100,7 @@ class RefineSettings:
     antialiased: bool = False
     tile_size: int = SplatConfig().tile_size
     chunk_size: int = SplatConfig().chunk_size
+    backend: str = SplatConfig().backend
 
 
 # --- parameters and optimiser -------------------------------------------------------------------
@@ -161,7 +163,7 @@ def refine_loss(params: dict, camera: Camera, image: jax.Array, background: jax.
     """
     out = render_splats(join_params(params), camera, background=background, sh_degree=settings.sh_degree,
                         antialiased=settings.antialiased, tile_size=settings.tile_size,
-                        chunk_size=settings.chunk_size, max_pairs=pair_capacity)
+                        chunk_size=settings.chunk_size, max_pairs=pair_capacity, backend=settings.backend)
     loss, terms = losses.image_loss(out.image[..., :3], image, pixel_mask=valid, l1_weight=settings.l1_weight,
                                     ssim_weight=settings.ssim_weight)
     return loss, (terms, out.overflow, out.num_pairs + out.overflow, out.image)

@@ -65,7 +65,7 @@ def render_splats(model: SplatModel, camera: Camera, *, background, sh_degree: i
       ``overflow > 0`` means tile pairs were dropped (see :func:`render_splats_exact`).
     """
     defaults = SplatConfig()
-    kwargs = dict(tile_size=defaults.tile_size, chunk_size=defaults.chunk_size,
+    kwargs = dict(tile_size=defaults.tile_size, chunk_size=defaults.chunk_size, backend=defaults.backend,
                   max_pairs=max_pairs(defaults.max_pairs_per_gaussian, model.num_gaussians))
     kwargs.update(rasterize_kwargs)
     colors = splat_colors(model, camera.center, sh_degree)

@@ -13,7 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cusgs_jax.config import COMPOSITORS
 from cusgs_jax.splat.composite import composite_tiles, default_lanes
+from cusgs_jax.splat.composite_pallas import DEFAULT_BATCH as PALLAS_BATCH, composite_tiles_pallas
 from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
@@ -66,6 +68,18 @@ def default_max_pairs(num_gaussians: int, width: int, height: int, tile_size: in
     return int(per_gaussian * num_gaussians + 64 * grid.num_tiles)
 
 
+def resolve_backend(backend: str) -> str:
+    """The compositor ``rasterize(backend=...)`` runs: ``"jax"`` or ``"pallas"``.
+
+    ``"auto"`` is the pure-JAX compositor on every backend for now: the Pallas kernels are opt-in
+    until ``benchmarks/gpu_check.py`` has shown them faster on a GPU, with their tests passing there
+    (docs/benchmarks.md).
+    """
+    if backend not in COMPOSITORS:
+        raise ValueError(f"backend must be one of {COMPOSITORS}, got {backend!r}")
+    return "jax" if backend == "auto" else backend
+
+
 def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
     """[T, S, ...] per-tile pixels → [H, W, ...] image (padding cropped)."""
     ts = grid.tile_size
@@ -79,7 +93,7 @@ def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
     jax.jit,
     static_argnames=(
         "width", "height", "near", "far", "antialiased", "eps2d", "tile_size",
-        "max_pairs", "chunk_size", "lanes",
+        "max_pairs", "chunk_size", "lanes", "backend",
     ),
 )
 def rasterize(
@@ -104,6 +118,7 @@ def rasterize(
     means2d_delta: jax.Array | None = None,
     lanes: int | None = None,
     lens: Lens | None = None,
+    backend: str = "auto",
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (docs/rasterizer.md).
 
@@ -135,6 +150,10 @@ def rasterize(
         next one. ``None`` uses :func:`~cusgs_jax.splat.composite.default_lanes`.
       lens: the camera's lens distortion (:class:`~cusgs_jax.splat.lens.Lens`, one camera), or
         None for a pinhole camera; the image is then the distorted camera's picture.
+      backend: static; the tile compositor: ``"jax"`` (lanes of chunks, any backend), ``"pallas"``
+        (:mod:`~cusgs_jax.splat.composite_pallas`: Triton kernels on a GPU, Pallas's interpreter
+        elsewhere — exact but slow, for tests) or ``"auto"`` (see :func:`resolve_backend`). Projection,
+        sorting and binning are the same for all; the image agrees to rounding.
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
@@ -144,7 +163,7 @@ def rasterize(
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
                                   far=far, background=background, antialiased=antialiased, eps2d=eps2d,
                                   tile_size=tile_size, max_pairs=max_pairs, chunk_size=chunk_size,
-                                  means2d_delta=means2d_delta, lanes=lanes, lens=lens)
+                                  means2d_delta=means2d_delta, lanes=lanes, lens=lens, backend=backend)
     grid = TileGrid(int(width), int(height), int(tile_size))
     if max_pairs is None:
         max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
@@ -158,12 +177,14 @@ def rasterize(
     means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
     depth = jnp.where(proj.visible, proj.depths, 0.0)
     features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
-    lanes = default_lanes(grid.num_tiles) if lanes is None else int(lanes)
-    out = composite_tiles(
-        grid, int(chunk_size), lanes,
-        means2d[order], proj.conics[order], proj.opacities[order], features[order],
-        isect.pair_gaussians, isect.tile_starts, isect.tile_ends,
-    )
+    sorted_inputs = (means2d[order], proj.conics[order], proj.opacities[order], features[order],
+                     isect.pair_gaussians, isect.tile_starts, isect.tile_ends)
+    if resolve_backend(backend) == "pallas":
+        interpret = jax.default_backend() != "gpu"  # Triton needs an NVIDIA (or ROCm) GPU
+        out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs)
+    else:
+        lanes = default_lanes(grid.num_tiles) if lanes is None else int(lanes)
+        out = composite_tiles(grid, int(chunk_size), lanes, *sorted_inputs)
     color_fg = _tiles_to_image(out.colors, grid)
     trans = _tiles_to_image(out.transmittance, grid)
     if background is None:

@@ -59,7 +59,7 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
     out = rasterize(compact.means, compact.quats, compact.scales, compact.opacities, colors,
                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta, lens=camera.lens)
+                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta, lens=camera.lens, backend=cfg.backend)
     return out, chosen
 
 
