@@ -32,6 +32,7 @@ import json
 import os
 import pathlib
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -44,25 +45,35 @@ SMOKE_MAIN = ["train.iterations=40", "eval.every=20", "data.demo.views=8", "data
 
 
 def _run(cmd, log: pathlib.Path, timeout: float, env=None) -> dict:
-    """Run ``cmd`` with stdout+stderr into ``log``; {"rc", "wall_s", "timed_out"}."""
+    """Run ``cmd`` with stdout+stderr into ``log``; {"rc", "wall_s", "timed_out"}.
+
+    At the time limit the process gets SIGINT first (pytest then prints the summary of the tests it
+    finished) and SIGKILL 20 s later."""
     start = time.perf_counter()
     with open(log, "w") as out:
+        process = subprocess.Popen(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT,
+                                   env={**os.environ, **(env or {})})
         try:
-            rc = subprocess.run(cmd, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT, timeout=max(timeout, 1),
-                                env={**os.environ, **(env or {})}).returncode
-            timed_out = False
+            rc, timed_out = process.wait(timeout=max(timeout, 1)), False
         except subprocess.TimeoutExpired:
-            rc, timed_out = None, True
+            timed_out = True
+            process.send_signal(signal.SIGINT)
+            try:
+                rc = process.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                rc = process.wait()
     return dict(rc=rc, wall_s=round(time.perf_counter() - start, 2), timed_out=timed_out, log=log.name)
 
 
-def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool) -> dict:
-    paths = ["tests/test_precision.py"] if smoke else TEST_PATHS
-    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "not slow", "-p", "no:cacheprovider", *paths]
+def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool, paths=None, name="tests") -> dict:
+    paths = paths or (["tests/test_precision.py"] if smoke else TEST_PATHS)
+    cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-m", "not slow", "-p", "no:cacheprovider",
+           "-p", "no:benchmark", *paths]
     if workers > 1:
         cmd += ["-n", str(workers)]
-    result = _run(cmd, out / "tests.log", timeout, env={"XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
-    text = (out / "tests.log").read_text(errors="replace")
+    result = _run(cmd, out / f"{name}.log", timeout, env={"XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
+    text = (out / f"{name}.log").read_text(errors="replace")
     summary = [line for line in text.splitlines() if re.search(r"\d+ (passed|failed)", line)]
     result["summary"] = summary[-1].strip("= ") if summary else None
     for key in ("passed", "failed", "skipped", "errors"):
@@ -72,22 +83,34 @@ def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool) -> d
     return result
 
 
-def run_splatter(out: pathlib.Path, timeout: float, smoke: bool, splax_src: str | None) -> dict:
-    cells = [(10_000, 64, (8, 16))] if smoke else SPLAT_CELLS
+def _cells(specs: list[str]) -> list[tuple[int, int, tuple[int, ...]]]:
+    """"500000:1024:8,16" → (500000, 1024, (8, 16))."""
+    cells = []
+    for spec in specs:
+        num, size, tiles = spec.split(":")
+        cells.append((int(num), int(size), tuple(int(t) for t in tiles.split(","))))
+    return cells
+
+
+def run_splatter(out: pathlib.Path, timeout: float, smoke: bool, splax_src: str | None, cells=None,
+                 backends=("jax",)) -> dict:
+    cells = [(10_000, 64, (8, 16))] if smoke else (cells or SPLAT_CELLS)
     rows, runs, deadline = [], [], time.perf_counter() + timeout
     for num, size, tiles in cells:
         log = out / f"splat_{num}_{size}.log"
         cmd = [sys.executable, "benchmarks/splat_bench.py", "--gaussians", str(num), "--sizes", str(size),
-               "--tile-sizes", *map(str, tiles), "--repeats", "3" if smoke else "5"]
+               "--tile-sizes", *map(str, tiles), "--repeats", "3" if smoke else "5", "--backends", *backends]
         runs.append(_run(cmd, log, deadline - time.perf_counter()))
         text = log.read_text(errors="replace")
         try:
             rows += json.loads(text[text.index("{\n"):])["results"]
-        except ValueError:
-            pass
-    result = dict(runs=runs, ours=[{k: r.get(k) for k in ("gaussians", "width", "tile_size", "forward_median_s",
-                                                           "forward_backward_median_s", "composited_pairs",
-                                                           "forward_backward_pairs_per_s")} for r in rows])
+        except ValueError:  # stopped early: the rows it printed as it went
+            rows += [json.loads(line) for line in text.splitlines() if line.startswith('{"renderer"')]
+    result = dict(runs=runs, ours=[{k: r.get(k) for k in ("backend", "gaussians", "width", "tile_size",
+                                                           "forward_median_s", "forward_backward_median_s",
+                                                           "forward_compile_s", "forward_backward_compile_s",
+                                                           "composited_pairs", "forward_backward_pairs_per_s",
+                                                           "image_rel_diff", "grad_rel_diff", "error")} for r in rows])
     if splax_src:
         peer_json = out / "peer.json"
         cmd = [sys.executable, "benchmarks/peer_bench.py", "--splax-src", splax_src, "--our-tiles", "8", "16",
@@ -98,6 +121,21 @@ def run_splatter(out: pathlib.Path, timeout: float, smoke: bool, splax_src: str 
             result["peer"] = json.loads(peer_json.read_text())
     else:
         result["peer"] = "skipped: no --splax-src (git clone https://github.com/chungmin99/splax; jaxlie, jax_dataclasses)"
+    return result
+
+
+def run_train_step(out: pathlib.Path, timeout: float, smoke: bool, backends, pixel_factors) -> dict:
+    """``train_bench.py``: the demo's train step with each compositor, steps interleaved."""
+    log = out / "train_step.log"
+    cmd = [sys.executable, "benchmarks/train_bench.py", "--steps", "3" if smoke else "20", "--views",
+           "4" if smoke else "12", "--pixel-factors", *(["1"] if smoke else map(str, pixel_factors)),
+           "--backends", *backends]
+    result = _run(cmd, log, timeout)
+    text = log.read_text(errors="replace")
+    rows = [json.loads(line) for line in text.splitlines() if line.startswith('{"pixel_factor"')]
+    result["errors"] = [line[:2500] for line in text.splitlines() if line.startswith('{"backend"')]
+    result["rows"] = [{k: r.get(k) for k in ("backend", "width", "height", "anchors", "compile_s",
+                                             "median_step_s", "ratio")} for r in rows]
     return result
 
 
@@ -143,19 +181,38 @@ def table(report: dict) -> str:
     lines = [f"gpu_check on {report['device']} (jax {report['jax']}, {report['backend']})"]
     tests = report.get("tests")
     if tests:
-        lines.append(f"tests: {tests['summary']} in {tests['wall_s']:.0f} s")
+        lines.append(f"tests: {tests['summary']} in {tests['wall_s']:.0f} s"
+                     + (" (stopped at its time limit)" if tests["timed_out"] else ""))
         lines += [f"  FAILED {name}" for name in tests["failures"][:10]]
+    pallas = report.get("pallas_tests")
+    if pallas:
+        lines.append(f"pallas tests: {pallas['summary']} in {pallas['wall_s']:.0f} s"
+                     + (" (stopped at its time limit)" if pallas["timed_out"] else ""))
+        lines += [f"  FAILED {name}" for name in pallas["failures"][:10]]
     splat = report.get("splatter")
     if splat:
-        lines.append("splatter (ms)          fwd   fwd+bwd")
+        lines.append("splatter (ms)                   fwd   fwd+bwd   rel.diff img / grad")
         for row in splat["ours"]:
+            if row.get("error"):
+                lines.append(f"  {row.get('backend')} {row['gaussians']} {row['width']}² t{row['tile_size']}: "
+                             f"{row['error'][:300]}")
             if row.get("forward_median_s"):
-                lines.append(f"  {row['gaussians']:>8} {row['width']:>5}² t{row['tile_size']:<3}"
-                             f"{1e3 * row['forward_median_s']:8.2f} {1e3 * row['forward_backward_median_s']:8.2f}")
+                diff = (f"{row['image_rel_diff']:.1e} / {row['grad_rel_diff']:.1e}"
+                        if row.get("image_rel_diff") is not None else "")
+                lines.append(f"  {row.get('backend', 'jax'):<7}{row['gaussians']:>8} {row['width']:>5}² "
+                             f"t{row['tile_size']:<3}{1e3 * row['forward_median_s']:8.2f} "
+                             f"{1e3 * row['forward_backward_median_s']:8.2f}   {diff}")
         peer = splat.get("peer")
         if isinstance(peer, dict):
             for cell in peer.get("cells", peer.get("results", []))[:4]:
                 lines.append(f"  splax {json.dumps(cell)[:150]}")
+    step = report.get("train_step")
+    if step:
+        lines.append(f"train step (demo, ms): rc {step['rc']}")
+        lines += [f"  error {line[:300]}" for line in step.get("errors", [])]
+        for row in step["rows"]:
+            lines.append(f"  {row['backend']:<7}{row['width']}x{row['height']} anchors {row['anchors']}: "
+                         f"{1e3 * row['median_step_s']:.2f} ms (x{row['ratio']:.2f}), compile {row['compile_s']:.1f} s")
     for name in ("main_job", "main_job_rerun"):
         job = report.get(name)
         if job and job.get("time"):
@@ -185,8 +242,16 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", type=int, default=8, help="pytest-xdist workers for the tests")
     parser.add_argument("--splax-src", default=None, help="splax's src folder (peer_bench.py); none: splax skipped")
     parser.add_argument("--parts", nargs="+", default=["tests", "splatter", "main_job", "sweep"],
-                        choices=["tests", "splatter", "main_job", "main_job_once", "sweep"],
+                        choices=["pallas_tests", "splatter", "train_step", "tests", "main_job", "main_job_once",
+                                 "sweep"],
                         help="main_job: cold then warm cache; main_job_once: the cold run alone")
+    parser.add_argument("--backends", nargs="+", default=["jax"], choices=["auto", "jax", "pallas"],
+                        help="compositors the splatter and train-step parts time")
+    parser.add_argument("--cells", nargs="+", default=None, metavar="G:SIZE:TILES",
+                        help="splatter cells, e.g. 500000:1024:8,16 (default: the issue's)")
+    parser.add_argument("--pixel-factors", nargs="+", type=int, default=[1, 4], help="train-step image sizes")
+    parser.add_argument("--part-seconds", nargs="+", default=[], metavar="PART=S",
+                        help="time limit of a part, e.g. tests=200 (default: shares of --budget)")
     parser.add_argument("--sweep-steps", type=int, default=600, help="steps of each of the sweep's two jobs")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: check the script on a CPU")
     args = parser.parse_args(argv)
@@ -200,17 +265,31 @@ def main(argv=None) -> dict:
     shares = {"tests": 0.3, "splatter": 0.3, "main_job": 0.3}  # of the budget, in this order; leftovers carry over
     left = lambda: deadline - time.perf_counter()  # noqa: E731
 
+    limits = {k: float(v) for k, v in (item.split("=") for item in args.part_seconds)}
+
+    def limit(part: str, default: float) -> float:
+        return min(left(), limits.get(part, default))
+
     def save(part: str) -> None:  # after every part, so a run stopped at its limit still brings its numbers back
         (out / "gpu_check.json").write_text(json.dumps(report, indent=1))
         print(f"[gpu_check] {part} done, {left():.0f} s of the budget left", flush=True)
 
-    if "tests" in args.parts:
-        report["tests"] = run_tests(out, args.workers, shares["tests"] * args.budget, args.smoke)
-        save("tests")
+    if "pallas_tests" in args.parts:
+        report["pallas_tests"] = run_tests(out, min(args.workers, 4), limit("pallas_tests", 0.15 * args.budget),
+                                           args.smoke, ["tests/splat/test_composite_pallas.py"], "pallas_tests")
+        save("pallas_tests")
     if "splatter" in args.parts:
-        report["splatter"] = run_splatter(out, min(left(), shares["splatter"] * args.budget + 30), args.smoke,
-                                          args.splax_src)
+        report["splatter"] = run_splatter(out, limit("splatter", shares["splatter"] * args.budget + 30), args.smoke,
+                                          args.splax_src, _cells(args.cells) if args.cells else None,
+                                          tuple(args.backends))
         save("splatter")
+    if "train_step" in args.parts:
+        report["train_step"] = run_train_step(out, limit("train_step", 0.25 * args.budget), args.smoke,
+                                              args.backends, args.pixel_factors)
+        save("train_step")
+    if "tests" in args.parts:
+        report["tests"] = run_tests(out, args.workers, limit("tests", shares["tests"] * args.budget), args.smoke)
+        save("tests")
     if "main_job" in args.parts or "main_job_once" in args.parts:
         report["main_job"] = run_main_job(out, "main_job", left() * 0.6, args.smoke)
         save("main_job")

@@ -14,6 +14,9 @@ also give each model's PSC bank size and extraction time per view.
 
     python benchmarks/train_bench.py [--steps 20] [--views 12] [--features]
     python benchmarks/train_bench.py --steps 5 --pixel-factors 1 --feature-sets none daisy,semantic daisy,semantic,vgg16
+    python benchmarks/train_bench.py --backends jax pallas     # each variant with each compositor (a GPU)
+
+With ``--backends`` every feature set runs once per compositor (``splat.backend``), interleaved too.
 """
 
 from __future__ import annotations
@@ -56,10 +59,10 @@ def feature_set(spec: str) -> tuple:
     return tuple(known[n] for n in names)
 
 
-def setup(scene_path: str, voxel_size, models: tuple):
+def setup(scene_path: str, voxel_size, models: tuple, backend: str = "auto"):
     """(step, state, batch(i) -> batch dict, info) of one variant on the scene at ``scene_path``."""
     cfg = Config().replace(train=dict(iterations=30_000), model=dict(voxel_size=voxel_size),
-                           features=dict(models=models))
+                           features=dict(models=models), splat=dict(backend=backend))
     scene, _ = normalize_scene(load_scene(scene_path, holdout_every=0))
     cfg = resolve_voxel_size(cfg, scene.points)
     banks, targets, info = None, {}, {}
@@ -90,16 +93,22 @@ def setup(scene_path: str, voxel_size, models: tuple):
 
 
 def bench(width: int, height: int, steps: int, views: int, voxel_size, variants: list[tuple]) -> list[dict]:
-    """One row per feature-model set in ``variants``, steps timed interleaved."""
+    """One row per (feature-model set, compositor) in ``variants``, steps timed interleaved."""
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
         path = generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width, height=height)
-        for models in variants:
-            step, state, batch, info = setup(path, voxel_size, models)
+        for models, backend in variants:
+            step, state, batch, info = setup(path, voxel_size, models, backend)
             start = time.perf_counter()
-            state, metrics = step(state, batch(0))
-            jax.block_until_ready(metrics)
-            runs.append(dict(step=step, state=state, batch=batch, info=info, models=models,
+            try:
+                state, metrics = step(state, batch(0))
+                jax.block_until_ready(metrics)
+            except Exception as error:  # noqa: BLE001 — one failing variant must not hide the others
+                print(json.dumps(dict(backend=backend, width=width, height=height,
+                                      error=f"{type(error).__name__}: {str(error)[:2000]}")), file=sys.stderr,
+                      flush=True)
+                continue
+            runs.append(dict(step=step, state=state, batch=batch, info=info, models=models, backend=backend,
                              compile_s=time.perf_counter() - start, times=[]))
     for i in range(1, steps + 1):
         for run in runs:
@@ -111,7 +120,7 @@ def bench(width: int, height: int, steps: int, views: int, voxel_size, variants:
     rows = []
     for run in runs:
         state, median = run["state"], float(np.median(run["times"]))
-        rows.append(dict(features=bool(run["models"]), models=[m.name for m in run["models"]],
+        rows.append(dict(features=bool(run["models"]), models=[m.name for m in run["models"]], backend=run["backend"],
                          query_dim=sum(m.query_dim for m in run["models"]), width=width, height=height,
                          pixels=width * height, anchors=int(np.sum(state.anchors.alive)),
                          capacity=state.anchors.capacity, compile_s=run["compile_s"], median_step_s=median,
@@ -129,6 +138,8 @@ def main(argv=None):
     parser.add_argument("--feature-sets", nargs="+", default=None, metavar="MODELS",
                         help="time these sets of the demo's feature models instead (comma-separated names, "
                              "or none), e.g. none daisy,semantic daisy,semantic,vgg16")
+    parser.add_argument("--backends", nargs="+", default=["auto"], choices=["auto", "jax", "pallas"],
+                        help="compositors (splat.backend) to time each variant with")
     parser.add_argument("--pixel-factors", type=int, nargs="+", default=[1, 2, 4],
                         help="image sizes: 160x120 times these pixel factors")
     args = parser.parse_args(argv)
@@ -136,6 +147,7 @@ def main(argv=None):
         variants = [feature_set(spec) for spec in args.feature_sets]
     else:
         variants = [()] + ([available_models(DEMO_FEATURE_MODELS)] if args.features else [])
+    variants = [(models, backend) for models in variants for backend in args.backends]
     rows = []
     for factor in args.pixel_factors:
         scale = math.sqrt(factor)
