@@ -14,6 +14,11 @@ import pytest
 # code runs on the first of them, as before.
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+# The same numbers every time on a GPU too: XLA:GPU's scatter-adds (gradients, statistics) use atomics whose
+# order varies from run to run unless non-deterministic ops are excluded (a CPU ignores the flag). Seen on an
+# H200: two identical train steps differed in the last bit (tests/training/test_step.py).
+if "nondeterministic_ops" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] += " --xla_gpu_exclude_nondeterministic_ops=true"
 
 
 def built_once(tmp_path_factory, name: str, build):

@@ -228,8 +228,8 @@ class SplatConfig:
     active_fraction: float = 0.375
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
-    # The tile compositor (splat/render.py::resolve_backend): "auto" is the pure-JAX one everywhere until the
-    # Pallas kernels are measured faster on a GPU; "pallas" opts in (Triton on a GPU, the interpreter elsewhere).
+    # The tile compositor (splat/render.py::resolve_backend): "auto" is the Pallas kernels on a GPU and the
+    # pure-JAX one elsewhere; "jax" / "pallas" force one ("pallas" off a GPU runs Pallas's slow interpreter).
     backend: str = "auto"
     # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
     # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the

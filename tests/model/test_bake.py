@@ -94,7 +94,8 @@ def test_mean_covariance_is_the_weighted_mean_of_the_covariances():
     one, _ = mean_covariance(jnp.asarray(np.stack([q[0], -2 * q[0]])), jnp.asarray(np.stack([s[0], s[0]])),
                              jnp.asarray(np.stack([w[0], 0 * w[0]])))
     np.testing.assert_allclose(_cov(one, mean_covariance(jnp.asarray(q[:1]), jnp.asarray(s[:1]),
-                                                         jnp.ones((1, 9)))[1]), _cov(q[0], s[0]), rtol=2e-4)
+                                                         jnp.ones((1, 9)))[1]), _cov(q[0], s[0]), rtol=2e-4,
+                               atol=1e-7)  # float32 rounding on the small off-diagonal entries (seen on a GPU)
     _, equal = mean_covariance(jnp.asarray(q[:2]), jnp.asarray(s[:2]), jnp.zeros((2, 9)))
     np.testing.assert_allclose(np.sort(np.asarray(equal) ** 2, axis=1),
                                np.sort(np.linalg.eigvalsh(0.5 * (_cov(q[0], s[0]) + _cov(q[1], s[1]))), axis=1),
@@ -197,7 +198,8 @@ def test_with_cameras_opacity_and_shape_average_the_cameras_that_see_the_anchor(
     np.testing.assert_allclose(np.asarray(model.opacities).reshape(num, N), np.repeat(expected[:, None], N, 1),
                                rtol=1e-4)
     sphere, _ = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16)
-    np.testing.assert_array_equal(np.asarray(model.sh), np.asarray(sphere.sh))  # colours: the sphere either way
+    # colours: the sphere either way (bit-equal on a CPU; another program's fusion on a GPU: to rounding)
+    np.testing.assert_allclose(np.asarray(model.sh), np.asarray(sphere.sh), rtol=1e-6, atol=1e-7)
     # max_cameras keeps an evenly spread subset
     _, summary = bake_splats(anchors, nets, cfg, sh_degree=1, directions=16, cameras=cams, max_cameras=1)
     assert summary.cameras == 1

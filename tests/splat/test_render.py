@@ -192,8 +192,10 @@ def test_zero_opacity_contributes_nothing_and_gets_zero_gradient():
     removed = dict(combined, means=combined["means"].copy())
     removed["means"][60:] = -(removed["viewmat"][:3, 3] @ removed["viewmat"][:3, :3]) - 1e3 * removed["viewmat"][2, :3]
     a, b = _render(removed), _render(combined)
-    for field in ("image", "alpha", "depth", "n_contrib", "significance", "hits"):
+    for field in ("image", "alpha", "depth", "n_contrib", "hits"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field), err_msg=field)
+    # a sum over pairs scattered per Gaussian: on a GPU the scatter's order may differ (1 ulp seen on an H200)
+    np.testing.assert_allclose(a.significance, b.significance, rtol=1e-6)
     assert not np.asarray(b.visible[60:]).any()
     # Against the scene without them (a differently shaped program): equal to float rounding.
     np.testing.assert_allclose(_render(scene).image, b.image, atol=1e-7)

@@ -459,3 +459,14 @@ def test_a_camera_with_a_lens_renders_through_it_and_a_zero_lens_is_the_pinhole(
     for a, b in zip(jax.tree_util.tree_leaves(results[0][0]), jax.tree_util.tree_leaves(results[1][0])):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
     assert abs(results[2][1] - results[0][1]) > 1e-3 * abs(results[0][1])
+
+
+def test_the_pallas_compositor_takes_the_same_step(setup):
+    """splat.backend=pallas (the kernels; Pallas's interpreter on a CPU) takes the step the JAX compositor
+    takes: loss, metrics and new parameters agree to float32 rounding."""
+    cfg, tx, strategies, step, state0 = setup
+    pallas_step = make_train_step(cfg.replace(splat=dict(backend="pallas")), tx, strategies)
+    theirs, ours = step(_copy(state0), _batch(2)), pallas_step(_copy(state0), _batch(2))
+    assert float(theirs[1]["loss"]) == pytest.approx(float(ours[1]["loss"]), rel=1e-5)
+    for a, b in zip(jax.tree_util.tree_leaves(theirs[0].trainable), jax.tree_util.tree_leaves(ours[0].trainable)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)

@@ -68,16 +68,22 @@ def default_max_pairs(num_gaussians: int, width: int, height: int, tile_size: in
     return int(per_gaussian * num_gaussians + 64 * grid.num_tiles)
 
 
-def resolve_backend(backend: str) -> str:
+def resolve_backend(backend: str, platform: str | None = None) -> str:
     """The compositor ``rasterize(backend=...)`` runs: ``"jax"`` or ``"pallas"``.
 
-    ``"auto"`` is the pure-JAX compositor on every backend for now: the Pallas kernels are opt-in
-    until ``benchmarks/gpu_check.py`` has shown them faster on a GPU, with their tests passing there
-    (docs/benchmarks.md).
+    ``"auto"`` is the Pallas kernels on a GPU, where ``benchmarks/gpu_check.py`` measured them
+    faster with their tests passing there, and the pure-JAX compositor on every other backend,
+    where Pallas only interprets (docs/benchmarks.md#gpu).
+
+    Args:
+      backend: ``"auto"``, ``"jax"`` or ``"pallas"``.
+      platform: the backend that runs the render (default: ``jax.default_backend()``).
     """
     if backend not in COMPOSITORS:
         raise ValueError(f"backend must be one of {COMPOSITORS}, got {backend!r}")
-    return "jax" if backend == "auto" else backend
+    if backend == "auto":
+        return "pallas" if (platform or jax.default_backend()) == "gpu" else "jax"
+    return backend
 
 
 def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
@@ -153,7 +159,7 @@ def rasterize(
       backend: static; the tile compositor: ``"jax"`` (lanes of chunks, any backend), ``"pallas"``
         (:mod:`~cusgs_jax.splat.composite_pallas`: Triton kernels on a GPU, Pallas's interpreter
         elsewhere — exact but slow, for tests) or ``"auto"`` (see :func:`resolve_backend`). Projection,
-        sorting and binning are the same for all; the image agrees to rounding.
+        sorting and binning are the same for all; the image agrees to rounding (``splat.backend``).
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
