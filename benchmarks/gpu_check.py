@@ -1,24 +1,23 @@
-"""One command for a machine with an NVIDIA GPU: tests, splatter against splax, the README's main job; prints JSON.
+"""One command for a machine with an NVIDIA GPU: tests, the compositors and splax, the README's main job; prints JSON.
 
-Runs the parts named by ``--parts`` (default: tests, splatter, main job, sweep), in this order, each in a
-subprocess with its own time limit (together at most ``--budget`` seconds, 8 minutes by default;
-``--part-seconds tests=200`` caps one part; a part stopped at its limit gets SIGINT first, so pytest still
-reports what it finished):
+Runs the parts named by ``--parts`` (default: tests, splatter, main_job, sweep) in the order below,
+each in a subprocess with its own time limit (together at most ``--budget`` seconds, 8 minutes by
+default; ``--part-seconds tests=200`` caps one part; a part stopped at its limit gets SIGINT first,
+so pytest still reports what it finished):
 
-0. **pallas_tests** — ``tests/splat/test_composite_pallas.py`` on the GPU (the Triton kernels themselves);
-
-1. **tests** — ``pytest -m "not slow"`` of ``tests/splat``, ``tests/model``, ``tests/training`` and
-   ``tests/test_precision.py`` with ``--workers`` xdist workers on the default backend (the GPU),
-   ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so the workers share the card;
+1. **pallas_tests** — ``tests/splat/test_composite_pallas.py`` on the GPU (the Triton kernels themselves);
 2. **splatter** — ``splat_bench.py`` at the issue's cells (50k Gaussians at 256², 500k and 1M at
    1024², tile 8 and 16, or ``--cells``; forward and forward+backward medians) with each compositor of
    ``--backends`` side by side and, given ``--splax-src``, ``peer_bench.py --quick`` (splax at 50k, 256²);
-   **train_step** — ``train_bench.py``: the demo's step with each compositor at ``--pixel-factors``;
-3. **main job** — ``cusgs-train`` with no overrides (the README's main job; 3000 steps, evaluation,
+3. **train_step** — ``train_bench.py``: the demo's step with each compositor at ``--pixel-factors``;
+4. **tests** — ``pytest -m "not slow"`` of ``tests/splat``, ``tests/model``, ``tests/training`` and
+   ``tests/test_precision.py`` with ``--workers`` xdist workers on the default backend (the GPU),
+   ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so the workers share the card;
+5. **main_job** — ``cusgs-train`` with no overrides (the README's main job; 3000 steps, evaluation,
    report) into ``OUT/main_job``, then the same again into ``OUT/main_job_rerun`` (the persistent
-   compilation cache warm): each run's process wall, ``eval.json``'s ``time`` budget,
-   ``compilations`` and held-out PSNR;
-4. **sweep** — a two-job Hydra joblib sweep (``train.seed=0,1``, ``--sweep-steps`` steps each) on the
+   compilation cache warm; ``main_job_once``: the first alone): each run's process wall,
+   ``eval.json``'s ``time`` budget, ``compilations`` and held-out PSNR;
+6. **sweep** — a two-job Hydra joblib sweep (``train.seed=0,1``, ``--sweep-steps`` steps each) on the
    one device: both jobs must finish, each with the memory fraction the sweep gave it.
 
 Writes ``OUT/gpu_check.json`` (everything) and the logs beside it, and prints a short table last.
