@@ -221,19 +221,15 @@ class SplatConfig:
 
     tile_size: int = 8
     chunk_size: int = 16
-    # First guesses of two work capacities (training/capacity.py; each grows, and the step replays,
-    # when a view needs more, so no work is ever dropped): the share of the decoded S·N Gaussians that
-    # pass the opacity mask and reach the splatter (model/active.py), and the tile–Gaussian pairs per
-    # such active Gaussian.
+    # First guesses of two work capacities (training/capacity.py; each grows, and the step replays, when a view
+    # needs more): the share of the decoded S·N Gaussians that reach the splatter (model/active.py), and the
+    # tile–Gaussian pairs per such active Gaussian.
     active_fraction: float = 0.375
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
-    # The tile compositor (splat/render.py::resolve_backend): "auto" is the Pallas kernels on a GPU and the
-    # pure-JAX one elsewhere; "jax" / "pallas" force one ("pallas" off a GPU runs Pallas's slow interpreter).
-    backend: str = "auto"
-    # RGB in [0, 1] behind the Gaussians and under images with alpha. None (not set): the dataset's default —
-    # white for Blender / NeRF-synthetic scenes, black otherwise (data/layouts.py); a run replaces it with the
-    # colour it used (training/inputs.py::resolve_background). Renderers read ``background_color``.
+    backend: str = "auto"  # the compositor: auto = Pallas kernels on a GPU, JAX elsewhere (splat/render.py)
+    # RGB in [0, 1] behind the Gaussians and under images with alpha. None: the layout's (white for Blender, else
+    # black: data/finish.py); a run records the colour it used (training/inputs.py). Renderers read background_color.
     background: Optional[tuple[float, float, float]] = None
 
     def __post_init__(self):

@@ -137,10 +137,14 @@ def test_16bit_alpha_scaled_consistently():
 
 
 @pytest.mark.parametrize("bad", [(1.5, 0.0, 0.0), (0.0, 0.0), (-0.1, 0.0, 0.0),
-                                 (float("nan"), 0.0, 0.0), "white", None])
+                                 (float("nan"), 0.0, 0.0), "white"])
 def test_error_bad_background(demo_copy, bad):
     with pytest.raises(SceneError, match=r"splat\.background=.*three floats in \[0, 1\]"):
         load_scene(demo_copy, background=bad)
+
+
+def test_no_background_is_the_layouts_default(demo_copy):
+    assert load_scene(demo_copy, background=None).background == (0.0, 0.0, 0.0)  # COLMAP: black
 
 
 def test_check_background_accepts_sequences():

@@ -337,5 +337,5 @@ def test_mask_mode_downscale_is_conservative(tmp_path):
 
 def test_bad_undistort_mode(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
-    with pytest.raises(ValueError, match="undistortion mode 'blur'"):
+    with pytest.raises(SceneError, match=r"data.undistort.*'blur'.*crop.*mask.*lens"):  # refused before any reading
         load_scene(tmp_path / "s", holdout_every=0, undistort="blur")

@@ -43,13 +43,14 @@ import numpy as np
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.frames import (FrameImage, check_unique_names, fov_focal, frame_list, frame_name, frame_path,
-                                   load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
-from cusgs_jax.data.images import check_background
-from cusgs_jax.data.scene_data import SceneData, check_int_setting, make_scene
-from cusgs_jax.data.random_points import random_points, resolve_random_init
+from cusgs_jax.data.finish import data_settings, existing_folder, finish_scene
+from cusgs_jax.data.frames import (FrameImage, fov_focal, frame_list, frame_name, frame_path, load_frame_images,
+                                   opengl_c2w_to_viewmat, read_json, require_key)
+from cusgs_jax.data.images import read_image_file
+from cusgs_jax.data.raw import RawScene, Split, ViewCamera
+from cusgs_jax.data.scene_data import SceneData
 
-__all__ = ["load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
+__all__ = ["read_blender", "load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
 
 log = logging.getLogger("cusgs_jax")
 
@@ -93,11 +94,47 @@ def _read_split(scene: pathlib.Path, json_path: pathlib.Path, *, required: bool)
     return _Split(json_path, views, np.stack(viewmats) if viewmats else np.zeros((0, 4, 4)), float(angle))
 
 
+def read_blender(folder: pathlib.Path, data: DataConfig) -> RawScene:
+    """The views of the Blender scene in ``folder`` (an existing folder) as its transforms files describe
+    them: the train frames, then the test frames (its own split), with the first image's size as every
+    frame's (``read_images`` checks each file has it) and the focal length of each file's field of view.
+
+    Raises:
+      SceneError: a missing/malformed JSON, key, image or matrix — naming the file and the fix.
+    """
+    train = _read_split(folder, folder / TRAIN_FILE, required=True)
+    test = _read_split(folder, folder / TEST_FILE, required=False)
+    splits = [train] + ([test] if test is not None else [])
+    names = tuple(name for s in splits for name, _ in s.views)
+    frames = [FrameImage(name, image, None) for s in splits for name, image in s.views]
+    # the frames of both files share one size: a message about it names both files
+    files = train.json_path if test is None else f"{train.json_path} and {test.json_path}"
+    height, width = read_image_file(frames[0].path, "delete its frame").shape[:2]  # the full size
+    cameras = tuple(ViewCamera(focal, focal, 0.5 * width, 0.5 * height, int(width), int(height))
+                    for s in splits for focal in [fov_focal(width, s.angle_x)] for _ in s.views)
+    num_train = len(train.views)
+    split = Split(np.arange(num_train, dtype=np.int32), np.arange(num_train, len(names), dtype=np.int32),
+                  "transforms_test" if len(names) > num_train else "none")
+    if not len(split.test):
+        log.warning("%s has no %s (or no frames in it): no held-out views; the reported PSNR will be on "
+                    "training views", folder, TEST_FILE)
+
+    def read_images(background):
+        return load_frame_images(frames, downscale=data.downscale, background=background, json_path=train.json_path,
+                                 files=files)[0]
+
+    return RawScene(folder=folder, dataset_format="blender", names=names,
+                    viewmats=np.concatenate([s.viewmats for s in splits]), cameras=cameras, views_source=files,
+                    cameras_source=train.json_path, size_fix="resize the odd ones (keep the aspect ratio)",
+                    read_images=read_images, split=split)
+
+
 def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
                        background: tuple[float, float, float] | None = None,
                        num_random_points: int = DataConfig.random_points, seed: int = 0,
                        random_init: str = DataConfig.random_init) -> SceneData:
-    """Load a Blender / NeRF-synthetic scene folder (see the module docstring for the layout).
+    """Load a Blender / NeRF-synthetic scene folder: :func:`read_blender` and the shared pass
+    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
 
     Args:
       path: the folder holding ``transforms_train.json`` (``data.path``).
@@ -115,46 +152,5 @@ def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.d
     Raises:
       SceneError: a missing/malformed JSON, key, image or matrix — naming the file and the fix.
     """
-    downscale = check_int_setting("data.downscale", downscale, minimum=1)
-    num_random_points = check_int_setting("data.random_points", num_random_points, minimum=2)
-    background = WHITE if background is None else check_background(background)
-    scene = pathlib.Path(path).expanduser()
-    if not scene.is_dir():
-        raise SceneError(f"data.path={scene} is not a folder: set it to a Blender scene folder holding {TRAIN_FILE}")
-    train = _read_split(scene, scene / TRAIN_FILE, required=True)
-    test = _read_split(scene, scene / TEST_FILE, required=False)
-    splits = [train] + ([test] if test is not None else [])
-    names = [name for s in splits for name, _ in s.views]
-    check_unique_names(names, train.json_path)
-
-    frames = [FrameImage(name, image, None) for s in splits for name, image in s.views]
-    # the frames of both files share one size: a message about it names both files
-    files = train.json_path if test is None else f"{train.json_path} and {test.json_path}"
-    images, (width, height) = load_frame_images(frames, downscale=downscale, background=background,
-                                                json_path=train.json_path, files=files)
-    d = float(downscale)
-    Ks = np.concatenate([np.repeat(_K(width, height, s.angle_x, d)[None], len(s.views), axis=0) for s in splits])
-    viewmats = np.concatenate([s.viewmats for s in splits])
-    num_train = len(train.views)
-    train_indices = np.arange(num_train, dtype=np.int32)
-    test_indices = np.arange(num_train, len(names), dtype=np.int32)
-    if test is None or not len(test_indices):
-        log.warning("%s has no %s (or no frames in it): no held-out views; the reported PSNR will be on "
-                    "training views", scene, TEST_FILE)
-    out_w, out_h = images.shape[2], images.shape[1]
-    rule = resolve_random_init(random_init, "blender")
-    points, colors = random_points(viewmats[train_indices], Ks[train_indices], out_w, out_h, num=num_random_points,
-                                   seed=seed, init=rule)
-    log.info("Blender scene %s: %d train / %d test views at %dx%d; %d random initial points (no SfM points; "
-             "data.random_init=%s)", scene, num_train, len(test_indices), out_w, out_h, len(points), rule)
-    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
-                      point_colors=colors, train_indices=train_indices, test_indices=test_indices,
-                      dataset_format="blender", split="transforms_test" if len(test_indices) else "none",
-                      background=background, random_points=rule)
-
-
-def _K(width: int, height: int, angle_x: float, downscale: float) -> np.ndarray:
-    """[3, 3] pinhole intrinsics of a W × H (full-size) image with horizontal FoV ``angle_x``, divided
-    by ``downscale``: f = 0.5·W / tan(0.5·angle_x) for both axes, principal point at the centre."""
-    f = fov_focal(width, angle_x) / downscale
-    return np.array([[f, 0.0, 0.5 * width / downscale], [0.0, f, 0.5 * height / downscale], [0.0, 0.0, 1.0]])
+    data = data_settings(downscale=downscale, random_points=num_random_points, random_init=random_init)
+    return finish_scene(read_blender(existing_folder(path), data), data, background=background, seed=seed)

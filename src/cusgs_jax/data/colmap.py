@@ -23,35 +23,39 @@ undistorted images are downscaled on load). A perspective model whose distortion
 is loaded as the pinhole it is. Any other model (FOV, THIN_PRISM_FISHEYE, ...) is refused with a
 SceneError saying to run ``colmap image_undistorter``.
 
-Every problem with the user's data raises :class:`SceneError`, whose message names the
-offending file and what to do about it. The image files are read by :mod:`.images`.
+:func:`read_colmap` reads the model into a :class:`~cusgs_jax.data.raw.RawScene` (the shared pass,
+:mod:`.finish`, checks sizes, scales the intrinsics and splits); :func:`load_scene` and
+:func:`load_cameras` are that plus the pass. Every problem with the user's data raises
+:class:`SceneError`, whose message names the offending file and what to do about it. The image files
+are read by :mod:`.images`.
 """
 
 from __future__ import annotations
 
 import os
 import pathlib
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.config import DataConfig
+from cusgs_jax.data.camera_frame import frame_cameras
+from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.images import check_background, image_dir, load_images, require_loadable_size, scaled_size
-from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
-from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
+from cusgs_jax.data.finish import check_settings, data_settings, existing_folder, finish_cameras, finish_scene
+from cusgs_jax.data.images import image_dir, load_images
+from cusgs_jax.data.raw import RawScene, ViewCamera
+from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.undistort import (
     DISTORTED_MODELS,
     PINHOLE_MODELS,
     camera_model_name,
     needs_undistortion,
-    undistorted_cameras,
     undistorted_images,
     undistorted_masks,
 )
 
-__all__ = ["SceneError", "SceneData", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
+__all__ = ["SceneError", "SceneData", "read_colmap", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
 
 SUPPORTED_CAMERA_MODELS = PINHOLE_MODELS + DISTORTED_MODELS  # the distorted ones are undistorted
 _MODEL_PARTS = ("cameras", "images", "points3D")
@@ -60,17 +64,68 @@ _UNDISTORT_HINT = (
     "--input_path <scene>/sparse/0 --output_path <undistorted scene> --output_type COLMAP`, "
     "and point data.path at the undistorted scene"
 )
+_SIZE_FIX = "undistort/crop them to a common size (e.g. `colmap image_undistorter`) and rerun"
 
 
 # --------------------------------------------------------------------------------------------
-# Public entry point
+# The reader, and the loaders of one COLMAP scene
 # --------------------------------------------------------------------------------------------
+
+
+def read_colmap(folder: pathlib.Path, data: DataConfig) -> RawScene:
+    """The views of the COLMAP scene in ``folder`` (an existing folder) as its model describes them.
+
+    Reads the model (``sparse/0`` or ``sparse``): the registered images, sorted by name, each name
+    once; their cameras, of a supported model, in the frame ``data.undistort`` asks for
+    (:func:`cusgs_jax.data.camera_frame.frame_cameras`); finite poses; the SfM points. The images
+    (from ``images/``, ``images_{d}/`` for ``data.downscale`` d when present, or the undistorted copy in
+    the cache) are read when :class:`~cusgs_jax.data.raw.RawScene` ``read_images`` is called.
+
+    Raises:
+      SceneError: anything wrong with the model files, naming the file and the fix.
+    """
+    model_dir = _find_model_dir(folder)
+    files = _model_files(model_dir)
+    rec = _read_reconstruction(model_dir, files)
+    entries = _registered_images(rec, files)
+    used = {}  # {camera id: pycolmap Camera} of the registered images
+    for _, _, image in entries:
+        if image.camera_id not in used:
+            used[image.camera_id] = _check_camera_model(rec.cameras[image.camera_id],
+                                                        image.camera_id, files["cameras"])
+    views = [(name, image.camera_id) for name, _, image in entries]
+    where = {cid: f"camera {cid} in {files['cameras']}" for cid in used}
+    framed = frame_cameras(used, [cid for _, cid in views], where, [where[cid] for _, cid in views],
+                           data.undistort,
+                           lambda: undistorted_images(folder, model_dir, views, used, mode=data.undistort),
+                           files["cameras"])
+    intrinsics = {cid: _camera_intrinsics(cam, cid, files["cameras"], keep_distortion=framed.lens is not None)
+                  for cid, cam in framed.cameras.items()}
+    names, viewmats = _poses(entries, files)
+    points, point_colors = _points(rec, files["points3D"])
+    downscale = data.downscale
+
+    def read_images(background):
+        root = folder if framed.undistorted is None else framed.undistorted()
+        image_folder, from_prescaled = image_dir(root, downscale)
+        return load_images(image_folder, views, intrinsics, downscale, from_prescaled, folder, background=background)
+
+    def read_valid():
+        return undistorted_masks(framed.undistorted(), [cid for _, cid in views], downscale)
+
+    cameras = tuple(ViewCamera(*(intrinsics[cid][k] for k in ("fx", "fy", "cx", "cy", "width", "height")))
+                    for _, cid in views)
+    return RawScene(folder=folder, dataset_format="colmap", names=tuple(names), viewmats=viewmats, cameras=cameras,
+                    views_source=files["images"], cameras_source=files["cameras"], size_fix=_SIZE_FIX,
+                    read_images=read_images, points=points, point_colors=point_colors,
+                    read_valid=None if framed.undistorted is None else read_valid, lens=framed.lens)
 
 
 def load_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
-               holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] | None = None,
                undistort: str = DataConfig.undistort) -> SceneData:
-    """Load a COLMAP scene folder.
+    """Load a COLMAP scene folder: :func:`read_colmap` and the shared pass
+    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
 
     Args:
       path: folder with ``images/`` and ``sparse/0/`` (or ``sparse/``) — ``data.path``.
@@ -79,37 +134,15 @@ def load_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale
         anti-aliasing; intrinsics are divided by ``d``.
       holdout_every: every ``holdout_every``-th image (index ``i % holdout_every == 0``) is a
         test view (``data.holdout_every``); 0 holds out none.
-      background: RGB in [0, 1] that images with an alpha channel (RGBA, grey+alpha) are
-        composited onto — the rendering background, ``splat.background``; a warning on the
-        ``cusgs_jax`` logger says how many images had one.
-      undistort: ``data.undistort`` for distorted cameras: "crop" to the valid rectangle or
-        "mask" the invalid pixels (:mod:`.undistort`; ``SceneData.valid``).
+      background: RGB in [0, 1] that images with an alpha channel are composited onto
+        (``splat.background``; None: black); a warning says how many images had one.
+      undistort: ``data.undistort`` for distorted cameras (:mod:`.camera_frame`).
 
     Raises:
       SceneError: for any problem with the data or these settings.
     """
-    downscale, holdout_every = _check_settings(downscale, holdout_every)
-    background = check_background(background)
-    scene, files, rec, entries, cameras, undistorted, lens = _read_model(path, downscale, undistort)
-    names, viewmats = _poses(entries, files)
-    points, point_colors = _points(rec, files["points3D"])
-
-    # The image folder (the scene's, or its undistorted copy in the cache) and the expected
-    # loaded size of every image.
-    image_root = scene if undistorted is None else undistorted()
-    folder, from_prescaled = image_dir(image_root, downscale)
-    images = load_images(folder, [(name, image.camera_id) for name, _, image in entries],
-                         cameras, downscale, from_prescaled, scene, background=background)
-    height, width = images.shape[1:3]
-    valid = None if undistorted is None else undistorted_masks(image_root, [image.camera_id for _, _, image in entries],
-                                                             downscale)
-    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries])
-    train_indices, test_indices = holdout_split(len(entries), holdout_every, scene)
-
-    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
-                      point_colors=point_colors, train_indices=train_indices, test_indices=test_indices,
-                      dataset_format="colmap", split=split_name(holdout_every), background=background, valid=valid,
-                      lens=lens)
+    data = data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort)
+    return finish_scene(read_colmap(existing_folder(path), data), data, background=background)
 
 
 def load_cameras(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
@@ -128,93 +161,15 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = DataConfig.downsca
     Raises:
       SceneError: as :func:`load_scene` for the model and these settings.
     """
-    downscale, holdout_every = _check_settings(downscale, holdout_every)
-    scene, files, _, entries, cameras, _, _ = _read_model(path, downscale, undistort)
-    _, viewmats = _poses(entries, files)
-    first = cameras[entries[0][2].camera_id]
-    Ks = np.stack([_K(cameras[image.camera_id], downscale) for _, _, image in entries]).astype(np.float32)
-    train_indices, _ = holdout_split(len(entries), holdout_every, scene)
-    return (viewmats.astype(np.float64), Ks, scaled_size(first["width"], downscale),
-            scaled_size(first["height"], downscale), train_indices)
-
-
-class _Model(NamedTuple):
-    """What :func:`load_scene` and :func:`load_cameras` share: the checked model of a scene."""
-
-    scene: pathlib.Path
-    files: dict  # {part: model file}
-    rec: Any  # pycolmap.Reconstruction
-    entries: list  # [(name, image id, pycolmap Image)] of the registered images, by name
-    cameras: dict  # {camera id: intrinsics dict} (undistorted PINHOLE for distorted cameras)
-    undistort: Any  # None, or (for distorted cameras) a function () -> folder whose images/ hold
-    #                 the undistorted images (undistorting and caching them on first use)
-    lens: SceneLens | None  # data.undistort=lens with a distorted camera: the per-view lenses; else None
-
-
-def _read_model(path, downscale: int, mode: str) -> _Model:
-    """Read and check the COLMAP model of ``path``: registered images with unique names, supported
-    cameras that load at one common size at the (checked) ``downscale``; SceneError otherwise.
-    Distorted cameras are replaced by their undistorted PINHOLE cameras (:mod:`.undistort`)."""
-    scene = _scene_folder(path)
-    model_dir = _find_model_dir(scene)
-    files = _model_files(model_dir)
-    rec = _read_reconstruction(model_dir, files)
-    entries = _registered_images(rec, files)
-    used = {}  # {camera id: pycolmap Camera} of the registered images
-    for _, _, image in entries:
-        if image.camera_id not in used:
-            used[image.camera_id] = _check_camera_model(rec.cameras[image.camera_id],
-                                                        image.camera_id, files["cameras"])
-    undistort = lens = None
-    if mode == "lens" and any(needs_undistortion(cam) for cam in used.values()):
-        lens = scene_lens([used[image.camera_id] for _, _, image in entries],
-                          [f"camera {image.camera_id} in {files['cameras']}" for _, _, image in entries])
-        cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"], keep_distortion=True)
-                   for cid, cam in used.items()}
-        _check_common_size(entries, cameras, downscale, files)
-        return _Model(scene, files, rec, entries, cameras, None, lens)
-    if any(needs_undistortion(cam) for cam in used.values()):
-        for cid, cam in used.items():
-            if needs_undistortion(cam):  # a folding lens, or a fisheye past 90°: refused before any work
-                check_undistortable(cam, f"camera {cid} in {files['cameras']}", mode)
-        sizes = {cid: dict(width=int(cam.width), height=int(cam.height))
-                 for cid, cam in used.items()}
-        _check_common_size(entries, sizes, downscale, files)  # of the source images
-        views = [(name, image.camera_id) for name, _, image in entries]
-        source = used
-
-        def undistort() -> pathlib.Path:
-            return undistorted_images(scene, model_dir, views, source, mode=mode)
-
-        used = undistorted_cameras(source, mode=mode)
-    cameras = {cid: _camera_intrinsics(cam, cid, files["cameras"]) for cid, cam in used.items()}
-    _check_common_size(entries, cameras, downscale, files)
-    return _Model(scene, files, rec, entries, cameras, undistort, lens)
-
-
-def _check_settings(downscale, holdout_every) -> tuple[int, int]:
-    return (check_int_setting("data.downscale", downscale, minimum=1),
-            check_int_setting("data.holdout_every", holdout_every, minimum=0))
+    data = check_settings(data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort))
+    raw = read_colmap(existing_folder(path), data)
+    cameras = finish_cameras(raw, data)
+    return raw.viewmats.astype(np.float64), cameras.Ks.astype(np.float32), cameras.width, cameras.height, cameras.train
 
 
 # --------------------------------------------------------------------------------------------
-# Settings and scene layout
+# Views and poses
 # --------------------------------------------------------------------------------------------
-
-
-def _scene_folder(path) -> pathlib.Path:
-    """``data.path`` as an existing folder (``~`` expanded); SceneError otherwise."""
-    if path is None or str(path) == "":
-        raise SceneError("data.path is empty: set data.path to a COLMAP scene folder "
-                         "containing images/ and sparse/0/")
-    scene = pathlib.Path(path).expanduser()
-    if not scene.exists():
-        raise SceneError(f"scene folder {scene} does not exist: set data.path to a COLMAP scene "
-                         "folder containing images/ and sparse/0/")
-    if not scene.is_dir():
-        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to a COLMAP "
-                         "scene folder containing images/ and sparse/0/")
-    return scene
 
 
 def _registered_images(rec, files: dict[str, pathlib.Path]) -> list[tuple[str, int, Any]]:
@@ -273,26 +228,6 @@ def _poses(entries, files: dict[str, pathlib.Path]) -> tuple[list[str], np.ndarr
         names.append(name)
         viewmats.append(view)
     return names, np.stack(viewmats)
-
-
-def _check_common_size(entries, cameras: dict[int, dict], downscale: int,
-                       files: dict[str, pathlib.Path]) -> None:
-    """SceneError unless every camera of ``entries`` loads at the same size at ``downscale``."""
-    for cid in {image.camera_id for _, _, image in entries}:
-        require_loadable_size(cameras[cid]["width"], cameras[cid]["height"], downscale, files["cameras"])
-    expected = {cid: (scaled_size(cam["width"], downscale), scaled_size(cam["height"], downscale))
-                for cid, cam in cameras.items()}
-    first_cam = entries[0][2].camera_id
-    for name, _, image in entries:
-        cid = image.camera_id
-        if expected[cid] != expected[first_cam]:
-            (w0, h0), (w1, h1) = expected[first_cam], expected[cid]
-            raise SceneError(
-                f"the images in {files['images']} do not share one size with "
-                f"data.downscale={downscale}: {entries[0][0]!r} (camera {first_cam}) loads at "
-                f"{w0}x{h0} but {name!r} (camera {cid}) at {w1}x{h1}; all training images must "
-                "have one resolution — undistort/crop them to a common size (e.g. "
-                "`colmap image_undistorter`) and rerun")
 
 
 # --------------------------------------------------------------------------------------------
@@ -411,7 +346,7 @@ def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path, *, ke
     elif model in DISTORTED_MODELS and (keep_distortion or not needs_undistortion(camera)):
         fx, fy = camera.focal_length_x, camera.focal_length_y
         cx, cy = camera.principal_point_x, camera.principal_point_y
-    else:  # pragma: no cover - _read_model undistorts or refuses every other camera
+    else:  # pragma: no cover - read_colmap undistorts or refuses every other camera
         raise SceneError(
             f"camera {camera_id} in {cameras_file} uses the {model} camera model, which cannot "
             "be loaded as a pinhole camera: " + _UNDISTORT_HINT)
@@ -426,13 +361,6 @@ def _camera_intrinsics(camera, camera_id: int, cameras_file: pathlib.Path, *, ke
                          f"{width}x{height}; rerun SfM / undistortion")
     return dict(fx=float(fx), fy=float(fy), cx=float(cx), cy=float(cy), width=width,
                 height=height, model=model)
-
-
-def _K(cam: dict, downscale: int) -> np.ndarray:
-    d = float(downscale)
-    return np.array([[cam["fx"] / d, 0.0, cam["cx"] / d],
-                     [0.0, cam["fy"] / d, cam["cy"] / d],
-                     [0.0, 0.0, 1.0]])
 
 
 def _points(rec, points_file: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:

@@ -28,7 +28,7 @@ from cusgs_jax.data.images import (downscale_image, to_rgb_uint8, warn_alpha, re
                                    scaled_size)
 
 __all__ = ["FrameImage", "read_json", "require_key", "frame_list", "frame_path", "frame_name",
-           "opengl_c2w_to_viewmat", "load_frame_images", "check_unique_names", "fov_focal"]
+           "opengl_c2w_to_viewmat", "load_frame_images", "fov_focal"]
 
 _RIGID_TOL = 1e-3  # |RᵀR − I| above this: not a rotation (scale or shear in the matrix)
 
@@ -95,17 +95,6 @@ def frame_name(scene: pathlib.Path, image: pathlib.Path) -> str:
         return image.relative_to(scene).as_posix()
     except ValueError:
         return image.as_posix()
-
-
-def check_unique_names(names: Sequence[str], json_path: pathlib.Path) -> None:
-    """SceneError when two frames use the same image file (they would share its pixels and features)."""
-    seen: set[str] = set()
-    for name in names:
-        if name in seen:
-            raise SceneError(
-                f"two frames of {json_path} use the same image {name!r}: every frame must have its own image "
-                "file — delete the duplicate frame")
-        seen.add(name)
 
 
 def opengl_c2w_to_viewmat(matrix: Any, where: str, json_path: pathlib.Path) -> np.ndarray:

@@ -1,8 +1,9 @@
 """``data.path`` in any of the layouts captures come in: COLMAP, Blender (NeRF-synthetic), nerfstudio.
 
-:func:`detect_format` tells them apart by the files present; :func:`load_any_scene` loads one
-into a :class:`~cusgs_jax.data.scene_data.SceneData` whose ``dataset_format`` and ``split`` say what
-was read and which views were held out.
+:func:`detect_format` tells them apart by the files present; :data:`READERS` maps each to the one
+function of its module that reads its files into a :class:`~cusgs_jax.data.raw.RawScene`
+(:func:`read_scene`); :func:`cusgs_jax.data.finish.finish_scene` then checks and completes every layout
+the same way. Adding a layout is a module with a reader, an entry in ``READERS`` and its files here.
 
 Detection (``data.format=auto``), first match wins:
 
@@ -15,7 +16,7 @@ Detection (``data.format=auto``), first match wins:
 
 Background (``splat.background``, None = not set): each layout has its default — white for
 Blender (papers evaluate NeRF-synthetic on white), black for COLMAP and nerfstudio
-(:func:`default_background`); a set colour is used as it is. The scene records the colour its
+(:func:`~cusgs_jax.data.finish.default_background`); a set colour is used as it is. The scene records the colour its
 images were composited onto in ``SceneData.background``, which the run then renders on.
 """
 
@@ -24,37 +25,25 @@ from __future__ import annotations
 import logging
 import os
 import pathlib
+from typing import Callable
 
 from cusgs_jax.config import DATASET_FORMATS, DataConfig
-from cusgs_jax.data.blender import load_blender_scene
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.blender import read_blender
+from cusgs_jax.data.colmap import read_colmap
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.nerfstudio import load_nerfstudio_scene
+from cusgs_jax.data.finish import LAYOUTS, data_settings, default_background, existing_folder, finish_scene
+from cusgs_jax.data.nerfstudio import read_nerfstudio
+from cusgs_jax.data.raw import RawScene
 from cusgs_jax.data.scene_data import SceneData
 
-__all__ = ["DATASET_FORMATS", "detect_format", "load_any_scene", "default_background"]
+__all__ = ["DATASET_FORMATS", "READERS", "detect_format", "load_any_scene", "default_background", "read_scene"]
 
 log = logging.getLogger("cusgs_jax")
 
-_BLACK = (0.0, 0.0, 0.0)
-_LAYOUTS = ("a COLMAP scene (images/ and sparse/0/), a Blender / NeRF-synthetic scene (transforms_train.json "
-            "and transforms_test.json) or a nerfstudio scene (transforms.json)")
-
-
-def default_background(dataset_format: str) -> tuple[float, float, float]:
-    """The background of a layout when ``splat.background`` is not set: white for Blender, else black."""
-    return (1.0, 1.0, 1.0) if dataset_format == "blender" else _BLACK
-
-
-def _folder(path) -> pathlib.Path:
-    if path is None or str(path) == "":
-        raise SceneError(f"data.path is empty: set it to {_LAYOUTS}")
-    scene = pathlib.Path(path).expanduser()
-    if not scene.exists():
-        raise SceneError(f"scene folder {scene} does not exist: set data.path to {_LAYOUTS}")
-    if not scene.is_dir():
-        raise SceneError(f"data.path={scene} is a file, not a folder: set data.path to {_LAYOUTS}")
-    return scene
+# data.format → the layout's reader: (existing folder, settings) -> RawScene. A fourth layout is one
+# module with such a reader, one entry here and its files in detect_format.
+READERS: dict[str, Callable[[pathlib.Path, DataConfig], RawScene]] = {
+    "colmap": read_colmap, "blender": read_blender, "nerfstudio": read_nerfstudio}
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -63,7 +52,7 @@ def detect_format(path: str | os.PathLike) -> str:
     Raises:
       SceneError: the folder is missing or holds none of the three layouts.
     """
-    scene = _folder(path)
+    scene = existing_folder(path)
     blender = (scene / "transforms_train.json").is_file()
     colmap = (scene / "sparse").is_dir()
     nerfstudio = (scene / "transforms.json").is_file()
@@ -79,15 +68,24 @@ def detect_format(path: str | os.PathLike) -> str:
     found = sorted(p.name + ("/" if p.is_dir() else "") for p in scene.iterdir())[:8]
     raise SceneError(
         f"no scene layout recognised in {scene} (it holds {', '.join(found) or 'nothing'}): data.path must be "
-        f"{_LAYOUTS}; point data.path at such a folder, or set data.format=colmap|blender|nerfstudio to be told "
+        f"{LAYOUTS}; point data.path at such a folder, or set data.format=colmap|blender|nerfstudio to be told "
         "what that layout is missing")
+
+
+def read_scene(path: str | os.PathLike, data: DataConfig) -> RawScene:
+    """The folder ``path`` read by its layout's reader (``data.format``; ``"auto"``: :func:`detect_format`)."""
+    if data.format not in ("auto",) + DATASET_FORMATS:
+        raise SceneError(f"data.format={data.format!r} must be auto, colmap, blender or nerfstudio")
+    fmt = detect_format(path) if data.format == "auto" else data.format
+    return READERS[fmt](existing_folder(path), data)
 
 
 def load_any_scene(path: str | os.PathLike, *, format: str = DataConfig.format, downscale: int = DataConfig.downscale,
                    holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] | None = None,
                    num_random_points: int = DataConfig.random_points, seed: int = 0,
                    undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
-    """Load the scene folder ``path`` in its layout (``data.format``; ``"auto"``: :func:`detect_format`).
+    """Load the scene folder ``path`` in its layout: :func:`read_scene`, then the shared pass
+    (:func:`cusgs_jax.data.finish.finish_scene`). Keyword twin of :func:`cusgs_jax.data.loader.load_scene`.
 
     Args:
       format: ``"auto"``, ``"colmap"``, ``"blender"`` or ``"nerfstudio"``.
@@ -96,8 +94,7 @@ def load_any_scene(path: str | os.PathLike, *, format: str = DataConfig.format, 
       background: ``splat.background``, or None for the layout's default (:func:`default_background`).
       num_random_points, seed, random_init: initial points of layouts without any (``data.random_points``,
         ``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`).
-      undistort: ``data.undistort``, "crop" or "mask", for distorted COLMAP and nerfstudio cameras
-        (:mod:`cusgs_jax.data.undistort`).
+      undistort: ``data.undistort`` for distorted COLMAP and nerfstudio cameras (:mod:`.camera_frame`).
     Returns:
       SceneData with ``dataset_format``, ``split`` and ``background`` filled in.
     Raises:
@@ -105,16 +102,6 @@ def load_any_scene(path: str | os.PathLike, *, format: str = DataConfig.format, 
     """
     if format not in ("auto",) + DATASET_FORMATS:
         raise SceneError(f"data.format={format!r} must be auto, colmap, blender or nerfstudio")
-    fmt = detect_format(path) if format == "auto" else format
-    if fmt != "colmap":
-        _folder(path)
-    bg = default_background(fmt) if background is None else background
-    if fmt == "blender":
-        return load_blender_scene(path, downscale=downscale, background=bg, num_random_points=num_random_points,
-                                  seed=seed, random_init=random_init)
-    if fmt == "nerfstudio":
-        return load_nerfstudio_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg,
-                                     num_random_points=num_random_points, seed=seed, undistort=undistort,
-                                     random_init=random_init)
-
-    return load_scene(path, downscale=downscale, holdout_every=holdout_every, background=bg, undistort=undistort)
+    data = data_settings(format=format, downscale=downscale, holdout_every=holdout_every,
+                         random_points=num_random_points, undistort=undistort, random_init=random_init)
+    return finish_scene(read_scene(path, data), data, background=background, seed=seed)

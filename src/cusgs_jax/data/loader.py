@@ -3,7 +3,8 @@
 Every caller — the trainer, feature extraction, ``cusgs-export``'s refinement, ``cusgs-render-ply``,
 research code — passes a :class:`~cusgs_jax.config.DataConfig` (the run's own, or ``DataConfig()``
 for the defaults ``cusgs-train`` uses), so the same settings give the same scene everywhere: the
-layout is detected (:mod:`.layouts`), read, and checked once. The scene is in its own frame;
+layout is detected and read (:mod:`.layouts`: its reader gives a :class:`~cusgs_jax.data.raw.RawScene`),
+then checked and finished once for every layout (:func:`cusgs_jax.data.finish.finish_scene`). The scene is in its own frame;
 :func:`cusgs_jax.data.normalize.normalize_scene` moves it into the training frame.
 """
 
@@ -16,7 +17,8 @@ from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo.lens import configured_demo
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import scaled_size
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.finish import check_settings, finish_scene
+from cusgs_jax.data.layouts import read_scene
 from cusgs_jax.data.scene_data import SceneData
 
 __all__ = ["load_scene", "require_ssim_size", "scene_folder"]
@@ -49,11 +51,9 @@ def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = 
     Raises:
       SceneError: anything wrong with the files or these settings, naming the file or option.
     """
-    data = DataConfig() if data is None else data
+    data = check_settings(DataConfig() if data is None else data)
     folder = scene_folder(data.path if path is None else path, data)
-    scene = load_any_scene(folder, format=data.format, downscale=data.downscale, holdout_every=data.holdout_every,
-                           background=background, num_random_points=data.random_points, seed=seed,
-                           undistort=data.undistort, random_init=data.random_init)
+    scene = finish_scene(read_scene(folder, data), data, background=background, seed=seed)
     require_ssim_size(scene, data.downscale, downscale_option)
     return scene
 

@@ -53,16 +53,16 @@ from typing import NamedTuple
 import numpy as np
 
 from cusgs_jax.config import DataConfig
+from cusgs_jax.data.camera_frame import frame_cameras
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.lenses import SceneLens, check_undistortable, scene_lens
-from cusgs_jax.data.frames import (FrameImage, check_unique_names, frame_list, frame_name, frame_path,
-                                   load_frame_images, opengl_c2w_to_viewmat, read_json, require_key)
-from cusgs_jax.data.images import check_background, scaled_size
-from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
-from cusgs_jax.data.random_points import random_points, resolve_random_init
-from cusgs_jax.data.undistort import needs_undistortion, undistorted_cameras, undistorted_images, undistorted_masks
+from cusgs_jax.data.finish import data_settings, existing_folder, finish_scene
+from cusgs_jax.data.frames import (FrameImage, frame_list, frame_name, frame_path, load_frame_images,
+                                   opengl_c2w_to_viewmat, read_json, require_key)
+from cusgs_jax.data.raw import RawScene, ViewCamera
+from cusgs_jax.data.scene_data import SceneData
+from cusgs_jax.data.undistort import undistorted_images, undistorted_masks
 
-__all__ = ["load_nerfstudio_scene", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
+__all__ = ["read_nerfstudio", "load_nerfstudio_scene", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
            "UNSUPPORTED_MODELS"]
 
 log = logging.getLogger("cusgs_jax")
@@ -163,45 +163,10 @@ def _colmap_camera(camera: FrameCamera, camera_id: int, name: str, json_path: pa
                            params=params)
 
 
-def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode: str
-               ) -> tuple[list, tuple[pathlib.Path, list[int]] | None, SceneLens | None]:
-    """The frames' cameras and images undistorted to pinhole when any frame is distorted, else as they are
-    (and with ``mode="lens"`` always as they are, with their lenses).
-
-    Args:
-      frames: [(name, image path, FrameCamera)] in view order.
-      mode: ``data.undistort``, "crop", "mask" or "lens" (:mod:`cusgs_jax.data.undistort`, :mod:`.lenses`).
-    Returns:
-      ([(image path, FrameCamera, prescaled usable)], masks, lens) — undistorted frames read their image from
-      the cache folder of :func:`cusgs_jax.data.undistort.undistorted_images` and are PINHOLE at its common
-      size; ``masks`` is (that folder, [V] camera ids) for :func:`~cusgs_jax.data.undistort.undistorted_masks`,
-      None when nothing was undistorted; ``lens`` the per-view :class:`~cusgs_jax.data.lenses.SceneLens` of
-      distorted frames kept as captured (``mode="lens"``), else None.
-    """
-    import tempfile
-
-    import pycolmap
-
-    ids, cameras, views = {}, {}, []
-    for name, image, camera in frames:
-        key = (camera.model, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
-               tuple(sorted(camera.distortion.items())))
-        if key not in ids:
-            ids[key] = len(ids) + 1
-            cameras[ids[key]] = _colmap_camera(camera, ids[key], name, json_path)
-        views.append(ids[key])
-    as_captured = [(image, camera, True) for _, image, camera in frames]
-    if not any(needs_undistortion(c) for c in cameras.values()):
-        return as_captured, None, None
-    if mode == "lens":
-        return as_captured, None, scene_lens([cameras[cid] for cid in views],
-                                             [f"frame {name!r} of {json_path}" for name, _, _ in frames])
-    first_frame = {cid: name for (name, _, _), cid in zip(reversed(frames), reversed(views))}
-    for cid, camera in cameras.items():
-        if needs_undistortion(camera):  # a folding lens, or a fisheye past 90°: refused before any work
-            check_undistortable(camera, f"frame {first_frame[cid]!r} of {json_path}", mode)
-    images_dir = scene / "images"
-    names = []
+def _under_images(scene: pathlib.Path, frames: list, json_path: pathlib.Path) -> list[str]:
+    """The frames' image paths relative to ``scene/images`` (COLMAP's undistorter reads them from there);
+    SceneError for a frame outside it."""
+    images_dir, names = scene / "images", []
     for name, image, _ in frames:
         try:
             names.append(image.resolve().relative_to(images_dir.resolve()).as_posix())
@@ -209,6 +174,18 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode:
             raise SceneError(f"frame {name!r} of {json_path} is distorted and lies outside {images_dir}: COLMAP's "
                              "undistorter reads the images of a scene from its images/ folder; move the frames "
                              "there and correct their file_path") from None
+    return names
+
+
+def _undistorted_folder(scene: pathlib.Path, frames: list, views: list[int], cameras: dict, json_path: pathlib.Path,
+                        mode: str) -> pathlib.Path:
+    """:func:`cusgs_jax.data.undistort.undistorted_images` of the frames, their cameras written as a temporary
+    COLMAP model for it."""
+    import tempfile
+
+    import pycolmap
+
+    names = _under_images(scene, frames, json_path)
     model = pycolmap.Reconstruction()
     for camera in cameras.values():
         model.add_camera_with_trivial_rig(camera)
@@ -217,10 +194,7 @@ def _undistort(scene: pathlib.Path, frames: list, json_path: pathlib.Path, mode:
                                            pycolmap.Rigid3d())
     with tempfile.TemporaryDirectory(prefix="cusgs-nerfstudio-model-") as model_dir:
         model.write(model_dir)
-        folder = undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras, mode=mode)
-    pinhole = {cid: FrameCamera("PINHOLE", *(float(v) for v in cam.params), int(cam.width), int(cam.height), {})
-               for cid, cam in undistorted_cameras(cameras, mode=mode).items()}
-    return [(folder / "images" / name, pinhole[cid], False) for name, cid in zip(names, views)], (folder, views), None
+        return undistorted_images(scene, pathlib.Path(model_dir), list(zip(names, views)), cameras, mode=mode)
 
 
 def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -260,12 +234,85 @@ def _points(scene: pathlib.Path, meta: dict, json_path: pathlib.Path) -> tuple[n
     return xyz[keep], rgb.reshape(-1, 3)
 
 
+def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
+    """The views of the nerfstudio scene in ``folder`` (an existing folder) as its ``transforms.json``
+    describes them, sorted by ``file_path``, their cameras in the frame ``data.undistort`` asks for
+    (:func:`cusgs_jax.data.camera_frame.frame_cameras`), with the points of its ``ply_file_path`` (or none).
+
+    Raises:
+      SceneError: malformed JSON, missing keys, a missing image, a bad matrix, an unsupported or unknown
+        camera model, distortion COLMAP cannot undistort — naming the file and the fix.
+    """
+    json_path = folder / TRANSFORMS_FILE
+    if not json_path.is_file():
+        raise SceneError(f"{json_path} does not exist: a nerfstudio scene needs it; set data.path to such a "
+                         "folder, or data.format to the layout of this one")
+    meta = read_json(json_path, _FIX)
+    frames = frame_list(meta, json_path, _FIX)
+    for i, frame in enumerate(frames):
+        require_key(frame, "file_path", f"frames[{i}]", json_path, _FIX)
+        require_key(frame, "transform_matrix", f"frames[{i}]", json_path, _FIX)
+    order = sorted(range(len(frames)), key=lambda i: str(frames[i]["file_path"]))
+    frames_in, viewmats = [], []  # [(name, image path, FrameCamera)] in view order
+    for i in order:
+        image = frame_path(folder, frames[i], i, json_path, _FIX)
+        frames_in.append((frame_name(folder, image), image, _frame_camera(meta, frames[i], i, json_path)))
+        viewmats.append(opengl_c2w_to_viewmat(frames[i]["transform_matrix"], f"frames[{i}]", json_path))
+    names = tuple(name for name, _, _ in frames_in)
+
+    ids, cameras, views = {}, {}, []  # one pycolmap camera per distinct frame camera
+    for name, _, camera in frames_in:
+        key = (camera.model, camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height,
+               tuple(sorted(camera.distortion.items())))
+        if key not in ids:
+            ids[key] = len(ids) + 1
+            cameras[ids[key]] = _colmap_camera(camera, ids[key], name, json_path)
+        views.append(ids[key])
+    first_frame = {cid: name for name, cid in zip(reversed(names), reversed(views))}
+    mode, downscale = data.undistort, data.downscale
+    framed = frame_cameras(cameras, views, {cid: f"frame {first_frame[cid]!r} of {json_path}" for cid in cameras},
+                           [f"frame {name!r} of {json_path}" for name in names], mode,
+                           lambda: _undistorted_folder(folder, frames_in, views, cameras, json_path, mode), json_path)
+    if framed.undistorted is None:  # as captured (pinhole, or a lens kept: its pinhole part)
+        view_cameras = tuple(ViewCamera(c.fx, c.fy, c.cx, c.cy, c.width, c.height) for _, _, c in frames_in)
+    else:  # undistorted PINHOLE cameras of one common size
+        view_cameras = tuple(ViewCamera(*(float(v) for v in framed.cameras[cid].params),
+                                        int(framed.cameras[cid].width), int(framed.cameras[cid].height))
+                             for cid in views)
+
+    def read_images(background):
+        if framed.undistorted is None:  # images_{d}/<file name> when present (nerfstudio's convention)
+            images = []
+            for (name, image, _), camera in zip(frames_in, view_cameras):
+                prescaled = folder / f"images_{downscale}" / image.name
+                use_prescaled = downscale > 1 and prescaled.is_file()
+                images.append(FrameImage(name, prescaled if use_prescaled else image, (camera.width, camera.height),
+                                         use_prescaled))
+        else:
+            undistorted = framed.undistorted() / "images"
+            images = [FrameImage(name, undistorted / rel, (camera.width, camera.height), False)
+                      for name, rel, camera in zip(names, _under_images(folder, frames_in, json_path), view_cameras)]
+        return load_frame_images(images, downscale=downscale, background=background, json_path=json_path)[0]
+
+    def read_valid():
+        return undistorted_masks(framed.undistorted(), views, downscale)
+
+    loaded = _points(folder, meta, json_path)
+    return RawScene(folder=folder, dataset_format="nerfstudio", names=names, viewmats=np.stack(viewmats),
+                    cameras=view_cameras, views_source=json_path, cameras_source=json_path,
+                    size_fix="resize/crop them to a common size (and w, h, fl_x, fl_y, cx, cy with them)",
+                    read_images=read_images, points=None if loaded is None else loaded[0],
+                    point_colors=None if loaded is None else loaded[1],
+                    read_valid=None if framed.undistorted is None else read_valid, lens=framed.lens)
+
+
 def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
                           holdout_every: int = DataConfig.holdout_every,
                           background: tuple[float, float, float] | None = None,
                           num_random_points: int = DataConfig.random_points, seed: int = 0,
                           undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
-    """Load a nerfstudio scene folder (see the module docstring for the layout and rules).
+    """Load a nerfstudio scene folder: :func:`read_nerfstudio` and the shared pass
+    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
 
     Args:
       path: the folder holding ``transforms.json`` (``data.path``).
@@ -281,78 +328,8 @@ def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = DataConfi
     Returns:
       SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
     Raises:
-      SceneError: malformed JSON, missing keys, a missing image, a bad matrix, an unsupported or
-        unknown camera model, distortion COLMAP cannot undistort, differing image sizes — naming the file
-        and the fix.
+      SceneError: as :func:`read_nerfstudio`, differing image sizes, or bad settings.
     """
-    downscale = check_int_setting("data.downscale", downscale, minimum=1)
-    holdout_every = check_int_setting("data.holdout_every", holdout_every, minimum=0)
-    num_random_points = check_int_setting("data.random_points", num_random_points, minimum=2)
-    background = (0.0, 0.0, 0.0) if background is None else check_background(background)
-    scene = pathlib.Path(path).expanduser()
-    json_path = scene / TRANSFORMS_FILE
-    if not json_path.is_file():
-        raise SceneError(f"{json_path} does not exist: a nerfstudio scene needs it; set data.path to such a "
-                         "folder, or data.format to the layout of this one")
-    meta = read_json(json_path, _FIX)
-    frames = frame_list(meta, json_path, _FIX)
-    for i, frame in enumerate(frames):
-        require_key(frame, "file_path", f"frames[{i}]", json_path, _FIX)
-        require_key(frame, "transform_matrix", f"frames[{i}]", json_path, _FIX)
-    order = sorted(range(len(frames)), key=lambda i: str(frames[i]["file_path"]))
-
-    names, viewmats, frames_in = [], [], []
-    for i in order:
-        frame = frames[i]
-        image = frame_path(scene, frame, i, json_path, _FIX)
-        name = frame_name(scene, image)
-        frames_in.append((name, image, _frame_camera(meta, frame, i, json_path)))
-        viewmats.append(opengl_c2w_to_viewmat(frame["transform_matrix"], f"frames[{i}]", json_path))
-        names.append(name)
-    images_in, cameras = [], []
-    undistorted, masks, lens = _undistort(scene, frames_in, json_path, undistort)
-    for name, (image, camera, prescaled_ok) in zip(names, undistorted):
-        prescaled = scene / f"images_{downscale}" / image.name
-        use_prescaled = prescaled_ok and downscale > 1 and prescaled.is_file()
-        images_in.append(FrameImage(name, prescaled if use_prescaled else image, (camera.width, camera.height),
-                                    use_prescaled))
-        cameras.append(camera)
-    check_unique_names(names, json_path)
-    _check_common_size(names, cameras, downscale, json_path)
-    images, _ = load_frame_images(images_in, downscale=downscale, background=background, json_path=json_path)
-    height, width = images.shape[1:3]
-    valid = None if masks is None else undistorted_masks(*masks, downscale)
-    d = float(downscale)
-    Ks = np.array([[[c.fx / d, 0.0, c.cx / d], [0.0, c.fy / d, c.cy / d], [0.0, 0.0, 1.0]] for c in cameras])
-    viewmats = np.stack(viewmats)
-    train_indices, test_indices = holdout_split(len(names), holdout_every, scene)
-
-    loaded = _points(scene, meta, json_path)
-    rule = None
-    if loaded is None:
-        rule = resolve_random_init(random_init, "nerfstudio")
-        points, colors = random_points(viewmats[train_indices], Ks[train_indices], width, height,
-                                       num=num_random_points, seed=seed, init=rule)
-        source = f"{len(points)} random initial points (no ply_file_path; data.random_init={rule})"
-    else:
-        points, colors = loaded
-        source = f"{len(points)} points from {meta['ply_file_path']}"
-    log.info("nerfstudio scene %s: %d train / %d held-out views at %dx%d; %s", scene, len(train_indices),
-             len(test_indices), width, height, source)
-    return make_scene(path=scene, names=names, images=images, viewmats=viewmats, Ks=Ks, points=points,
-                      point_colors=colors, train_indices=train_indices, test_indices=test_indices,
-                      dataset_format="nerfstudio", split=split_name(holdout_every), background=background,
-                      random_points=rule, valid=valid, lens=lens)
-
-
-def _check_common_size(names: list[str], cameras: list[FrameCamera], downscale: int,
-                       json_path: pathlib.Path) -> None:
-    """SceneError unless every frame's w × h loads at one size at ``downscale`` (as COLMAP scenes)."""
-    sizes = [(scaled_size(c.width, downscale), scaled_size(c.height, downscale)) for c in cameras]
-    for name, size in zip(names, sizes):
-        if size != sizes[0]:
-            raise SceneError(
-                f"the frames of {json_path} do not share one size with data.downscale={downscale}: {names[0]!r} "
-                f"loads at {sizes[0][0]}x{sizes[0][1]} but {name!r} at {size[0]}x{size[1]}; all training images "
-                "must have one resolution — resize/crop them to a common size (and w, h, fl_x, fl_y, cx, cy with "
-                "them)")
+    data = data_settings(downscale=downscale, holdout_every=holdout_every, random_points=num_random_points,
+                         undistort=undistort, random_init=random_init)
+    return finish_scene(read_nerfstudio(existing_folder(path), data), data, background=background, seed=seed)
