@@ -73,7 +73,7 @@ def resolve_backend(backend: str, platform: str | None = None) -> str:
 
     ``"auto"`` is the Pallas kernels on a GPU, where ``benchmarks/gpu_check.py`` measured them
     faster with their tests passing there, and the pure-JAX compositor on every other backend,
-    where Pallas only interprets (docs/benchmarks.md#gpu).
+    where Pallas only interprets (docs/benchmarks.md#on-a-gpu).
 
     Args:
       backend: ``"auto"``, ``"jax"`` or ``"pallas"``.
