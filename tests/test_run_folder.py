@@ -50,3 +50,20 @@ def test_a_damaged_eval_json_is_named(tmp_path):
     (tmp_path / "eval.json").write_text("{not json")
     with pytest.raises(UserError, match=r"eval.json cannot be read \(JSONDecodeError"):
         read_eval(tmp_path)
+
+
+def test_a_refused_runs_hydra_record_is_replaced_by_the_accepted_one(tmp_path):
+    from cusgs_jax.run_folder import HYDRA_DIR, accept_hydra_record, restore_hydra_record
+
+    assert not restore_hydra_record(tmp_path)  # nothing accepted yet (and no Hydra): nothing to do
+    accept_hydra_record(tmp_path)
+    assert not (tmp_path / HYDRA_DIR).exists()  # outside Hydra nothing is written
+    record = tmp_path / HYDRA_DIR
+    record.mkdir()
+    for name, text in (("config.yaml", "a: 1\n"), ("overrides.yaml", "- a=1\n")):
+        (record / name).write_text(text)
+    accept_hydra_record(tmp_path)
+    (record / "config.yaml").write_text("a: 2\n")  # a later, refused job's
+    (record / "overrides.yaml").write_text("- a=2\n")
+    assert restore_hydra_record(tmp_path)
+    assert (record / "config.yaml").read_text() == "a: 1\n" and (record / "overrides.yaml").read_text() == "- a=1\n"

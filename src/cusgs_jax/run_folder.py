@@ -27,14 +27,15 @@ import dataclasses
 import json
 import os
 import pathlib
+import shutil
 from typing import Any
 
 from cusgs_jax.errors import UserError
 from cusgs_jax.atomic import atomic_path
 
 __all__ = ["VERSION", "EVAL_FILE", "METRICS_FILE", "CURVE_FILE", "PLOT_FILE", "RENDERS_DIR", "FEATURES_DIR",
-           "FEATURES_MD", "CHECKPOINTS_DIR", "BANKS_FILE", "FAILED_FILE", "EvalRecord", "CheckpointMeta",
-           "read_eval", "write_eval"]
+           "FEATURES_MD", "CHECKPOINTS_DIR", "BANKS_FILE", "FAILED_FILE", "HYDRA_DIR", "HYDRA_FILES", "EvalRecord",
+           "CheckpointMeta", "accept_hydra_record", "read_eval", "restore_hydra_record", "write_eval"]
 
 #: The run-folder version this code writes; it reads every version up to it (1: unversioned records).
 VERSION = 2
@@ -49,6 +50,40 @@ FEATURES_MD = "features.md"
 CHECKPOINTS_DIR = "checkpoints"
 BANKS_FILE = "feature_banks.npz"
 FAILED_FILE = "failed.json"
+HYDRA_DIR = ".hydra"  # Hydra's record of the job: config, its own settings, the command-line overrides
+HYDRA_FILES = ("config.yaml", "hydra.yaml", "overrides.yaml")
+_ACCEPTED = "accepted"  # HYDRA_DIR/accepted/: the record of the run the folder holds
+
+
+def accept_hydra_record(out: pathlib.Path) -> None:
+    """Keep a copy of the folder's Hydra record (``.hydra/accepted/``) once setup has accepted its run.
+
+    Hydra writes ``.hydra/*.yaml`` before the run starts, also for a run that setup then refuses (a
+    resume on another scene, a fresh run in a folder with checkpoints): :func:`restore_hydra_record`
+    puts the accepted run's record back, so the folder never describes a run that did not happen.
+    Nothing to do outside Hydra (no ``.hydra``)."""
+    record = pathlib.Path(out) / HYDRA_DIR
+    if not record.is_dir():
+        return
+    (record / _ACCEPTED).mkdir(exist_ok=True)
+    for name in HYDRA_FILES:
+        if (record / name).is_file():
+            with atomic_path(record / _ACCEPTED / name) as tmp:
+                shutil.copyfile(record / name, tmp)
+
+
+def restore_hydra_record(out: pathlib.Path) -> bool:
+    """Put the accepted run's Hydra record back over a refused run's (:func:`accept_hydra_record`); True
+    when there was one to restore."""
+    record = pathlib.Path(out) / HYDRA_DIR
+    accepted = record / _ACCEPTED
+    if not accepted.is_dir():
+        return False
+    for name in HYDRA_FILES:
+        if (accepted / name).is_file():
+            with atomic_path(record / name) as tmp:
+                shutil.copyfile(accepted / name, tmp)
+    return True
 
 
 def _version(data: dict, where: str) -> int:

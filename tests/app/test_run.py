@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.training.inputs import load_data
+from cusgs_jax.run_folder import accept_hydra_record
 from cusgs_jax.app.run import finalise, run, setup, train
 from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
@@ -388,12 +389,19 @@ def test_resuming_on_another_scene_with_as_many_views_is_refused(straight, tiny_
     out = tmp_path / "run"
     shutil.copytree(straight[0], out)
     before = (out / "metrics.jsonl").read_text()
+    # the run's Hydra record, accepted when it ran; Hydra has written the refused run's over it before setup
+    record = out / ".hydra"
+    record.mkdir()
+    (record / "config.yaml").write_text(f"data:\n  path: {tiny_scene}\n")
+    accept_hydra_record(out)
+    (record / "config.yaml").write_text(f"data:\n  path: {other}\n")
     with pytest.raises(ConfigError, match=rf"data\.path='{other}': is not the scene the checkpoint of step 30 in "
                                           rf".*checkpoints was trained on \({tiny_scene}\): its cameras differ "
                                           r"\(other camera poses.*resume with the run's own scene"):
         setup(_cfg(other, "train.resume=true", "train.iterations=40"), out)
     assert (out / "metrics.jsonl").read_text() == before and _latest_checkpoint(out) == 30
     assert len(json.loads((out / "eval.json").read_text())["scene_digest"]) == 16
+    assert (record / "config.yaml").read_text() == f"data:\n  path: {tiny_scene}\n"  # the record is the run's again
 
 
 def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_logged_step(caplog):

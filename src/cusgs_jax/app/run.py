@@ -47,6 +47,7 @@ from cusgs_jax.app.compiles import CompileLog
 from cusgs_jax.app.resume import require_not_past, resume
 from cusgs_jax.app.xla_cache import use_compilation_cache
 from cusgs_jax.config import Config, require
+from cusgs_jax.errors import UserError
 from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
@@ -64,6 +65,7 @@ from cusgs_jax.extract.optional import run_features
 from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
                                       PLOT_FILE, RENDERS_DIR, CheckpointMeta, EvalRecord, write_eval)
 from cusgs_jax.run_folder import VERSION as RUN_FOLDER_VERSION
+from cusgs_jax.run_folder import accept_hydra_record, restore_hydra_record
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -132,6 +134,16 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
+    try:
+        session = _setup(cfg, out, extra_strategies, budget)
+    except UserError:  # refused: the folder's Hydra record goes back to the run it holds
+        restore_hydra_record(out)
+        raise
+    accept_hydra_record(out)
+    return session
+
+
+def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget) -> Session:
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
     latest = ckpt.latest_step()
     require(not cfg.train.resume or latest is not None, "train.resume", True,
