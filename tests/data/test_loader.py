@@ -9,7 +9,7 @@ import pytest
 import cusgs_jax
 from cusgs_jax.config import DataConfig, compose_config
 from cusgs_jax.data.demo import generate_demo_scene
-from cusgs_jax.data.loader import load_scene, scene_folder
+from cusgs_jax.data.loader import load_cameras, load_scene, scene_folder
 from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.training.inputs import load_data
 from cusgs_jax.testing.distorted_scenes import CAMERAS, distorted_colmap_scene
@@ -72,3 +72,17 @@ def test_no_path_is_the_configured_demo_and_a_path_wins_over_data_path(scenes, t
     assert load_scene(scenes["pinhole"], data).dataset_format == "colmap"
     assert load_scene(None, data).dataset_format == "blender"
     assert scene_folder(None, DataConfig(), generate=False).name.startswith("demo")
+
+
+@pytest.mark.parametrize("layout,undistort", [("pinhole", "lens"), ("lens", "crop"), ("lens", "mask"), ("lens", "lens"),
+                                              ("blender", "lens"), ("nerfstudio", "lens")])
+def test_load_cameras_are_the_scenes_cameras_without_reading_an_image(scenes, cache_dir, layout, undistort):
+    data = DataConfig(undistort=undistort, holdout_every=3, random_points=100)
+    cameras = load_cameras(scenes[layout], data)
+    assert not cache_dir.exists()  # nothing undistorted (nor any image read) for the cameras alone
+    scene = load_scene(scenes[layout], data)
+    for key in ("viewmats", "Ks", "train_indices", "test_indices"):
+        np.testing.assert_array_equal(getattr(cameras, key), getattr(scene, key), err_msg=key)
+        assert getattr(cameras, key).dtype == getattr(scene, key).dtype
+    assert (cameras.width, cameras.height) == (scene.width, scene.height)
+    assert (cameras.lens is None) == (scene.lens is None)

@@ -12,16 +12,20 @@ from __future__ import annotations
 
 import os
 import pathlib
+from typing import NamedTuple
+
+import numpy as np
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo.lens import configured_demo
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import scaled_size
-from cusgs_jax.data.finish import check_settings, finish_scene
+from cusgs_jax.data.finish import check_settings, finish_cameras, finish_scene
 from cusgs_jax.data.layouts import read_scene
+from cusgs_jax.data.lenses import SceneLens
 from cusgs_jax.data.scene_data import SceneData
 
-__all__ = ["load_scene", "require_ssim_size", "scene_folder"]
+__all__ = ["SceneCameras", "load_cameras", "load_scene", "require_ssim_size", "scene_folder"]
 
 SSIM_WINDOW = 11  # pixels per side of the SSIM window (cusgs_jax.losses.gaussian_window)
 
@@ -56,6 +60,38 @@ def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = 
     scene = finish_scene(read_scene(folder, data), data, background=background, seed=seed)
     require_ssim_size(scene, data.downscale, downscale_option)
     return scene
+
+
+class SceneCameras(NamedTuple):
+    """The cameras of a scene as :func:`load_scene` gives them (V views, in the scene's own frame).
+
+    Attributes:
+      viewmats: [V, 4, 4] float64 world→camera; Ks: [V, 3, 3] float32 at the loaded size.
+      width, height: the loaded size; train_indices, test_indices: int32 split; lens: the per-view lenses
+        with ``data.undistort=lens``, else None.
+    """
+
+    viewmats: np.ndarray
+    Ks: np.ndarray
+    width: int
+    height: int
+    train_indices: np.ndarray
+    test_indices: np.ndarray
+    lens: SceneLens | None
+
+
+def load_cameras(path: str | os.PathLike | None = None, data: DataConfig | None = None) -> SceneCameras:
+    """The cameras :func:`load_scene` ``(path, data)`` would give, without reading (or undistorting) any image:
+    for a tool that has a model and needs its views (an old run's training cameras, a viewer).
+
+    Raises:
+      SceneError: as :func:`load_scene`, for the files it reads and the settings.
+    """
+    data = check_settings(DataConfig() if data is None else data)
+    raw = read_scene(scene_folder(data.path if path is None else path, data), data)
+    cameras = finish_cameras(raw, data)
+    return SceneCameras(raw.viewmats, cameras.Ks.astype(np.float32), cameras.width, cameras.height, cameras.train,
+                        cameras.test, raw.lens)
 
 
 def require_ssim_size(scene: SceneData, downscale: int, option: str) -> None:

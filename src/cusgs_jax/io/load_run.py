@@ -42,7 +42,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from cusgs_jax.config import Config, from_dict, from_omegaconf
-from cusgs_jax.data.loader import load_scene, scene_folder
+from cusgs_jax.data.loader import load_cameras, scene_folder
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
 from cusgs_jax.run_folder import BANKS_FILE, CheckpointMeta, read_eval
@@ -260,8 +260,8 @@ def _train_cameras(meta: CheckpointMeta, cfg: Config,
     path = scene_folder(data.path, data, generate=False)
     if not path.is_dir():
         return None, None
-    try:  # the run's scene in any layout, as the run loaded it
-        scene = load_scene(path, data, background=cfg.splat.background, seed=cfg.train.seed)
+    try:  # the run's scene in any layout, as the run loaded it (its cameras: no image is read)
+        scene = load_cameras(path, data)
     except UserError as e:
         log.warning("the run's scene %s cannot give the training cameras (%s)", path, e)
         return None, None
