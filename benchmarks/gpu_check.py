@@ -10,6 +10,7 @@ so pytest still reports what it finished):
    1024², tile 8 and 16, or ``--cells``; forward and forward+backward medians) with each compositor of
    ``--backends`` side by side and, given ``--splax-src``, ``peer_bench.py --quick`` (splax at 50k, 256²);
 3. **train_step** — ``train_bench.py``: the demo's step with each compositor at ``--pixel-factors``;
+   **train_target** — the same on scale_bench.py's target scene (``train_bench.py --target``);
 4. **tests** — ``pytest -m "not slow"`` of ``tests/splat``, ``tests/model``, ``tests/training`` and
    ``tests/test_precision.py`` with ``--workers`` xdist workers on the default backend (the GPU),
    ``XLA_PYTHON_CLIENT_PREALLOCATE=false`` so the workers share the card;
@@ -128,12 +129,15 @@ def run_splatter(out: pathlib.Path, timeout: float, smoke: bool, splax_src: str 
     return result
 
 
-def run_train_step(out: pathlib.Path, timeout: float, smoke: bool, backends, pixel_factors) -> dict:
-    """``train_bench.py``: the demo's train step with each compositor, steps interleaved."""
-    log = out / "train_step.log"
+def run_train_step(out: pathlib.Path, timeout: float, smoke: bool, backends, pixel_factors,
+                   target: bool = False) -> dict:
+    """``train_bench.py``: the demo's (or with ``target`` the target scene's) train step with each compositor,
+    steps interleaved."""
+    log = out / ("train_target.log" if target else "train_step.log")
+    sizes = ["--pixel-factors", "1"] if smoke else (["--target"] if target else
+                                                     ["--pixel-factors", *map(str, pixel_factors)])
     cmd = [sys.executable, "benchmarks/train_bench.py", "--steps", "3" if smoke else "20", "--views",
-           "4" if smoke else "12", "--pixel-factors", *(["1"] if smoke else map(str, pixel_factors)),
-           "--backends", *backends]
+           "4" if smoke else "12", *sizes, "--backends", *backends]
     result = _run(cmd, log, timeout)
     text = log.read_text(errors="replace")
     rows = [json.loads(line) for line in text.splitlines() if line.startswith('{"pixel_factor"')]
@@ -210,9 +214,11 @@ def table(report: dict) -> str:
         if isinstance(peer, dict):
             for cell in peer.get("cells", peer.get("results", []))[:4]:
                 lines.append(f"  splax {json.dumps(cell)[:150]}")
-    step = report.get("train_step")
-    if step:
-        lines.append(f"train step (demo, ms): rc {step['rc']}")
+    for name, scene in (("train_step", "demo"), ("train_target", "target scene")):
+        step = report.get(name)
+        if not step:
+            continue
+        lines.append(f"train step ({scene}, ms): rc {step['rc']}")
         lines += [f"  error {line[:300]}" for line in step.get("errors", [])]
         for row in step["rows"]:
             lines.append(f"  {row['backend']:<7}{row['width']}x{row['height']} anchors {row['anchors']}: "
@@ -246,8 +252,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", type=int, default=8, help="pytest-xdist workers for the tests")
     parser.add_argument("--splax-src", default=None, help="splax's src folder (peer_bench.py); none: splax skipped")
     parser.add_argument("--parts", nargs="+", default=["tests", "splatter", "main_job", "sweep"],
-                        choices=["pallas_tests", "splatter", "train_step", "tests", "main_job", "main_job_once",
-                                 "sweep"],
+                        choices=["pallas_tests", "splatter", "train_step", "train_target", "tests", "main_job",
+                                 "main_job_once", "sweep"],
                         help="main_job: cold then warm cache; main_job_once: the cold run alone")
     parser.add_argument("--backends", nargs="+", default=["jax"], choices=["auto", "jax", "pallas"],
                         help="compositors the splatter and train-step parts time")
@@ -291,6 +297,10 @@ def main(argv=None) -> dict:
         report["train_step"] = run_train_step(out, limit("train_step", 0.25 * args.budget), args.smoke,
                                               args.backends, args.pixel_factors)
         save("train_step")
+    if "train_target" in args.parts:
+        report["train_target"] = run_train_step(out, limit("train_target", 0.3 * args.budget), args.smoke,
+                                                args.backends, args.pixel_factors, target=True)
+        save("train_target")
     if "tests" in args.parts:
         report["tests"] = run_tests(out, args.workers, limit("tests", shares["tests"] * args.budget), args.smoke)
         save("tests")

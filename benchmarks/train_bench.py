@@ -17,6 +17,8 @@ also give each model's PSC bank size and extraction time per view.
     python benchmarks/train_bench.py --backends jax pallas     # each variant with each compositor (a GPU)
 
 With ``--backends`` every feature set runs once per compositor (``splat.backend``), interleaved too.
+``--target`` times scale_bench.py's target scene instead (60 views at 640×480, ~100k SfM points:
+``--views 60 --pixel-factors 16 --points 103000``).
 """
 
 from __future__ import annotations
@@ -92,11 +94,13 @@ def setup(scene_path: str, voxel_size, models: tuple, backend: str = "auto"):
     return step, state, batch, info
 
 
-def bench(width: int, height: int, steps: int, views: int, voxel_size, variants: list[tuple]) -> list[dict]:
+def bench(width: int, height: int, steps: int, views: int, voxel_size, variants: list[tuple],
+          points: int = 6000) -> list[dict]:
     """One row per (feature-model set, compositor) in ``variants``, steps timed interleaved."""
     runs = []
     with tempfile.TemporaryDirectory() as tmp:
-        path = generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width, height=height)
+        path = generate_demo_scene(os.path.join(tmp, "demo"), num_views=views, width=width, height=height,
+                                   num_points=points)
         for models, backend in variants:
             step, state, batch, info = setup(path, voxel_size, models, backend)
             start = time.perf_counter()
@@ -140,9 +144,14 @@ def main(argv=None):
                              "or none), e.g. none daisy,semantic daisy,semantic,vgg16")
     parser.add_argument("--backends", nargs="+", default=["auto"], choices=["auto", "jax", "pallas"],
                         help="compositors (splat.backend) to time each variant with")
+    parser.add_argument("--points", type=int, default=6000, help="SfM points the demo generator is asked for")
+    parser.add_argument("--target", action="store_true",
+                        help="scale_bench.py's target scene: 60 views, 640x480, 103000 points asked for")
     parser.add_argument("--pixel-factors", type=int, nargs="+", default=[1, 2, 4],
                         help="image sizes: 160x120 times these pixel factors")
     args = parser.parse_args(argv)
+    if args.target:
+        args.views, args.pixel_factors, args.points = 60, [16], 103_000
     if args.feature_sets:
         variants = [feature_set(spec) for spec in args.feature_sets]
     else:
@@ -152,7 +161,7 @@ def main(argv=None):
     for factor in args.pixel_factors:
         scale = math.sqrt(factor)
         width, height = int(round(160 * scale / 2) * 2), int(round(120 * scale / 2) * 2)
-        for row in bench(width, height, args.steps, args.views, args.voxel_size, variants):
+        for row in bench(width, height, args.steps, args.views, args.voxel_size, variants, args.points):
             rows.append(dict(pixel_factor=factor, **row))
             print(json.dumps(rows[-1]), flush=True, file=sys.stderr)
     print(json.dumps(dict(benchmark="train_step", jax=jax.__version__, backend=jax.default_backend(),
