@@ -71,10 +71,11 @@ def _run(cmd, log: pathlib.Path, timeout: float, env=None) -> dict:
     return dict(rc=rc, wall_s=round(time.perf_counter() - start, 2), timed_out=timed_out, log=log.name)
 
 
-def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool, paths=None, name="tests") -> dict:
+def run_tests(out: pathlib.Path, workers: int, timeout: float, smoke: bool, paths=None, name="tests",
+              markers: str | None = "not slow") -> dict:
     paths = paths or (["tests/test_precision.py"] if smoke else TEST_PATHS)
-    cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", "-m", "not slow", "-p", "no:cacheprovider",
-           "-p", "no:benchmark", *paths]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-rfE", *(["-m", markers] if markers else []), "-p",
+           "no:cacheprovider", "-p", "no:benchmark", *paths]
     if workers > 1:
         cmd += ["-n", str(workers)]
     result = _run(cmd, out / f"{name}.log", timeout, env={"XLA_PYTHON_CLIENT_PREALLOCATE": "false"})
@@ -286,7 +287,8 @@ def main(argv=None) -> dict:
 
     if "pallas_tests" in args.parts:
         report["pallas_tests"] = run_tests(out, min(args.workers, 4), limit("pallas_tests", 0.15 * args.budget),
-                                           args.smoke, ["tests/splat/test_composite_pallas.py"], "pallas_tests")
+                                           args.smoke, ["tests/splat/test_composite_pallas.py"], "pallas_tests",
+                                           markers=None)  # the slow ones too: fast on a GPU
         save("pallas_tests")
     if "splatter" in args.parts:
         report["splatter"] = run_splatter(out, limit("splatter", shares["splatter"] * args.budget + 30), args.smoke,

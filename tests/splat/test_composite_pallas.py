@@ -88,7 +88,8 @@ def _jax(*args):
     return composite_tiles(GRID, 4, 2, *args)
 
 
-@pytest.mark.parametrize("kind,channels", [("plain", 3), ("opaque", 1), ("empty", 13), ("opaque", 20)])
+@pytest.mark.parametrize("kind,channels", [("plain", 3), ("opaque", 1), ("empty", 13),
+                                           pytest.param("opaque", 20, marks=pytest.mark.slow)])  # -m slow: in CI
 def test_matches_dense_oracle_and_jax_compositor_float64(x64, kind, channels):
     gaussians, lists, lengths = _case(kind, channels)
     rng = np.random.default_rng(1)
@@ -144,7 +145,7 @@ def _render(scene, backend, **kw):
                      jnp.asarray(scene["K"]), scene["width"], scene["height"], backend=backend, **kw)
 
 
-@pytest.mark.parametrize("tile_size,channels", [(8, 3), (16, 5)])
+@pytest.mark.parametrize("tile_size,channels", [(8, 3), pytest.param(16, 5, marks=pytest.mark.slow)])
 def test_rasterize_backends_agree_forward_and_gradients(x64, tile_size, channels):
     scene = make_scene(5, num=60, width=36, height=22, channels=channels, behind=3, offscreen=3, opaque=6)
     background = jnp.asarray(scene["background"])
