@@ -63,9 +63,8 @@ from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
 from cusgs_jax.extract.optional import run_features
 from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
-                                      PLOT_FILE, RENDERS_DIR, CheckpointMeta, EvalRecord, write_eval)
-from cusgs_jax.run_folder import VERSION as RUN_FOLDER_VERSION
-from cusgs_jax.run_folder import accept_hydra_record, restore_hydra_record
+                                      PLOT_FILE, RENDERS_DIR, VERSION as RUN_FOLDER_VERSION, CheckpointMeta, EvalRecord,
+                                      accept_hydra_record, restore_hydra_record, write_eval)
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
