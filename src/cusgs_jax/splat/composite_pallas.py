@@ -57,8 +57,9 @@ def _compiler_params(grid: TileGrid, interpret: bool):
         return None
     from jax.experimental.pallas import triton as pl_triton
 
-    warps = max(1, min(8, grid.tile_size * grid.tile_size // 32))
-    return pl_triton.CompilerParams(num_warps=warps, num_stages=1)
+    warps = max(1, min(8, grid.tile_size * grid.tile_size // 32))  # a thread per pixel of the tile
+    params = getattr(pl_triton, "CompilerParams", None) or pl_triton.TritonCompilerParams  # its name before JAX 0.7
+    return params(num_warps=warps, num_stages=1)
 
 
 def _pixels(grid: TileGrid, tile, dtype):
