@@ -200,3 +200,21 @@ def test_non_power_of_two_tile_is_refused():
     gaussians, lists, _ = _case("plain", 3)
     with pytest.raises(ValueError, match="power-of-two tile size"):
         composite_tiles_pallas(TileGrid(20, 12, 6), 3, INTERPRET, *gaussians, *lists)
+
+
+def test_the_kernels_lower_through_triton_for_a_gpu_without_one():
+    """Lowering for CUDA runs here (jax.export): the kernels stay within what Pallas's Triton lowering accepts
+    (power-of-two blocks, supported primitives), forward and backward, checked by the CPU suite."""
+    grid = TileGrid(40, 24, 16)
+    gaussians, lists = (jnp.zeros((30, 2)), jnp.zeros((30, 3)), jnp.zeros(30), jnp.zeros((30, 5))), \
+        (jnp.zeros(400, jnp.int32), jnp.zeros(grid.num_tiles, jnp.int32), jnp.zeros(grid.num_tiles, jnp.int32))
+
+    def value_and_grad(*args):
+        def loss(m, c, o, f):
+            out = composite_tiles_pallas(grid, 4, False, m, c, o, f, *args[4:])
+            return jnp.sum(out.colors) + jnp.sum(out.transmittance) + jnp.sum(out.significance)
+        return jax.value_and_grad(loss, argnums=(0, 1, 2, 3))(*args[:4])
+
+    exported = jax.export.export(jax.jit(value_and_grad), platforms=["cuda"], disabled_checks=[
+        jax.export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")])(*gaussians, *lists)
+    assert exported.mlir_module().count("xla.gpu.triton") == 2  # the forward and the backward kernel
