@@ -66,24 +66,25 @@ def accept_hydra_record(out: pathlib.Path) -> None:
     if not record.is_dir():
         return
     (record / _ACCEPTED).mkdir(exist_ok=True)
-    for name in HYDRA_FILES:
-        if (record / name).is_file():
-            with atomic_path(record / _ACCEPTED / name) as tmp:
-                shutil.copyfile(record / name, tmp)
+    _copy_record(record, record / _ACCEPTED)
 
 
 def restore_hydra_record(out: pathlib.Path) -> bool:
     """Put the accepted run's Hydra record back over a refused run's (:func:`accept_hydra_record`); True
     when there was one to restore."""
     record = pathlib.Path(out) / HYDRA_DIR
-    accepted = record / _ACCEPTED
-    if not accepted.is_dir():
+    if not (record / _ACCEPTED).is_dir():
         return False
-    for name in HYDRA_FILES:
-        if (accepted / name).is_file():
-            with atomic_path(record / name) as tmp:
-                shutil.copyfile(accepted / name, tmp)
+    _copy_record(record / _ACCEPTED, record)
     return True
+
+
+def _copy_record(source: pathlib.Path, target: pathlib.Path) -> None:
+    """Copy the :data:`HYDRA_FILES` ``source`` holds into ``target``, each file atomically."""
+    for name in HYDRA_FILES:
+        if (source / name).is_file():
+            with atomic_path(target / name) as tmp:
+                shutil.copyfile(source / name, tmp)
 
 
 def _version(data: dict, where: str) -> int:

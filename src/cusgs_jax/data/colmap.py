@@ -42,7 +42,7 @@ from cusgs_jax.config import DataConfig
 from cusgs_jax.data.camera_frame import frame_cameras
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import check_settings, data_settings, existing_folder, finish_cameras, finish_scene
+from cusgs_jax.data.finish import data_settings, existing_folder, finish_cameras, finish_scene
 from cusgs_jax.data.images import image_dir, load_images
 from cusgs_jax.data.raw import RawScene, ViewCamera
 from cusgs_jax.data.scene_data import SceneData
@@ -161,7 +161,7 @@ def load_cameras(path: str | os.PathLike, *, downscale: int = DataConfig.downsca
     Raises:
       SceneError: as :func:`load_scene` for the model and these settings.
     """
-    data = check_settings(data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort))
+    data = data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort)
     raw = read_colmap(existing_folder(path), data)
     cameras = finish_cameras(raw, data)
     return raw.viewmats.astype(np.float64), cameras.Ks.astype(np.float32), cameras.width, cameras.height, cameras.train

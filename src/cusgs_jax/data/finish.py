@@ -129,8 +129,8 @@ def finish_cameras(raw: RawScene, data: DataConfig) -> FinishedCameras:
     if raw.split is not None:
         train, test, split = raw.split
     else:
-        (train, test), split = holdout_split(len(raw.names), data.holdout_every, raw.folder), \
-            split_name(data.holdout_every)
+        train, test = holdout_split(len(raw.names), data.holdout_every, raw.folder)
+        split = split_name(data.holdout_every)
     return FinishedCameras(Ks, int(width), int(height), np.asarray(train, np.int32), np.asarray(test, np.int32), split)
 
 

@@ -73,9 +73,8 @@ def detect_format(path: str | os.PathLike) -> str:
 
 
 def read_scene(path: str | os.PathLike, data: DataConfig) -> RawScene:
-    """The folder ``path`` read by its layout's reader (``data.format``; ``"auto"``: :func:`detect_format`)."""
-    if data.format not in ("auto",) + DATASET_FORMATS:
-        raise SceneError(f"data.format={data.format!r} must be auto, colmap, blender or nerfstudio")
+    """The folder ``path`` read by its layout's reader (``data.format``, which :class:`DataConfig` has checked;
+    ``"auto"``: :func:`detect_format`)."""
     fmt = detect_format(path) if data.format == "auto" else data.format
     return READERS[fmt](existing_folder(path), data)
 

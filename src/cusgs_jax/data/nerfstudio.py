@@ -44,6 +44,7 @@ Images with alpha are composited onto ``background`` (black by default).
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -177,15 +178,14 @@ def _under_images(scene: pathlib.Path, frames: list, json_path: pathlib.Path) ->
     return names
 
 
-def _undistorted_folder(scene: pathlib.Path, frames: list, views: list[int], cameras: dict, json_path: pathlib.Path,
+def _undistorted_folder(scene: pathlib.Path, names: list[str], views: list[int], cameras: dict,
                         mode: str) -> pathlib.Path:
-    """:func:`cusgs_jax.data.undistort.undistorted_images` of the frames, their cameras written as a temporary
-    COLMAP model for it."""
+    """:func:`cusgs_jax.data.undistort.undistorted_images` of the frames (``names`` under ``scene/images``), their
+    cameras written as a temporary COLMAP model for it."""
     import tempfile
 
     import pycolmap
 
-    names = _under_images(scene, frames, json_path)
     model = pycolmap.Reconstruction()
     for camera in cameras.values():
         model.add_camera_with_trivial_rig(camera)
@@ -270,9 +270,10 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
         views.append(ids[key])
     first_frame = {cid: name for name, cid in zip(reversed(names), reversed(views))}
     mode, downscale = data.undistort, data.downscale
+    under_images = functools.cache(lambda: _under_images(folder, frames_in, json_path))  # only when undistorting
     framed = frame_cameras(cameras, views, {cid: f"frame {first_frame[cid]!r} of {json_path}" for cid in cameras},
                            [f"frame {name!r} of {json_path}" for name in names], mode,
-                           lambda: _undistorted_folder(folder, frames_in, views, cameras, json_path, mode), json_path)
+                           lambda: _undistorted_folder(folder, under_images(), views, cameras, mode), json_path)
     if framed.undistorted is None:  # as captured (pinhole, or a lens kept: its pinhole part)
         view_cameras = tuple(ViewCamera(c.fx, c.fy, c.cx, c.cy, c.width, c.height) for _, _, c in frames_in)
     else:  # undistorted PINHOLE cameras of one common size
@@ -291,7 +292,7 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
         else:
             undistorted = framed.undistorted() / "images"
             images = [FrameImage(name, undistorted / rel, (camera.width, camera.height), False)
-                      for name, rel, camera in zip(names, _under_images(folder, frames_in, json_path), view_cameras)]
+                      for name, rel, camera in zip(names, under_images(), view_cameras)]
         return load_frame_images(images, downscale=downscale, background=background, json_path=json_path)[0]
 
     def read_valid():
