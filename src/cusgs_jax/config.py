@@ -76,6 +76,7 @@ class DataConfig:
     # Where those points go (data/random_points.py): "cube" (3DGS's), "cube_and_rays" (half along the training rays:
     # a room's walls) or "auto": cube for Blender scenes, cube_and_rays for nerfstudio scenes without a PLY.
     random_init: str = "auto"
+    carve: str = "auto"  # auto: drop random points no training view can hold (frusta, alpha; data/carve.py) | none
     # Distorted cameras: "lens" keeps the images and rasterises through the lens (splat/lens.py: no resampling blur);
     # "crop" undistorts to the largest valid rectangle (data/undistort.py, COLMAP's undistorter, as gsplat does);
     # "mask" undistorts to the source frame and leaves its invalid pixels out of the loss, metrics and targets.
@@ -95,6 +96,8 @@ class DataConfig:
         require(self.random_init in RANDOM_INITS, "data.random_init", self.random_init,
                 "must be auto (by the scene layout), cube (uniform in the cube the cameras look at) or cube_and_rays "
                 "(half of the points along the training rays)", "e.g. data.random_init=cube_and_rays")
+        require(self.carve in ("auto", "none"), "data.carve", self.carve, "must be auto (carve random initial points "
+                "by the training views' frusta and alpha) or none (keep them all)", "e.g. data.carve=none")
         require(self.undistort in CAMERA_FRAMES, "data.undistort", self.undistort,
                 "must be crop (keep the largest valid rectangle), mask (keep the frame, mask its invalid pixels) "
                 "or lens (keep the images, render through the lens)", "e.g. data.undistort=lens")
@@ -120,6 +123,7 @@ class TrainOptions:
     viewer_port: int = 8080  # 0: a free port (the address is logged)
     viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
     compilation_cache: Optional[str] = "auto"  # persistent XLA cache: auto, a folder or None (app/xla_cache.py)
+    compile_ahead: bool = True  # compile the programs the loop will need on a background thread (app/ahead.py)
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,

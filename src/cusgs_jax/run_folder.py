@@ -178,6 +178,7 @@ class EvalRecord(_Record):
     accelerator: dict | None = None
     compilations: dict | None = None
     time: dict | None = None
+    carving: dict | None = None  # what carving did to random initial points (data/carve.py), None otherwise
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 

@@ -40,6 +40,8 @@ import optax
 from tqdm import tqdm
 
 from cusgs_jax.app.accelerator import accelerator_record
+from cusgs_jax.app.ahead import Ahead, Program
+from cusgs_jax.app.foresight import Foresight
 from cusgs_jax.app.alarms import loss_alarms
 from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.clock import Clock
@@ -60,7 +62,7 @@ from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.features import evaluate_features
 from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
-from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes
+from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes, nearest_train_view
 from cusgs_jax.extract.optional import run_features
 from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
                                       PLOT_FILE, RENDERS_DIR, VERSION as RUN_FOLDER_VERSION, CheckpointMeta, EvalRecord,
@@ -111,6 +113,9 @@ class Session:
     render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render (set by setup)
     feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
     budget: TimeBudget | None = None  # seconds per stage (eval.json's time)
+    ahead: Ahead | None = None  # the background compiles (app/ahead.py); None: every program compiles on its call
+    programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
+    batches: Callable[[int], dict] | None = None  # batch(step): the training views of a step (_batches)
 
     @property
     def evaluated_on(self) -> str:
@@ -121,20 +126,22 @@ class Session:
 
 
 def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
-          budget: TimeBudget | None = None) -> Session:
+          budget: TimeBudget | None = None, ahead: Ahead | None = None) -> Session:
     """Scene, feature targets, fresh (or resumed) state, step and renderers.
 
     ``extra_strategies``: research code's own densification strategies
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
     (:func:`~cusgs_jax.densify.factory.make_strategies`); a resume must pass the same ones.
     ``budget``: where the setup's stages are charged (:func:`run` passes the run's; default a new one).
+    ``ahead``: the run's background compiles (:mod:`cusgs_jax.app.ahead`): the first step and the
+    evaluation render are compiled there while setup ends (default: none, each compiles on its first call).
     """
     budget = budget or TimeBudget(CompileLog())
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
     try:
-        session = _setup(cfg, out, extra_strategies, budget)
+        session = _setup(cfg, out, extra_strategies, budget, ahead)
     except UserError:  # refused: the folder's Hydra record goes back to the run it holds
         restore_hydra_record(out)
         raise
@@ -142,7 +149,8 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     return session
 
 
-def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget) -> Session:
+def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget,
+           ahead: Ahead | None) -> Session:
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
     latest = ckpt.latest_step()
     require(not cfg.train.resume or latest is not None, "train.resume", True,
@@ -184,7 +192,7 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
                       state=state, ckpt=ckpt, clock=Clock(), curve=[],
                       tallies={name: Tally() for name in names},
-                      capacities=capacity.Capacities.from_config(cfg), budget=budget)
+                      capacities=capacity.Capacities.from_config(cfg), budget=budget, ahead=ahead)
     with budget.stage("probe"):
         session.capacities = _fitted_capacities(session)
     if cfg.train.resume:
@@ -195,12 +203,36 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
                  jax.device_count())
     # The evaluation renders the padded model at the step's capacities with headroom (its own grow, should a
     # held-out view need more): one program per anchor capacity; with features one program for RGB and features.
+    wrap = functools.partial(Program, ahead=ahead)  # its programs can be compiled ahead
     if cfg.features.enabled:
-        session.feature_render = make_feature_render_fn(session.cfg, session.capacities.for_evaluation())
+        session.feature_render = make_feature_render_fn(session.cfg, session.capacities.for_evaluation(), wrap=wrap)
         session.render = RgbOfFeatureRender(session.feature_render, session.banks)
     else:
-        session.render = make_render_fn(session.cfg, session.capacities.for_evaluation())
+        session.render = make_render_fn(session.cfg, session.capacities.for_evaluation(), wrap=wrap)
+    session.batches = _batches(session)
+    # the programs the loop starts with, compiled in the background from here on
+    _step_program(session, session.capacities).prepare(session.state, session.batches(int(session.state.step)))
+    _prepare_render(session, session.state.anchors)
     return session
+
+
+def _step_program(session: Session, capacities: capacity.Capacities) -> Program:
+    """The step's :class:`~cusgs_jax.app.ahead.Program` for ``capacities`` (one per capacities: its executables
+    are those of each anchor capacity it was prepared or called for)."""
+    if capacities not in session.programs:
+        session.programs[capacities] = Program(make_train_step(session.cfg, session.tx, session.strategies,
+                                                               capacities), session.ahead)
+    return session.programs[capacities]
+
+
+def _prepare_render(session: Session, anchors) -> None:
+    """Compile the evaluation render for ``anchors``' capacity in the background (``anchors``: arrays or
+    ``ShapeDtypeStruct`` s of the padded model), so a held-out evaluation does not wait for it."""
+    render = session.feature_render or session.render
+    scene, view = session.scene, int(session.test_idx[0])
+    args = (anchors, session.state.nets, Camera.of_scene(scene, view),
+            nearest_train_view(scene.camera_centers, scene.train_indices, view))
+    render.program().prepare(*args, *((session.banks,) if session.feature_render else ()))
 
 
 def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities:
@@ -250,20 +282,28 @@ def train(session: Session, progress_label: str = "train") -> None:
     """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint."""
     cfg = session.cfg
     iterations, start = cfg.train.iterations, int(session.state.step)
-    batches = _batches(session)
+    batches = session.batches
     cameras = scene_cameras(session.scene, session.train_idx) if cfg.train.viewer else []  # fixed during a run
     snapshot = functools.partial(_snapshot, session, cameras)  # the live viewer's model as it is when called
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
+    foresight = Foresight(session.strategies, iterations, functools.partial(_step_program, session),
+                          functools.partial(_prepare_render, session))
+    with session.budget.stage("train_steps"):  # the first step's program, compiled during setup: waited for here
+        session.step_fn = _step_program(session, session.capacities)
+        session.step_fn.wait(session.state, batches(start))
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.clock:
                 with session.budget.stage("train_steps"):
+                    started = time.perf_counter()
                     metrics = _exact_step(session, batches(step))
+                    foresight.stepped(time.perf_counter() - started)
                 with session.budget.stage("densify"):
                     _densify(session, step + 1)
+                    foresight.after(session, step + 1)
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
                 live.after_step()
             done = step + 1
@@ -308,7 +348,7 @@ def _exact_step(session: Session, batch: dict) -> dict:
     """
     while True:
         if session.step_fn is None:
-            session.step_fn = make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
+            session.step_fn = _step_program(session, session.capacities)
         session.state, metrics = session.step_fn(session.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
         if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
@@ -532,6 +572,7 @@ def finalise(session: Session) -> dict:
         camera_frame=session.scene.camera_frame,
         # the initial points: the scene's own, or the random rule of a layout without any (data/random_points.py)
         initial_points=session.scene.random_points or "scene_points", scene_digest=_digest(session),
+        carving=None if session.scene.carving is None else session.scene.carving.as_dict(),
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,
@@ -569,32 +610,28 @@ def _compilations(compiles: CompileLog) -> dict:
                 evaluation_renders=sum(compiles.count(name) for name in EVAL_RENDER_FUNCTIONS))
 
 
-def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = ()) -> dict:
+def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = (),
+        started: float | None = None) -> dict:
     """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
 
     ``progress_label`` names the progress bar (a sweep labels each job's bar); ``extra_strategies``
-    are research code's own densification strategies (see :func:`setup`). While it runs, the
-    noise orbax repeats after a failed checkpoint save or read is dropped (:func:`quiet_orbax`).
+    are research code's own densification strategies (see :func:`setup`); ``started``: the
+    ``time.perf_counter()`` at which the process began, so the ``time`` budget covers the imports and
+    Hydra's composition too (its ``startup``; ``cusgs-train`` passes it to a process's first run). The
+    programs the loop will need are compiled on a background thread (``train.compile_ahead``,
+    :mod:`cusgs_jax.app.ahead`). While it runs, the noise orbax repeats after a failed checkpoint save
+    or read is dropped (:func:`quiet_orbax`).
     """
-    started, _STARTUP[0] = _STARTUP[0], None  # the process's start, for its first run only
     with quiet_orbax(), CompileLog() as compiles:
         budget = TimeBudget(compiles, start=started)
         with budget.stage("startup"):
             cache = use_compilation_cache(cfg.train.compilation_cache)
         log.debug("persistent compilation cache: %s", cache or "off")
-        session = setup(cfg, output_dir, extra_strategies, budget)
-        try:
-            train(session, progress_label)
-            return finalise(session)
-        except BaseException:
-            session.ckpt.close_after_error()
-            raise
-
-
-_STARTUP: list[float | None] = [None]
-
-
-def mark_process_start(started: float) -> None:
-    """``cusgs-train`` calls this with ``time.perf_counter()`` taken as the process began, so the first
-    run's ``time`` budget covers the imports and Hydra's composition too (its ``startup``)."""
-    _STARTUP[0] = started
+        with Ahead(on_wait=budget.waited, enabled=cfg.train.compile_ahead) as ahead:
+            session = setup(cfg, output_dir, extra_strategies, budget, ahead)
+            try:
+                train(session, progress_label)
+                return finalise(session)
+            except BaseException:
+                session.ckpt.close_after_error()
+                raise

@@ -87,15 +87,14 @@ def _objectives(hydra_cfg) -> list[str]:
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
-    from cusgs_jax.app.run import mark_process_start, run  # lazy: app.run imports JAX (keeps --help free of it)
+    from cusgs_jax.app.run import run  # lazy: app.run imports JAX (keeps --help free of it)
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
     hydra_cfg = HydraConfig.get()
     output_dir = hydra_cfg.runtime.output_dir
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
-    if _STARTED:  # only the process's first run charges the start-up to its budget
-        mark_process_start(_STARTED.pop())
+    started = _STARTED.pop() if _STARTED else None  # only the process's first run charges the start-up to its budget
     if sweeping:  # jobs side by side on one machine share its accelerator (before JAX's backend starts)
         shared = sweep_memory_env(_parallel_jobs(hydra_cfg))
         os.environ.update(shared)
@@ -103,7 +102,7 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
             log.info("job %s: %s", hydra_cfg.job.num, ", ".join(f"{k}={v}" for k, v in shared.items()))
     try:
         result = run(from_omegaconf(cfg), output_dir,
-                     progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train")
+                     progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train", started=started)
     except UserError as error:
         record_failure(output_dir, error)
         if sweeping:

@@ -119,14 +119,17 @@ def read_blender(folder: pathlib.Path, data: DataConfig) -> RawScene:
         log.warning("%s has no %s (or no frames in it): no held-out views; the reported PSNR will be on "
                     "training views", folder, TEST_FILE)
 
+    loaded = {}
+
     def read_images(background):
-        return load_frame_images(frames, downscale=data.downscale, background=background, json_path=train.json_path,
-                                 files=files)[0]
+        images, _, loaded["coverage"] = load_frame_images(frames, downscale=data.downscale, background=background,
+                                                          json_path=train.json_path, files=files)
+        return images
 
     return RawScene(folder=folder, dataset_format="blender", names=names,
                     viewmats=np.concatenate([s.viewmats for s in splits]), cameras=cameras, views_source=files,
                     cameras_source=train.json_path, size_fix="resize the odd ones (keep the aspect ratio)",
-                    read_images=read_images, split=split)
+                    read_images=read_images, split=split, read_coverage=lambda: loaded.get("coverage"))
 
 
 def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,

@@ -31,6 +31,7 @@ from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.data.images import check_background, require_loadable_size, scaled_size
+from cusgs_jax.data.carve import carve
 from cusgs_jax.data.random_points import random_points, resolve_random_init
 from cusgs_jax.data.raw import RawScene, ViewCamera
 from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
@@ -39,6 +40,7 @@ __all__ = ["FinishedCameras", "LAYOUTS", "check_settings", "data_settings", "def
            "finish_cameras", "finish_scene"]
 
 log = logging.getLogger("cusgs_jax")
+MIN_CARVED = 4  # fewer random points left by carving: refused (as fewer anchors are, training/state.py)
 
 LAYOUTS = ("a COLMAP scene (images/ and sparse/0/), a Blender / NeRF-synthetic scene (transforms_train.json "
            "and transforms_test.json) or a nerfstudio scene (transforms.json)")
@@ -148,16 +150,37 @@ def finish_scene(raw: RawScene, data: DataConfig, *, background: tuple[float, fl
     background = default_background(raw.dataset_format) if background is None else check_background(background)
     images = raw.read_images(background)
     valid = None if raw.read_valid is None else raw.read_valid()
-    rule = None
+    rule, carving = None, None
     if raw.points is None:
         rule = resolve_random_init(data.random_init, raw.dataset_format)
         points, colors = random_points(raw.viewmats[cameras.train], cameras.Ks[cameras.train], cameras.width,
                                        cameras.height, num=data.random_points, seed=seed, init=rule)
         log.info("%s scene %s: %d random initial points (the layout has no points; data.random_init=%s)",
                  raw.dataset_format, raw.folder, len(points), rule)
+        if data.carve == "auto":
+            points, colors, carving = _carved(raw, cameras, points, colors)
     else:
         points, colors = raw.points, raw.point_colors
     return make_scene(path=raw.folder, names=raw.names, images=images, viewmats=raw.viewmats, Ks=cameras.Ks,
                       points=points, point_colors=colors, train_indices=cameras.train, test_indices=cameras.test,
                       dataset_format=raw.dataset_format, split=cameras.split, background=background,
-                      random_points=rule, valid=valid, lens=raw.lens)
+                      random_points=rule, valid=valid, lens=raw.lens, carving=carving)
+
+
+def _carved(raw: RawScene, cameras: FinishedCameras, points: np.ndarray, colors: np.ndarray):
+    """``points`` and ``colors`` less what no training view can hold (:func:`cusgs_jax.data.carve.carve`), and
+    the :class:`~cusgs_jax.data.carve.Carving` record (``data.carve=auto``)."""
+    coverage = raw.read_coverage() if raw.read_coverage is not None else None
+    train = cameras.train
+    keep, carving = carve(points, raw.viewmats[train], cameras.Ks[train], cameras.width, cameras.height,
+                          None if coverage is None else [coverage[i] for i in train])
+    if carving.kept < MIN_CARVED:
+        raise SceneError(
+            f"data.path={str(raw.folder)!r}: carving left {carving.kept} of {carving.points} random initial points "
+            f"({carving.outside_frusta} outside every training view, {carving.transparent} in front of a transparent "
+            f"pixel of {carving.views_with_alpha} views with alpha): the cameras do not look at a common region or the "
+            "images' alpha is not coverage; check the poses, or keep every point with data.carve=none")
+    log.info("carved the random initial points: %d of %d kept (%d outside every training view, %d in front of a "
+             "transparent pixel; %d of %d training views carry alpha; data.carve=none keeps them all)", carving.kept,
+             carving.points, carving.outside_frusta, carving.transparent, carving.views_with_alpha, len(train))
+    return points[keep], colors[keep], carving

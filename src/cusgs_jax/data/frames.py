@@ -23,6 +23,8 @@ from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
+from cusgs_jax.data.carve import coverage_at
+
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import (downscale_image, to_rgb_uint8, warn_alpha, read_image_file, require_loadable_size,
                                    scaled_size)
@@ -158,7 +160,8 @@ def _read(path: pathlib.Path, background) -> tuple[np.ndarray, np.ndarray | None
 
 
 def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, background: tuple[float, float, float],
-                      json_path: pathlib.Path, files: str | None = None) -> tuple[np.ndarray, tuple[int, int]]:
+                      json_path: pathlib.Path, files: str | None = None
+                      ) -> tuple[np.ndarray, tuple[int, int], list[np.ndarray | None]]:
     """Read, composite and downscale the images of ``frames``.
 
     Each file must have its ``size`` (±1 px, like COLMAP scenes), or — with ``size`` None — exactly
@@ -168,13 +171,15 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
     with one warning per scene.
 
     Returns:
-      (images [V, H, W, 3] uint8, (W0, H0) the full size: the first frame's ``size``, or its file's).
+      (images [V, H, W, 3] uint8, (W0, H0) the full size: the first frame's ``size``, or its file's,
+      coverage: per frame [H, W] bool (alpha > 0 at the loaded size, :func:`cusgs_jax.data.carve.coverage_at`)
+      or None for a file without alpha).
     Raises:
       SceneError: unreadable file, wrong or differing sizes (naming ``json_path`` — or ``files``, the
         transforms files the frames come from, when there are several — and both images).
     """
     images, full = None, None
-    with_alpha, transparent = [], 0
+    with_alpha, transparent, coverage = [], 0, []
     for i, frame in enumerate(frames):
         img, alpha = _read(frame.path, background)
         h, w = img.shape[:2]
@@ -202,6 +207,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
         if alpha is not None:
             with_alpha.append(frame.name)
             transparent += bool(np.any(alpha < 1.0))
+        coverage.append(None if alpha is None else coverage_at(alpha, out_hw))
         if images is None:
             images = np.empty((len(frames),) + img.shape, np.uint8)
         elif img.shape != images.shape[1:]:
@@ -214,7 +220,7 @@ def load_frame_images(frames: Sequence[FrameImage], *, downscale: int, backgroun
     assert images is not None and full is not None
     if with_alpha:
         warn_alpha(json_path.parent, with_alpha, transparent, len(frames), background)
-    return images, (int(full[0]), int(full[1]))
+    return images, (int(full[0]), int(full[1])), coverage
 
 
 def fov_focal(width: int, angle: float) -> float:

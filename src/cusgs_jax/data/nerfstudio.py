@@ -281,6 +281,8 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
                                         int(framed.cameras[cid].width), int(framed.cameras[cid].height))
                              for cid in views)
 
+    coverage = {}  # each view's alpha coverage, once read_images has read them (carving)
+
     def read_images(background):
         if framed.undistorted is None:  # images_{d}/<file name> when present (nerfstudio's convention)
             images = []
@@ -293,7 +295,9 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
             undistorted = framed.undistorted() / "images"
             images = [FrameImage(name, undistorted / rel, (camera.width, camera.height), False)
                       for name, rel, camera in zip(names, under_images(), view_cameras)]
-        return load_frame_images(images, downscale=downscale, background=background, json_path=json_path)[0]
+        images, _, coverage["views"] = load_frame_images(images, downscale=downscale, background=background,
+                                                         json_path=json_path)
+        return images
 
     def read_valid():
         return undistorted_masks(framed.undistorted(), views, downscale)
@@ -304,7 +308,8 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
                     size_fix="resize/crop them to a common size (and w, h, fl_x, fl_y, cx, cy with them)",
                     read_images=read_images, points=None if loaded is None else loaded[0],
                     point_colors=None if loaded is None else loaded[1],
-                    read_valid=None if framed.undistorted is None else read_valid, lens=framed.lens)
+                    read_valid=None if framed.undistorted is None else read_valid, lens=framed.lens,
+                    read_coverage=lambda: coverage.get("views"))
 
 
 def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,

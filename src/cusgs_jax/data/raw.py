@@ -70,6 +70,9 @@ class RawScene:
       read_valid: ``() -> [V, H, W] bool | None``, the valid-pixel masks of undistorted images
         (``data.undistort=mask``), or None.
       lens: the per-view lenses of distorted cameras kept as captured (``data.undistort=lens``).
+      read_coverage: ``() -> [V] of [H, W] bool | None`` after ``read_images``: each view's alpha coverage
+        at the loaded size (None for a view without alpha), what carving uses (:mod:`cusgs_jax.data.carve`);
+        None when the layout has no alpha.
     """
 
     folder: pathlib.Path
@@ -86,3 +89,4 @@ class RawScene:
     split: Split | None = None
     read_valid: Callable[[], np.ndarray | None] | None = None
     lens: SceneLens | None = None
+    read_coverage: Callable[[], list | None] | None = None

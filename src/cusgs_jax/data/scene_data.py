@@ -15,6 +15,8 @@ from typing import Any
 
 import numpy as np
 
+from cusgs_jax.data.carve import Carving
+
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.images import check_background
 from cusgs_jax.data.lenses import SceneLens
@@ -60,6 +62,8 @@ class SceneData:
         (:class:`cusgs_jax.data.lenses.SceneLens`: coeffs [V, 6], bounds [V, 4], fisheye), kept with
         ``data.undistort=lens`` (:mod:`.lenses`; ``Lens.of_views`` gives one camera's); None when the
         images are pinhole images.
+      carving: what carving did to the random initial points (:class:`cusgs_jax.data.carve.Carving`), or None
+        (SfM points, or ``data.carve=none``).
     """
 
     path: pathlib.Path
@@ -80,6 +84,7 @@ class SceneData:
     random_points: str | None = None
     valid: np.ndarray | None = None
     lens: SceneLens | None = None
+    carving: Carving | None = None
 
     @property
     def camera_centers(self) -> np.ndarray:
@@ -113,7 +118,7 @@ def split_name(holdout_every: int) -> str:
 def make_scene(*, path, names, images: np.ndarray, viewmats: np.ndarray, Ks: np.ndarray, points: np.ndarray,
                point_colors: np.ndarray, train_indices: np.ndarray, test_indices: np.ndarray, dataset_format: str,
                split: str, background, random_points: str | None = None, valid: np.ndarray | None = None,
-               lens: SceneLens | None = None) -> SceneData:
+               lens: SceneLens | None = None, carving: Carving | None = None) -> SceneData:
     """The :class:`SceneData` of a layout's arrays: images [V, H, W, 3] uint8 (their size is the scene's),
     viewmats [V, 4, 4] and points [P, 3] kept in float64, Ks [V, 3, 3] in float32, the extent from the cameras
     (from the points when the cameras coincide: :func:`cusgs_jax.data.normalize.camera_extent`) and the
@@ -127,7 +132,7 @@ def make_scene(*, path, names, images: np.ndarray, viewmats: np.ndarray, Ks: np.
                      point_colors=np.asarray(point_colors), train_indices=np.asarray(train_indices, np.int32),
                      test_indices=np.asarray(test_indices, np.int32), extent=extent, dataset_format=dataset_format,
                      split=split, background=check_background(background), random_points=random_points,
-                     valid=valid, lens=lens)
+                     valid=valid, lens=lens, carving=carving)
 
 
 def holdout_split(num: int, holdout_every: int, scene: pathlib.Path) -> tuple[np.ndarray, np.ndarray]:

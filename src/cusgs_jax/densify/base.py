@@ -144,7 +144,7 @@ class Strategy(Protocol):
 
     Optional hooks (the shell calls them for every strategy; the defaults do nothing):
 
-    * :meth:`before_first_update`, :meth:`log_values`, :meth:`results`.
+    * :meth:`before_first_update`, :meth:`log_values`, :meth:`results`, :meth:`next_capacity`.
     """
 
     name: str
@@ -162,6 +162,13 @@ class Strategy(Protocol):
         past it). Returns JSON values kept in the tally's ``values`` (default: nothing)."""
         del probe
         return {}
+
+    def next_capacity(self, state, step: int) -> int | None:
+        """The anchor capacity this strategy's next update is likely to grow ``state`` to (after ``step``
+        completed steps), or None: the shell compiles the step for it in the background
+        (:mod:`cusgs_jax.app.foresight`). A guess: a wrong one costs a compile, never a result."""
+        del state, step
+        return None
 
     def log_values(self, tally: Tally) -> Mapping[str, Any]:
         """Top-level keys this strategy adds to every ``metrics.jsonl`` row (default: none)."""

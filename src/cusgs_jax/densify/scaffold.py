@@ -186,6 +186,9 @@ def opacity_prune(alive: np.ndarray, stats: GrowStats, cfg: GrowConfig) -> tuple
     return prune, GrowStats(*(jnp.asarray(x) for x in (grad_accum, grad_count, opacity_accum, visits)))
 
 
+NEXT_CAPACITY_USE = 0.85  # alive share of the capacity from which its next growth is expected (next_capacity)
+
+
 class ScaffoldStrategy(Strategy):
     """Scaffold-GS growing + opacity pruning (``adjust_anchor``) as a densification strategy.
 
@@ -212,6 +215,15 @@ class ScaffoldStrategy(Strategy):
     def due(self, step: int) -> bool:
         """An adjustment after ``step`` completed steps."""
         return self.cfg.start <= step <= self.cfg.stop and step % self.cfg.interval == 0
+
+    def next_capacity(self, state, step: int) -> int | None:
+        """``ceil(A · grow.capacity_growth)`` once the alive anchors fill :data:`NEXT_CAPACITY_USE` of A while
+        growth is still scheduled: what :meth:`update` grows a full capacity to (unless one growth alone
+        needs more)."""
+        capacity = state.anchors.capacity
+        if step >= self.cfg.stop or np.sum(np.asarray(state.anchors.alive)) < NEXT_CAPACITY_USE * capacity:
+            return None
+        return int(np.ceil(capacity * self.cfg.capacity_growth))
 
     def generator(self, step: int) -> np.random.Generator:
         """The candidate-dropping draws of the adjustment after ``step`` steps (seeded: resumes replay it)."""

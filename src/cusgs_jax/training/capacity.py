@@ -108,13 +108,14 @@ class Capacities:
         """P for an anchor capacity A and N offsets."""
         return max_pairs(self.pairs_per_active, self.active_gaussians(anchor_capacity, n_offsets))
 
-    def grown(self, metrics: dict, anchor_capacity: int, n_offsets: int) -> Capacities:
+    def grown(self, metrics: dict, anchor_capacity: int, n_offsets: int, announce: bool = True) -> Capacities:
         """The capacities that fit the work a step or render reported as dropped.
 
         Args:
           metrics: host values of ``visible_anchors``, ``dropped_anchors``, ``active_gaussians``,
             ``dropped_gaussians``, ``pairs`` and ``dropped_pairs``.
           anchor_capacity: A of that step; n_offsets: N.
+          announce: log the growth (False for a forecast, :meth:`replayed`).
         Returns:
           ``self`` with the first capacity that overflowed grown, in the order the work is done
           (slots, then active Gaussians, then pairs: the replay measures the later ones anew).
@@ -122,7 +123,7 @@ class Capacities:
         if metrics.get("dropped_anchors", 0) > 0:
             needed = int(metrics["visible_anchors"]) + int(metrics["dropped_anchors"])
             fraction = grown_visible_fraction(self.visible_fraction, needed, anchor_capacity)
-            log.info("a view sees %d anchors, more than %d visible slots: visible fraction %.3g -> %.3g "
+            (log.info if announce else log.debug)("a view sees %d anchors, more than %d visible slots: visible fraction %.3g -> %.3g "
                      "(the step recompiles and replays)", needed, int(metrics["visible_anchors"]),
                      self.visible_fraction, fraction)
             return dataclasses.replace(self, visible_fraction=fraction)
@@ -130,7 +131,7 @@ class Capacities:
             needed = int(metrics["active_gaussians"]) + int(metrics["dropped_gaussians"])
             decoded = self.visible_slots(anchor_capacity) * n_offsets
             fraction = grown_active_fraction(self.active_fraction, needed, decoded)
-            log.info("a view has %d active Gaussians, more than %d: active fraction %.3g -> %.3g "
+            (log.info if announce else log.debug)("a view has %d active Gaussians, more than %d: active fraction %.3g -> %.3g "
                      "(recompiles and replays)", needed, self.active_gaussians(anchor_capacity, n_offsets),
                      self.active_fraction, fraction)
             return dataclasses.replace(self, active_fraction=fraction)
@@ -138,10 +139,38 @@ class Capacities:
             needed = int(metrics["pairs"]) + int(metrics["dropped_pairs"])
             pairs = grown_pairs_per_gaussian(self.pairs_per_active, needed,
                                              self.active_gaussians(anchor_capacity, n_offsets))
-            log.info("a view needs %d tile pairs, more than %d: pairs per active Gaussian %.3g -> %.3g "
+            (log.info if announce else log.debug)("a view needs %d tile pairs, more than %d: pairs per active Gaussian %.3g -> %.3g "
                      "(recompiles and replays)", needed, int(metrics["pairs"]), self.pairs_per_active, pairs)
             return dataclasses.replace(self, pairs_per_active=pairs)
         return self
+
+    def shortfall(self, need: dict, anchor_capacity: int, n_offsets: int) -> dict | None:
+        """The metrics a step with these capacities reports for a view that needs ``need``
+        (:func:`cusgs_jax.training.render.view_work`) — its first overflowing capacity, as :meth:`grown`
+        reads it — or None when the view fits."""
+        slots = self.visible_slots(anchor_capacity)
+        if need["visible_anchors"] > slots:
+            return dict(visible_anchors=slots, dropped_anchors=need["visible_anchors"] - slots)
+        active = self.active_gaussians(anchor_capacity, n_offsets)
+        if need["active_gaussians"] > active:
+            return dict(active_gaussians=active, dropped_gaussians=need["active_gaussians"] - active)
+        pairs = self.pairs(anchor_capacity, n_offsets)
+        if need["pairs"] > pairs:
+            return dict(pairs=pairs, dropped_pairs=need["pairs"] - pairs)
+        return None
+
+    def replayed(self, needs: list[dict], anchor_capacity: int, n_offsets: int) -> list[Capacities]:
+        """The capacities a run starting from these would pass through on steps whose views need ``needs``,
+        in order (each overflow grown by :meth:`grown` and replayed): what a compile ahead prepares."""
+        passed, current = [], self
+        for need in needs:
+            while (short := current.shortfall(need, anchor_capacity, n_offsets)) is not None:
+                grown = current.grown(short, anchor_capacity, n_offsets, announce=False)
+                if grown == current:
+                    break
+                current = grown
+                passed.append(current)
+        return passed
 
     @classmethod
     def fitted(cls, needs: dict, anchor_capacity: int, n_offsets: int) -> Capacities:
@@ -213,14 +242,19 @@ class ExactRender:
     growths: int = 0
     fn: Callable | None = None
     fit: Callable | None = None  # fit(anchors, *args) -> needs, for capacities=None: sized on the first call
+    wrap: Callable[[Callable], Callable] = lambda fn: fn  # e.g. app.ahead.Program: compiled ahead of its calls
+
+    def program(self) -> Callable:
+        """The (wrapped) jitted render for the current capacities, built on first use."""
+        if self.fn is None:
+            self.fn = self.wrap(self.build(self.capacities))
+        return self.fn
 
     def __call__(self, anchors, *args):
         if self.capacities is None:
             self.capacities = Capacities.fitted(self.fit(anchors, *args), anchors.capacity, self.n_offsets)
         while True:
-            if self.fn is None:
-                self.fn = self.build(self.capacities)
-            *outputs, metrics = self.fn(anchors, *args)
+            *outputs, metrics = self.program()(anchors, *args)
             metrics = {k: int(v) for k, v in metrics.items()}
             if not any(metrics[k] for k in ("dropped_anchors", "dropped_gaussians", "dropped_pairs")):
                 return tuple(outputs)

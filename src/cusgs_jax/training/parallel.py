@@ -75,6 +75,21 @@ def place(tree, sharding: NamedSharding):
     return jax.tree_util.tree_map(put, tree)
 
 
+def place_step_types(mesh: Mesh, state, batch: dict):
+    """The types :func:`place_step_inputs` gives (``jax.ShapeDtypeStruct`` leaves with their shardings), from
+    arrays or ``ShapeDtypeStruct`` s: what an ahead-of-time compile of the batched step takes."""
+    def typed(tree, sharding):
+        return jax.tree_util.tree_map(
+            lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=getattr(x, "weak_type", False)),
+            tree)
+
+    views = {k: v for k, v in batch.items() if k != "banks"}
+    placed = typed(views, by_view(mesh))
+    if "banks" in batch:
+        placed["banks"] = typed(batch["banks"], replicated(mesh))
+    return typed(state, replicated(mesh)), placed
+
+
 def place_step_inputs(mesh: Mesh, state, batch: dict):
     """(state replicated, batch views split over the mesh, the memory banks replicated)."""
     views = {k: v for k, v in batch.items() if k != "banks"}

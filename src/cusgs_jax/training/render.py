@@ -119,7 +119,7 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
                 pairs=jnp.sum(jnp.where(proj.visible, area, 0)).astype(jnp.int32))
 
 
-def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
+def make_render_fn(cfg: Config, capacities: Capacities | None = None, wrap=None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index) -> (rgb [H, W, 3] in [0, 1],)``.
 
     Meant for compacted anchors (:func:`cusgs_jax.model.anchors.compact`). The capacities
@@ -135,10 +135,10 @@ def make_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRe
 
         return render_rgb
 
-    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
+    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg), **_wrapped(wrap))
 
 
-def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) -> ExactRender:
+def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None, wrap=None) -> ExactRender:
     """``render(anchors, nets, camera, appearance_index, banks) -> (rgb [H,W,3], {model: [H,W,D]})``.
 
     Like :func:`make_render_fn`: capacities fitted and grown, never a truncated render.
@@ -151,7 +151,12 @@ def make_feature_render_fn(cfg: Config, capacities: Capacities | None = None) ->
 
         return render_rgb_features
 
-    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg))
+    return ExactRender(build, capacities, cfg.model.n_offsets, fit=view_work_probe(cfg), **_wrapped(wrap))
+
+
+def _wrapped(wrap) -> dict:
+    """``ExactRender``'s ``wrap`` keyword when one is given (``wrap(jitted)``, e.g. :class:`cusgs_jax.app.ahead.Program`)."""
+    return {} if wrap is None else dict(wrap=wrap)
 
 
 @dataclasses.dataclass
@@ -189,10 +194,17 @@ def most_work(anchors: AnchorState, nets: dict, views, cfg: Config) -> dict:
     One jitted program walks the views (``lax.map``: one view's memory at a time) and one transfer
     brings the answer back — no per-view round trip.
     """
+    needs = view_needs(anchors, nets, views, cfg)
+    return {key: max(need[key] for need in needs) for key in needs[0]}
+
+
+def view_needs(anchors: AnchorState, nets: dict, views, cfg: Config) -> list[dict]:
+    """What each of ``views`` (pairs ``(camera, appearance_index)`` of one image size) needs (:func:`view_work`),
+    in order: ``[{"visible_anchors", "active_gaussians", "pairs"}]`` as host ints (one program, one transfer)."""
     cameras = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[camera for camera, _ in views])
     indices = jnp.asarray([index for _, index in views], jnp.int32)
     work = jax.device_get(_probe_views(anchors, nets, cameras, indices, cfg))
-    return {key: int(max(values)) for key, values in work.items()}
+    return [{key: int(values[v]) for key, values in work.items()} for v in range(len(views))]
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))

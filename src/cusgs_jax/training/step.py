@@ -20,6 +20,8 @@ What a step pays for follows what the view shows:
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 
@@ -301,4 +303,7 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
 
     placed_step.jitted = jitted  # for compile counts (``jitted._cache_size()``)
     placed_step.mesh = mesh
+    # for an ahead-of-time compile (app/ahead.py): the jitted step's argument types, and the placement its call does
+    placed_step.types = functools.partial(parallel.place_step_types, mesh)
+    placed_step.place = functools.partial(parallel.place_step_inputs, mesh)
     return placed_step

@@ -1,0 +1,175 @@
+"""Programs compiled ahead of their first call, off the training loop's path.
+
+A jitted function's program is fixed by the shapes, dtypes and shardings of its arguments; the
+run knows them before the call that would compile it (the first step's once the state and the
+first batch exist, the next anchor capacity's before a growth makes it). :meth:`Program.prepare`
+lowers and compiles the program for such arguments on one background thread (JAX's
+ahead-of-time API, ``jax.jit(f).lower(*types).compile()``; XLA's compile runs in C++ without the
+interpreter lock, so the loop goes on), and the call with arguments of those types runs the ready
+executable. The executable is the one the jitted call would have built — the same function, the
+same argument types — so the numbers are the same; should it still refuse the arguments (a
+``TypeError`` raised before anything runs or is donated), the jitted function is called and
+compiles as before. Nothing is ever run by the wrong program.
+
+The run waits for a program only when it calls one whose compile has not finished: the wait is
+reported to ``on_wait`` (the run's ``compile_wait``, :class:`cusgs_jax.app.budget.TimeBudget`).
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import logging
+import threading
+import time
+from collections.abc import Callable
+
+import jax
+
+log = logging.getLogger("cusgs_jax")
+
+THREAD_PREFIX = "cusgs-compile-ahead"  # the background thread's name (CompileLog tells its compiles apart by it)
+
+
+def in_background() -> bool:
+    """Whether the calling thread is a :class:`Ahead` compile thread."""
+    return threading.current_thread().name.startswith(THREAD_PREFIX)
+
+
+def spec(x):
+    """One argument leaf as ahead-of-time lowering takes it: a ``jax.ShapeDtypeStruct`` with the array's
+    shape, dtype, weak type and (committed arrays only) sharding; other leaves as they are."""
+    if isinstance(x, jax.Array):
+        sharding = x.sharding if getattr(x, "committed", False) else None
+        return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=x.weak_type)
+    return x
+
+
+def specs(tree):
+    """:func:`spec` of every leaf of ``tree`` (taken on the calling thread: its arrays may be donated later)."""
+    return jax.tree_util.tree_map(spec, tree)
+
+
+def signature(args) -> tuple:
+    """What decides a jitted function's program for ``args``: the tree structure (static fields
+    included) and every leaf's shape, dtype and weak type (a Python scalar by its type, not its value)."""
+    leaves, treedef = jax.tree_util.tree_flatten(args)
+    return treedef, tuple((tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False)))
+                          if hasattr(x, "shape") and hasattr(x, "dtype") else type(x).__name__ for x in leaves)
+
+
+class Ahead:
+    """One background compile thread for a run (``with Ahead(on_wait) as ahead:``): compiles run one at a time.
+
+    Args:
+      on_wait: told the seconds of every wait for a program still compiling.
+      enabled: False compiles nothing ahead (every program compiles on its first call, as a plain jit).
+    """
+
+    def __init__(self, on_wait: Callable[[float], None] | None = None, enabled: bool = True):
+        self.enabled = enabled
+        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_PREFIX)
+        self._on_wait = on_wait or (lambda seconds: None)
+        self.submitted = 0  # programs compiled ahead
+        self.waits = 0  # calls that waited for one
+        self.compile_seconds: list[float] = []  # wall seconds of each finished background compile
+
+    def compile(self, fn: Callable, args) -> concurrent.futures.Future:
+        """A future of ``fn``'s executable for the types of ``args`` (arrays or ``ShapeDtypeStruct`` s).
+
+        ``fn`` is a jitted function, or one that places its inputs before calling ``fn.jitted``
+        (``fn.types(*args)`` gives the placed types).
+        """
+        jitted = getattr(fn, "jitted", fn)
+        types = specs(tuple(args))
+        if hasattr(fn, "types"):
+            types = fn.types(*types)
+        self.submitted += 1
+
+        def compile_now():
+            start = time.perf_counter()
+            compiled = jitted.lower(*types).compile()
+            self.compile_seconds.append(time.perf_counter() - start)
+            return compiled
+
+        return self._pool.submit(compile_now)
+
+    def result(self, future: concurrent.futures.Future):
+        """The executable of ``future`` (waiting, and reporting the wait, if it is not ready), or None when its
+        compile failed (the jitted call then compiles, and raises, on the caller's path)."""
+        if not future.done():
+            start = time.perf_counter()
+            concurrent.futures.wait([future])
+            self.waits += 1
+            self._on_wait(time.perf_counter() - start)
+        try:
+            return future.result()
+        except Exception as error:  # noqa: BLE001
+            log.debug("compiling ahead failed (%s): the call compiles the program itself", error)
+            return None
+
+    def close(self) -> None:
+        """Drop what was not started; wait for a compile under way (XLA cannot interrupt it)."""
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+    def __enter__(self) -> Ahead:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class Program:
+    """A jitted function with executables compiled ahead for the argument types it will be called with.
+
+    ``program(*args)`` runs the executable prepared for the types of ``args`` (waiting for its compile if
+    it is under way), else the jitted function. A function that places its inputs before its jitted call
+    (the batched step: ``fn.place(*args)``, ``fn.types(*args)``, ``fn.jitted``) is compiled for the placed
+    types and its executable called with the placed inputs.
+
+    Attributes:
+      jitted: the function as built; fallbacks: calls an executable refused (run by ``jitted``).
+    """
+
+    def __init__(self, jitted: Callable, ahead: Ahead | None = None):
+        self.jitted, self.ahead = jitted, ahead
+        self._ready: dict[tuple, object] = {}  # signature -> Compiled (None: refused once, use jitted)
+        self._pending: dict[tuple, concurrent.futures.Future] = {}
+        self.fallbacks = 0
+
+    def prepare(self, *args) -> bool:
+        """Start compiling the program for the types of ``args`` (arrays or ``ShapeDtypeStruct`` s) unless it is
+        ready or under way; returns whether a compile was started."""
+        if self.ahead is None or not self.ahead.enabled:
+            return False
+        key = signature(args)
+        if key in self._ready or key in self._pending:
+            return False
+        self._pending[key] = self.ahead.compile(self.jitted, args)
+        return True
+
+    def wait(self, *args) -> None:
+        """Wait for the program prepared for the types of ``args`` (if one is being compiled)."""
+        key = signature(args)
+        if key in self._pending:
+            self._ready[key] = self.ahead.result(self._pending.pop(key))
+
+    def __call__(self, *args):
+        if not self._ready and not self._pending:
+            return self.jitted(*args)
+        key = signature(args)
+        if key in self._pending:
+            self._ready[key] = self.ahead.result(self._pending.pop(key))
+        compiled = self._ready.get(key)
+        if compiled is not None:
+            place = getattr(self.jitted, "place", None)
+            try:
+                return compiled(*(place(*args) if place else args))
+            except TypeError as error:  # raised while checking the arguments: nothing ran, nothing was donated
+                log.debug("an ahead-compiled program refused its arguments (%s): the jitted function compiles", error)
+                self._ready[key], self.fallbacks = None, self.fallbacks + 1
+        return self.jitted(*args)
+
+    def __getattr__(self, name):  # e.g. the batched step's ``mesh``
+        if name.startswith("_") or name == "jitted":
+            raise AttributeError(name)
+        return getattr(self.jitted, name)

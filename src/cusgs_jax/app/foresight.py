@@ -1,0 +1,142 @@
+"""Which programs the training loop will need next, found early enough to compile them in the background.
+
+A run changes its step's program at three moments: a strategy grows the anchor capacity, a view
+after an update needs more visible slots, active Gaussians or tile pairs than the step has (a
+replay, :mod:`cusgs_jax.training.capacity`), or pruning shrinks the capacity. :class:`Foresight`
+prepares the first two (:meth:`cusgs_jax.app.ahead.Program.prepare`) a compile's time before they
+happen:
+
+* **the update's preview.** When the next strategy update is about one compile away (the measured
+  seconds of a background compile over the median step's, times :data:`LEAD`), the update is run on
+  a copy of the state; the views of the :data:`PREVIEW_STEPS` steps after it are measured on the
+  preview (:func:`cusgs_jax.training.render.view_needs`), and the step is compiled for the preview's
+  anchor capacity at every capacities those views would grow the run to
+  (:meth:`~cusgs_jax.training.capacity.Capacities.replayed`);
+* **a strategy's next capacity** (:meth:`cusgs_jax.densify.base.Strategy.next_capacity`): the
+  anchor capacity a strategy says its next growth would move to, with today's work capacities.
+
+The evaluation render is prepared for a new anchor capacity too. A forecast that misses costs what
+it cost without one (a compile on the loop's path); a forecast never changes a capacity, so the
+run's numbers are those of a run without it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import statistics
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+
+from cusgs_jax.densify import ops
+from cusgs_jax.training.render import view_needs
+
+log = logging.getLogger("cusgs_jax")
+
+LEAD = 1.5  # the preview comes this many compile times before the update it previews
+MIN_LEAD_STEPS = 10  # and at least this many steps before it
+PREVIEW_STEPS = 8  # the steps after an update whose views say which capacities to compile ahead
+RECENT_STEPS = 50  # the step time is the median of this many recent steps
+CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
+
+
+class Foresight:
+    """Prepares the programs of the steps after the next strategy update (see the module docstring).
+
+    Args:
+      strategies: the run's densification strategies; iterations: ``train.iterations``.
+      step_program: ``step_program(capacities) -> Program`` (the run's step program for those capacities).
+      prepare_render: ``prepare_render(anchors)``: compile the evaluation render for that anchor capacity.
+    """
+
+    def __init__(self, strategies, iterations: int, step_program: Callable, prepare_render: Callable):
+        self.strategies, self.iterations = tuple(strategies), iterations
+        self.step_program, self.prepare_render = step_program, prepare_render
+        self._recent: list[float] = []
+        self._next_due: int | None = None
+        self._previewed: set[int] = set()
+        self._asked: set[int] = set()  # anchor capacities already prepared from next_capacity
+
+    def stepped(self, seconds: float) -> None:
+        """One step's wall seconds (for the lead in steps)."""
+        self._recent = (self._recent + [seconds])[-RECENT_STEPS:]
+
+    def _due_after(self, done: int) -> int | None:
+        if self._next_due is None or self._next_due <= done:
+            self._next_due = next((d for d in range(done + 1, self.iterations + 1)
+                                   if any(s.due(d) for s in self.strategies)), None)
+        return self._next_due
+
+    def lead_steps(self, compile_seconds: list[float]) -> int:
+        """Steps before an update at which its preview runs: :data:`LEAD` background compiles' worth."""
+        if not self._recent or not compile_seconds:
+            return MIN_LEAD_STEPS
+        step = max(statistics.median(self._recent), 1e-6)
+        return max(MIN_LEAD_STEPS, math.ceil(LEAD * max(compile_seconds) / step))
+
+    def after(self, session, done: int) -> None:
+        """After ``done`` completed steps (and their strategy updates)."""
+        ahead = session.ahead
+        if ahead is None or not ahead.enabled:
+            return
+        if done % CAPACITY_CHECK_EVERY == 0:
+            self._next_capacities(session, done)
+        due = self._due_after(done)
+        if due is None or due in self._previewed or due - done > self.lead_steps(ahead.compile_seconds):
+            return
+        self._previewed.add(due)
+        self._preview(session, done, due)
+
+    def _next_capacities(self, session, done: int) -> None:
+        state = session.state
+        for strategy in self.strategies:
+            capacity = strategy.next_capacity(state, done) if hasattr(strategy, "next_capacity") else None
+            if capacity is None or capacity == state.anchors.capacity or capacity in self._asked:
+                continue
+            self._asked.add(capacity)
+            grown = jax.eval_shape(lambda s, c=capacity: _grown(s, session.tx, c), state)
+            log.debug("compiling ahead the step for %d anchor slots (%s's next capacity)", capacity, strategy.name)
+            self.step_program(session.capacities).prepare(grown, session.batches(int(state.step)))
+            self.prepare_render(grown.anchors)
+
+    def _preview(self, session, done: int, due: int) -> None:
+        cfg = session.cfg
+        preview = jax.tree_util.tree_map(jnp.copy, session.state)  # an update may donate the arrays it is given
+        with _quiet():
+            for strategy in self.strategies:
+                if strategy.due(due):
+                    preview, _ = strategy.update(preview, session.tx, due)
+        steps = range(due, min(due + PREVIEW_STEPS, self.iterations))
+        batches = [session.batches(step) for step in steps]
+        if not batches:
+            return
+        size = cfg.train.batch_size
+        views = [(b["camera"], b["index"]) for b in batches] if size == 1 else [
+            (jax.tree_util.tree_map(lambda x, v=v: x[v], b["camera"]), b["index"][v]) for b in batches
+            for v in range(size)]
+        needs = view_needs(preview.anchors, preview.nets, views, cfg)
+        capacity = preview.anchors.capacity
+        for caps in (session.capacities, *session.capacities.replayed(needs, capacity, cfg.model.n_offsets)):
+            if self.step_program(caps).prepare(preview, batches[0]):
+                log.debug("step %d: compiling ahead the step after the update at %d: %d anchor slots, %s",
+                          done, due, capacity, caps)
+        if capacity != session.state.anchors.capacity:
+            self.prepare_render(preview.anchors)
+
+
+def _grown(state, tx, capacity: int):
+    return ops.grow_capacity(state, tx, capacity)
+
+
+@contextlib.contextmanager
+def _quiet():
+    """The package's log silenced (a preview's update would announce a growth that has not happened)."""
+    logger = logging.getLogger("cusgs_jax")
+    disabled, logger.disabled = logger.disabled, True
+    try:
+        yield
+    finally:
+        logger.disabled = disabled
