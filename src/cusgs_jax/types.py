@@ -28,6 +28,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.splat.lens import Lens
 
@@ -68,4 +69,5 @@ class Camera:
     def of_scene(scene, view: int) -> Camera:
         """The camera of ``scene`` view ``view`` (a :class:`cusgs_jax.data.scene_data.SceneData`)."""
         lens = None if getattr(scene, "lens", None) is None else Lens.of_views(scene.lens, view)
-        return Camera(jnp.asarray(scene.Ks[view]), jnp.asarray(scene.viewmats[view]), scene.width, scene.height, lens)
+        return Camera(jax.device_put(np.asarray(scene.Ks[view], np.float32)),
+                      jax.device_put(np.asarray(scene.viewmats[view], np.float32)), scene.width, scene.height, lens)

@@ -486,3 +486,20 @@ def test_setup_resolves_auto_once_and_leaves_out_vgg16_without_lpips(tiny_scene,
     assert [m.name for m in session.cfg.features.models] == ["daisy", "semantic"] == sorted(session.banks)
     assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
     assert isinstance(session.cfg.model.voxel_size, float) and 0 < session.cfg.model.voxel_size < 0.2
+
+
+def test_compiling_ahead_changes_when_programs_compile_not_what_they_compute(straight, tiny_scene, tmp_path):
+    """The default run compiles its first step and evaluation render on the background thread (app/ahead.py);
+    the same run with ``train.compile_ahead=false`` compiles each on its first call: the same checkpoints bit for
+    bit, the same metrics, and only the first waits on the loop's path for what the other compiled ahead."""
+    folder, result = straight
+    plain = run(_cfg(tiny_scene, "train.compile_ahead=false"), tmp_path / "plain")
+    step, leaves = _final_state_leaves(folder)
+    plain_step, plain_leaves = _final_state_leaves(tmp_path / "plain")
+    assert step == plain_step
+    for a, b in zip(leaves, plain_leaves):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert (result["psnr"], result["ssim"], result["alive_anchors"]) == (plain["psnr"], plain["ssim"],
+                                                                         plain["alive_anchors"])
+    assert result["compilations"]["ahead"] >= 2 and plain["compilations"]["ahead"] == 0
+    assert set(result["time"]) >= {"compile_wait", "compile"} and plain["time"]["compile_wait"] > 0

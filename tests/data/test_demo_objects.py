@@ -66,3 +66,25 @@ def test_points_lie_on_objects(tiny):
         total += int(inside.sum())
     assert total > 0 and hits >= 0.95 * total
     assert set(OBJECTS) >= {"table_top", "chair"}
+
+
+def test_carving_keeps_every_surface_point_and_drops_most_random_points(tiny):
+    """The Blender layout's alpha carves its random start (data/carve.py); the COLMAP layout's SfM-style
+    surface points of the same objects, in the same world frame, all survive the same carving."""
+    from cusgs_jax.config import DataConfig
+    from cusgs_jax.data.blender import read_blender
+    from cusgs_jax.data.carve import carve
+    from cusgs_jax.data.finish import check_settings, finish_cameras, finish_scene
+    from cusgs_jax.data.loader import load_scene
+
+    data = check_settings(DataConfig(random_points=5000))
+    raw = read_blender(tiny["blender"], data)
+    scene = finish_scene(raw, data)
+    coverage = raw.read_coverage()
+    assert scene.carving.views_with_alpha == 12 and len(coverage) == 14
+    assert scene.carving.kept == len(scene.points) < 0.5 * 5000  # most of the cube is empty space
+    cameras = finish_cameras(raw, data)
+    surface = load_scene(tiny["colmap"], DataConfig(holdout_every=7)).points
+    keep, record = carve(surface, raw.viewmats[cameras.train], cameras.Ks[cameras.train], cameras.width,
+                         cameras.height, [coverage[i] for i in cameras.train])
+    assert keep.all() and record.kept == len(surface)

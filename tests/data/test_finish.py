@@ -48,7 +48,7 @@ def _raw(**overrides) -> RawScene:
 
 def test_intrinsics_split_background_and_random_points():
     raw, seen = _raw()
-    data = check_settings(DataConfig(holdout_every=3, random_points=50))
+    data = check_settings(DataConfig(holdout_every=3, random_points=50, carve="none"))
     scene = finish_scene(raw, data, seed=1)
     np.testing.assert_allclose(scene.Ks[0], [[50, 0, 20], [0, 52, 15], [0, 0, 1]])
     assert scene.test_indices.tolist() == [0, 3] and scene.split == "every_3rd"
@@ -57,6 +57,28 @@ def test_intrinsics_split_background_and_random_points():
     again = finish_scene(_raw()[0], data, seed=1)
     np.testing.assert_array_equal(again.points, scene.points)  # the seed draws them
     assert scene.images[4, 0, 0, 0] == 4 and (scene.width, scene.height) == (40, 30)
+
+
+def test_random_points_are_carved_by_the_training_frusta_and_the_record_says_so():
+    data = check_settings(DataConfig(holdout_every=3, random_points=400, random_init="cube"))
+    every = finish_scene(_raw()[0], dataclasses.replace(data, carve="none"), seed=1)
+    carved = finish_scene(_raw()[0], data, seed=1)
+    assert every.carving is None and len(every.points) == 400
+    record = carved.carving
+    assert record.points == 400 and record.kept == len(carved.points) and record.views_with_alpha == 0
+    assert record.outside_frusta == 400 - record.kept > 0 and record.transparent == 0
+    kept = (every.points[:, None, :] == carved.points[None]).all(-1).any(0)
+    assert kept.all()  # a subset of the same draw, in its order
+    clear = [np.zeros((30, 40), bool)] * V  # alpha 0 everywhere: nothing is left, refused naming the way out
+    with pytest.raises(SceneError, match="alpha is not coverage.*data.carve=none"):
+        finish_scene(_raw(read_coverage=lambda: clear)[0], data, seed=1)
+
+
+def test_scene_points_are_never_carved():
+    points, colors = np.random.default_rng(0).normal(size=(30, 3)) * 50, np.zeros((30, 3), np.uint8)
+    scene = finish_scene(_raw(points=points, point_colors=colors)[0], check_settings(DataConfig()))
+    assert scene.carving is None
+    np.testing.assert_array_equal(scene.points, points)  # bit for bit, even those no view sees
 
 
 def test_downscale_divides_the_intrinsics_and_the_size():

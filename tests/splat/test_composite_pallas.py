@@ -218,3 +218,29 @@ def test_the_kernels_lower_through_triton_for_a_gpu_without_one():
     exported = jax.export.export(jax.jit(value_and_grad), platforms=["cuda"], disabled_checks=[
         jax.export.DisabledSafetyCheck.custom_call("__gpu$xla.gpu.triton")])(*gaussians, *lists)
     assert exported.mlir_module().count("xla.gpu.triton") == 2  # the forward and the backward kernel
+
+
+def test_auto_falls_back_to_the_jax_compositor_with_one_warning_when_pallas_triton_is_gone(monkeypatch, caplog):
+    import builtins
+    import logging
+
+    from cusgs_jax.splat import render as render_module
+
+    real_import = builtins.__import__
+
+    def without_triton(name, globals=None, locals=None, fromlist=(), level=0):
+        if name == "jax.experimental.pallas" and fromlist and "triton" in fromlist:
+            raise ImportError("cannot import name 'triton' (removed)")
+        return real_import(name, globals, locals, fromlist, level)
+
+    render_module.pallas_gpu_available.cache_clear()
+    monkeypatch.setattr(builtins, "__import__", without_triton)
+    try:
+        with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
+            assert resolve_backend("auto", "gpu") == "jax" and resolve_backend("auto", "gpu") == "jax"
+        assert sum("no Pallas Triton backend" in r.getMessage() for r in caplog.records) == 1  # said once
+        assert resolve_backend("pallas", "gpu") == "pallas"  # asked for by name: kept (and fails loudly there)
+    finally:
+        monkeypatch.undo()
+        render_module.pallas_gpu_available.cache_clear()
+    assert resolve_backend("auto", "gpu") == "pallas"

@@ -83,3 +83,22 @@ def test_evaluation_capacities_give_the_visible_slots_headroom_in_buckets():
     assert evaluation.visible_slots(10_000) >= 1.5 * caps.visible_slots(10_000)
     assert evaluation.active_gaussians(10_000, 10) >= 1.5 * caps.active_gaussians(10_000, 10)
     assert Capacities(0.875, 0.5, 2.0).for_evaluation().visible_fraction == 1.0  # never beyond every slot
+
+
+def test_shortfall_reports_what_a_step_would_and_replayed_follows_the_replays_in_order():
+    caps = capacity.Capacities(visible_fraction=0.375, active_fraction=0.4375, pairs_per_active=4.0)
+    A, N = 10404, 10
+    slots, active, pairs = caps.visible_slots(A), caps.active_gaussians(A, N), caps.pairs(A, N)
+    fits = dict(visible_anchors=slots, active_gaussians=active, pairs=pairs)
+    assert caps.shortfall(fits, A, N) is None and caps.replayed([fits], A, N) == []
+    over = dict(fits, visible_anchors=slots + 628)
+    short = caps.shortfall(over, A, N)
+    assert short == dict(visible_anchors=slots, dropped_anchors=628)
+    assert caps.grown(short, A, N) == caps.grown(dict(visible_anchors=slots, dropped_anchors=628), A, N)
+    # a run meeting these views in order: slots grow for the first, pairs for the third, nothing for the second
+    views = [over, fits, dict(fits, pairs=3 * pairs)]
+    passed = caps.replayed(views, A, N)
+    first = caps.grown(short, A, N)
+    assert passed[0] == first and first.visible_fraction == 0.625  # the main job's replay after step 400
+    assert len(passed) == 2 and passed[1].pairs_per_active > first.pairs_per_active
+    assert passed[1].shortfall(views[2], A, N) is None

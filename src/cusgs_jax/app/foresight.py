@@ -7,7 +7,8 @@ prepares the first two (:meth:`cusgs_jax.app.ahead.Program.prepare`) a compile's
 happen:
 
 * **the update's preview.** When the next strategy update is about one compile away (the measured
-  seconds of a background compile over the median step's, times :data:`LEAD`), the update is run on
+  seconds of a background compile over the median step's, times :data:`LEAD`), and again at half
+  that lead (the statistics an update reads are then nearer to what it will read), the update is run on
   a copy of the state; the views of the :data:`PREVIEW_STEPS` steps after it are measured on the
   preview (:func:`cusgs_jax.training.render.view_needs`), and the step is compiled for the preview's
   anchor capacity at every capacities those views would grow the run to
@@ -39,6 +40,7 @@ log = logging.getLogger("cusgs_jax")
 LEAD = 1.5  # the preview comes this many compile times before the update it previews
 MIN_LEAD_STEPS = 10  # and at least this many steps before it
 PREVIEW_STEPS = 8  # the steps after an update whose views say which capacities to compile ahead
+PREVIEWS = 2  # previews of one update: at the lead and at half of it (each may start a compile)
 RECENT_STEPS = 50  # the step time is the median of this many recent steps
 CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
 
@@ -85,10 +87,14 @@ class Foresight:
         if done % CAPACITY_CHECK_EVERY == 0:
             self._next_capacities(session, done)
         due = self._due_after(done)
-        if due is None or due in self._previewed or due - done > self.lead_steps(ahead.compile_seconds):
+        if due is None:
             return
-        self._previewed.add(due)
-        self._preview(session, done, due)
+        lead = self.lead_steps(ahead.compile_seconds)
+        for look in range(PREVIEWS):  # at the lead, then at half of it: a later preview sees more of the statistics
+            if (due, look) not in self._previewed and due - done <= max(lead >> look, MIN_LEAD_STEPS):
+                self._previewed.update((due, earlier) for earlier in range(look + 1))
+                self._preview(session, done, due)
+                return
 
     def _next_capacities(self, session, done: int) -> None:
         state = session.state
@@ -104,7 +110,7 @@ class Foresight:
 
     def _preview(self, session, done: int, due: int) -> None:
         cfg = session.cfg
-        preview = jax.tree_util.tree_map(jnp.copy, session.state)  # an update may donate the arrays it is given
+        preview = _copy(session.state)  # an update may donate the arrays it is given
         with _quiet():
             for strategy in self.strategies:
                 if strategy.due(due):
@@ -125,6 +131,12 @@ class Foresight:
                           done, due, capacity, caps)
         if capacity != session.state.anchors.capacity:
             self.prepare_render(preview.anchors)
+
+
+@jax.jit
+def _copy(state):
+    """A copy of ``state`` (one program, not one per array)."""
+    return jax.tree_util.tree_map(jnp.copy, state)
 
 
 def _grown(state, tx, capacity: int):

@@ -181,7 +181,7 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
         with budget.stage("features"):
             feature_sets, banks = load_feature_targets(cfg.features, scene, cfg.train.seed, stage=budget.stage)
             targets = feature_targets(feature_sets, train_idx)
-            banks = {name: jnp.asarray(b) for name, b in banks.items()}
+            banks = {name: jax.device_put(np.asarray(b, np.float32)) for name, b in banks.items()}
     strategies = make_strategies(cfg) + tuple(extra_strategies)
     names = [s.name for s in strategies]
     if len(set(names)) != len(names):
@@ -241,11 +241,11 @@ def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities
     the config's guesses are not used. They grow, and the step replays, when a later view needs more."""
     scene, state, cfg = session.scene, session.state, session.cfg
     positions = _spread(np.arange(len(session.train_idx)), probes)
-    needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), jnp.int32(p))
+    needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), np.int32(p))
                                                   for p in positions], cfg)
     if needs["visible_anchors"] == 0:
         raise SceneError(
-            f"data.path={str(scene.path)!r}: none of the {int(np.sum(state.anchors.alive))} initial anchors (from the "
+            f"data.path={str(scene.path)!r}: none of the {int(np.sum(np.asarray(state.anchors.alive)))} initial anchors (from the "
             f"{len(scene.points)} SfM points) is seen by any of the {len(positions)} training views probed "
             f"(spread over all {len(session.train_idx)}): the points lie behind or beside every camera, and training "
             "would only fit the background. Check that the points and the cameras come from the same reconstruction "
@@ -366,24 +366,30 @@ def _batches(session: Session):
     sequence (every view once per epoch of ⌈V/B⌉ steps, the same sequence on resume).
     """
     scene, idx, size = session.scene, session.train_idx, session.cfg.train.batch_size
-    images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
-    valid = None if scene.valid is None else jnp.asarray(scene.valid[idx])  # [V, H, W] bool
-    viewmats, Ks = jnp.asarray(scene.viewmats[idx]), jnp.asarray(scene.Ks[idx])
+    per_view = dict(image=scene.images[idx].astype(np.float32) / 255.0, K=np.asarray(scene.Ks[idx], np.float32),
+                    viewmat=np.asarray(scene.viewmats[idx], np.float32))
+    if scene.valid is not None:
+        per_view["valid"] = scene.valid[idx]  # [V, H, W] bool
+    if session.banks is not None:
+        per_view["features"] = session.targets
+    per_view = jax.device_put(per_view)  # transfers, not a program per array
     lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
+    pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
 
     def batch(step: int) -> dict:
         if size == 1:
-            view = view_order(session.cfg.train.seed, len(idx), step)
+            view = np.int32(view_order(session.cfg.train.seed, len(idx), step))
         else:
-            view = jnp.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)])
-        camera = Camera(Ks[view], viewmats[view], scene.width, scene.height,
-                        None if lens is None else jax.tree.map(lambda a: a[view], lens))
-        out = dict(image=images[view], camera=camera,
-                   index=jnp.int32(view) if size == 1 else view.astype(jnp.int32))
-        if valid is not None:
-            out["valid"] = valid[view]
+            view = np.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)],
+                              np.int32)
+        views = pick((per_view, lens), view)
+        (picked, view_lens), view = views, jax.device_put(view)
+        camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
+        out = dict(image=picked["image"], camera=camera, index=view)
+        if "valid" in picked:
+            out["valid"] = picked["valid"]
         if session.banks is not None:
-            out["features"] = {name: t[view] for name, t in session.targets.items()}
+            out["features"] = picked["features"]
             out["banks"] = session.banks
         return out
 
@@ -466,7 +472,7 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
     state = session.state
     row = dict(step=step, wall_s=round(session.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
-               train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(state.anchors.alive)),
+               train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(np.asarray(state.anchors.alive))),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
                pairs=int(metrics["pairs"]), **_strategy_log(session),
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
@@ -492,7 +498,7 @@ def _curve_point(session: Session, step: int) -> dict:
     anchors = session.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
     result = _evaluate(session, anchors)
     point = dict(step=step, wall_s=session.clock.total, psnr=result["psnr"], ssim=result["ssim"],
-                 alive_anchors=int(np.sum(session.state.anchors.alive)))
+                 alive_anchors=int(np.sum(np.asarray(session.state.anchors.alive))))
     if session.banks is not None:
         feats = _evaluate_features(session, anchors, retrieval=False)["models"]
         point["feature_cosine"] = float(np.mean([m["cosine"] for m in feats.values()]))
@@ -553,7 +559,7 @@ def finalise(session: Session) -> dict:
     result = dict(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
-        alive_anchors=int(np.sum(state.anchors.alive)), capacity=state.anchors.capacity,
+        alive_anchors=int(np.sum(np.asarray(state.anchors.alive))), capacity=state.anchors.capacity,
         # the model alone (parameters and PSC banks) beside the checkpoint (which adds the Adam moments)
         model_bytes=model_bytes(state.anchors, state.nets, session.banks),
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,

@@ -34,6 +34,7 @@ import logging
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.convnets import INSTALL_HINT, NETS, TRUNKS, available, conv_trunk, min_size, read_weights
 from cusgs_jax.convnets import _check_net as _check_net_name
@@ -67,8 +68,8 @@ def load_params(net: str = "vgg") -> dict:
     """
     _check_net(net)
     raw = read_weights(net, "LPIPS")
-    return {"convs": [(jnp.asarray(k), jnp.asarray(b)) for k, b in raw["convs"]],
-            "lins": [jnp.asarray(w) for w in raw["lins"]]}
+    put = lambda x: jax.device_put(np.asarray(x, np.float32))  # noqa: E731 — a transfer, no program per shape
+    return {"convs": [(put(k), put(b)) for k, b in raw["convs"]], "lins": [put(w) for w in raw["lins"]]}
 
 
 def _trunk(params: dict, x: jnp.ndarray, net: str) -> list[jnp.ndarray]:

@@ -188,6 +188,44 @@ def fresh_queries(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
     return 0.1 * jax.random.normal(key, shape)
 
 
+def anchor_layout(points: np.ndarray, voxel_size: float, *, capacity: int | None = None,
+                  capacity_factor: float = 2.0) -> dict[str, np.ndarray]:
+    """The host part of :func:`init_anchors` (NumPy): ``{"centers": [A, 3] float32, "log_scaling": [A, 6]
+    float32, "alive": [A] bool}`` with the first A0 slots the voxelised points (the rest dead, at
+    ``log(voxel_size)``)."""
+    centers = voxelize(points, voxel_size)
+    num = centers.shape[0]
+    capacity = capacity or max(int(math.ceil(capacity_factor * num)), num)
+    if capacity < num:
+        raise ValueError(f"capacity {capacity} is smaller than the {num} initial anchors")
+    log_scale = np.log(np.sqrt(nearest_neighbour_sq_dist(centers)))
+    pad = capacity - num
+    full_centers = np.concatenate([centers, np.zeros((pad, 3), np.float32)]).astype(np.float32)
+    log_scaling = np.concatenate([np.repeat(log_scale[:, None], 6, axis=1),
+                                  np.full((pad, 6), math.log(voxel_size))]).astype(np.float32)
+    alive = np.zeros(capacity, bool)
+    alive[:num] = True
+    return dict(centers=full_centers, log_scaling=log_scaling, alive=alive)
+
+
+def anchors_of_layout(layout: dict, *, n_offsets: int, latent_dim: int, query_dim: int = 0,
+                      key: jax.Array | None = None) -> AnchorState:
+    """The :class:`AnchorState` of an :func:`anchor_layout` (traceable: the run builds it inside its one
+    initialisation program): offsets and latents zero, a per-Gaussian query table drawn with ``key`` when
+    Q = ``query_dim`` > 0."""
+    capacity = layout["alive"].shape[0]
+    table = None
+    if query_dim > 0:
+        table = fresh_queries(key if key is not None else jax.random.PRNGKey(0), (capacity, n_offsets, query_dim))
+    params = AnchorParams(
+        offsets=jnp.zeros((capacity, n_offsets, 3), jnp.float32),
+        log_scaling=jnp.asarray(layout["log_scaling"]),
+        latent=jnp.zeros((capacity, latent_dim), jnp.float32),
+        query_table=table,
+    )
+    return AnchorState(jnp.asarray(layout["centers"]), jnp.asarray(layout["alive"]), params)
+
+
 def init_anchors(points: np.ndarray, voxel_size: float, *, n_offsets: int = 10, latent_dim: int = 32,
                  capacity: int | None = None, capacity_factor: float = 2.0, query_dim: int = 0,
                  key: jax.Array | None = None) -> AnchorState:
@@ -204,28 +242,8 @@ def init_anchors(points: np.ndarray, voxel_size: float, *, n_offsets: int = 10, 
     Returns:
       :class:`AnchorState` with the first A0 slots alive.
     """
-    centers = voxelize(points, voxel_size)
-    num = centers.shape[0]
-    capacity = capacity or max(int(math.ceil(capacity_factor * num)), num)
-    if capacity < num:
-        raise ValueError(f"capacity {capacity} is smaller than the {num} initial anchors")
-    log_scale = np.log(np.sqrt(nearest_neighbour_sq_dist(centers)))
-    pad = capacity - num
-    full_centers = np.concatenate([centers, np.zeros((pad, 3), np.float32)])
-    log_scaling = np.concatenate([np.repeat(log_scale[:, None], 6, axis=1),
-                                  np.full((pad, 6), math.log(voxel_size))]).astype(np.float32)
-    table = None
-    if query_dim > 0:
-        table = fresh_queries(key if key is not None else jax.random.PRNGKey(0), (capacity, n_offsets, query_dim))
-    params = AnchorParams(
-        offsets=jnp.zeros((capacity, n_offsets, 3), jnp.float32),
-        log_scaling=jnp.asarray(log_scaling),
-        latent=jnp.zeros((capacity, latent_dim), jnp.float32),
-        query_table=table,
-    )
-    alive = np.zeros(capacity, bool)
-    alive[:num] = True
-    return AnchorState(jnp.asarray(full_centers), jnp.asarray(alive), params)
+    layout = anchor_layout(points, voxel_size, capacity=capacity, capacity_factor=capacity_factor)
+    return anchors_of_layout(layout, n_offsets=n_offsets, latent_dim=latent_dim, query_dim=query_dim, key=key)
 
 
 def place_anchors(anchors: AnchorState, slots: np.ndarray, centers: np.ndarray, latent: np.ndarray,

@@ -5,6 +5,8 @@ Naming: G Gaussians, C channels, H×W image, B cameras.
 
 from __future__ import annotations
 
+import functools
+import logging
 import math
 from functools import partial
 from typing import NamedTuple
@@ -19,6 +21,8 @@ from cusgs_jax.splat.composite_pallas import DEFAULT_BATCH as PALLAS_BATCH, comp
 from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
+
+log = logging.getLogger("cusgs_jax")
 
 
 class RenderOutput(NamedTuple):
@@ -82,8 +86,26 @@ def resolve_backend(backend: str, platform: str | None = None) -> str:
     if backend not in COMPOSITORS:
         raise ValueError(f"backend must be one of {COMPOSITORS}, got {backend!r}")
     if backend == "auto":
-        return "pallas" if (platform or jax.default_backend()) == "gpu" else "jax"
+        return "pallas" if (platform or jax.default_backend()) == "gpu" and pallas_gpu_available() else "jax"
     return backend
+
+
+@functools.cache
+def pallas_gpu_available() -> bool:
+    """Whether this JAX still has Pallas's Triton backend, which the GPU kernels lower through
+    (:mod:`cusgs_jax.splat.composite_pallas`; deprecated since JAX 0.11, "will be removed in a future
+    version"). When it is gone, ``auto`` says so once and composites with the JAX compositor."""
+    try:
+        from jax.experimental.pallas import triton as pl_triton
+    except ImportError as error:
+        log.warning("splat.backend=auto: this JAX has no Pallas Triton backend (%s); the JAX compositor runs "
+                    "instead of the Pallas kernels (slower on a GPU, the same numbers)", error)
+        return False
+    if getattr(pl_triton, "CompilerParams", None) is None and getattr(pl_triton, "TritonCompilerParams", None) is None:
+        log.warning("splat.backend=auto: this JAX's Pallas Triton backend has no compiler parameters; the JAX "
+                    "compositor runs instead of the Pallas kernels (slower on a GPU, the same numbers)")
+        return False
+    return True
 
 
 def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
@@ -164,6 +186,8 @@ def rasterize(
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
     """
+    check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, background=background,
+                 tile_size=tile_size, means2d_delta=means2d_delta)
     num_gaussians, channels = colors.shape
     if num_gaussians == 0:  # nothing to draw: the background (one invisible Gaussian keeps every shape non-empty)
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
@@ -248,6 +272,36 @@ def rasterize_batch(
     return jax.vmap(one)(viewmats, Ks)
 
 
+def check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, *, background=None,
+                 tile_size: int = 16, means2d_delta=None) -> None:
+    """Check the rasteriser inputs' shapes, dtypes and static sizes (arrays or tracers: :func:`rasterize`
+    runs it while tracing, so a wrong shape is a ValueError naming the argument, not a wrong image).
+
+    Raises:
+      ValueError: naming the offending argument, its shape and what was expected.
+    """
+    if len(means.shape) != 2 or means.shape[1] != 3:
+        raise ValueError(f"means must have shape [G, 3], got {list(means.shape)}")
+    g = means.shape[0]
+    if len(colors.shape) != 2 or colors.shape[1] < 1:
+        raise ValueError(f"colors must have shape [G, C] with C >= 1, got {list(colors.shape)}")
+    c = colors.shape[1]
+    arrays = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat, K=K,
+                  background=background, means2d_delta=means2d_delta)
+    expected = dict(means=(g, 3), quats=(g, 4), scales=(g, 3), opacities=(g,), colors=(g, c),
+                    viewmat=(4, 4), K=(3, 3), background=(c,), means2d_delta=(g, 2))
+    for name, arr in arrays.items():
+        if arr is None:
+            continue
+        if tuple(arr.shape) != expected[name]:
+            raise ValueError(f"{name} must have shape {list(expected[name])} (G={g}, C={c}), got {list(arr.shape)}")
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise ValueError(f"{name} must be a floating-point array, got dtype {arr.dtype}")
+    for name, value in (("width", width), ("height", height), ("tile_size", tile_size)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) <= 0:
+            raise ValueError(f"{name} must be a positive integer, got {value!r}")
+
+
 def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
                  background=None) -> None:
     """Validate rasteriser inputs on the host (outside jit) with clear messages.
@@ -261,20 +315,9 @@ def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, hei
     if background is not None:
         arrays["background"] = background
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
-    if arrays["means"].ndim != 2 or arrays["means"].shape[1] != 3:
-        raise ValueError(f"means must have shape [G, 3], got {arrays['means'].shape}")
-    g = arrays["means"].shape[0]
-    if arrays["colors"].ndim != 2 or arrays["colors"].shape[1] < 1:
-        raise ValueError(f"colors must have shape [G, C] with C >= 1, got {arrays['colors'].shape}")
-    c = arrays["colors"].shape[1]
-    expected = dict(means=(g, 3), quats=(g, 4), scales=(g, 3), opacities=(g,), colors=(g, c),
-                    viewmat=(4, 4), K=(3, 3), background=(c,))
+    check_shapes(*(arrays[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")),
+                 width, height, background=arrays.get("background"))
     for name, arr in arrays.items():
-        if arr.shape != expected[name]:
-            raise ValueError(f"{name} must have shape {list(expected[name])} "
-                             f"(G={g}, C={c}), got {list(arr.shape)}")
-        if not np.issubdtype(arr.dtype, np.floating):
-            raise ValueError(f"{name} must be a floating-point array, got dtype {arr.dtype}")
         bad = ~np.isfinite(arr)
         if bad.any():
             raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s) (NaN or Inf), "
@@ -285,9 +328,6 @@ def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, hei
                          "(pass exp(log_scales) if you store logarithms)")
     if ((arrays["opacities"] < 0) | (arrays["opacities"] > 1)).any():
         raise ValueError("opacities must lie in [0, 1] (apply a sigmoid to logits first)")
-    for name, value in (("width", width), ("height", height)):
-        if int(value) != value or int(value) <= 0:
-            raise ValueError(f"{name} must be a positive integer, got {value!r}")
     if not np.allclose(arrays["viewmat"][3], [0, 0, 0, 1]):
         raise ValueError(f"viewmat's last row must be [0, 0, 0, 1], got {arrays['viewmat'][3]}")
     if arrays["K"][0, 0] <= 0 or arrays["K"][1, 1] <= 0:

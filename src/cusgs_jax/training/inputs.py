@@ -168,9 +168,9 @@ def feature_targets(feature_sets: dict[str, FeatureSet], views: np.ndarray) -> d
         peak = float(np.max(np.abs(maps))) if maps.size else 0.0
         if peak > FLOAT16_MAX:
             log.info("feature model %s has values up to %.4g, beyond float16: its targets stay float32", name, peak)
-            targets[name] = jnp.asarray(maps.astype(np.float32))
+            targets[name] = jax.device_put(maps.astype(np.float32))
         else:
-            targets[name] = jnp.asarray(maps.astype(np.float16))
+            targets[name] = jax.device_put(maps.astype(np.float16))
     return targets
 
 

@@ -10,6 +10,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.config import Config, SplatConfig
 from cusgs_jax.model.anchors import AnchorState
@@ -201,8 +202,10 @@ def most_work(anchors: AnchorState, nets: dict, views, cfg: Config) -> dict:
 def view_needs(anchors: AnchorState, nets: dict, views, cfg: Config) -> list[dict]:
     """What each of ``views`` (pairs ``(camera, appearance_index)`` of one image size) needs (:func:`view_work`),
     in order: ``[{"visible_anchors", "active_gaussians", "pairs"}]`` as host ints (one program, one transfer)."""
-    cameras = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[camera for camera, _ in views])
-    indices = jnp.asarray([index for _, index in views], jnp.int32)
+    # stacked on the host and moved once (eager stacks would compile a program per shape)
+    cameras = jax.device_put(jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]),
+                                                    *[camera for camera, _ in views]))
+    indices = jax.device_put(np.asarray([np.asarray(index) for _, index in views], np.int32))
     work = jax.device_get(_probe_views(anchors, nets, cameras, indices, cfg))
     return [{key: int(values[v]) for key, values in work.items()} for v in range(len(views))]
 

@@ -17,7 +17,7 @@ import optax
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.random_points import random_voxel_size
 from cusgs_jax.densify.base import Strategy
-from cusgs_jax.model.anchors import AnchorState, auto_voxel_size, init_anchors
+from cusgs_jax.model.anchors import AnchorState, anchor_layout, anchors_of_layout, auto_voxel_size
 from cusgs_jax.model.decode import init_decoder
 from cusgs_jax.model.field import init_memory_heads
 from cusgs_jax.model.queries import init_query_heads
@@ -47,9 +47,8 @@ def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | 
     return cfg.replace(model=dict(voxel_size=size))
 
 
-def _check_scaffold(anchors: AnchorState, voxel_size: float, points: np.ndarray) -> None:
-    """Refuse a scaffold too coarse to mean anything; warn when it is merely coarse."""
-    count = int(np.sum(np.asarray(anchors.alive)))
+def _check_scaffold(count: int, voxel_size: float, points: np.ndarray) -> None:
+    """Refuse a scaffold of ``count`` anchors too coarse to mean anything; warn when it is merely coarse."""
     hint = f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell"
     require(count >= MIN_ANCHORS, "model.voxel_size", voxel_size,
             f"leaves only {count} anchor(s) for {len(points)} SfM points (the cell is about as large as the "
@@ -124,17 +123,30 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     Returns:
       (TrainState, optax transformation).
     """
-    model, key = cfg.model, jax.random.PRNGKey(cfg.train.seed)
+    model = cfg.model
     require(model.voxel_size is not None, "model.voxel_size", "auto",
             "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
-    anchors = init_anchors(points, model.voxel_size, n_offsets=model.n_offsets, latent_dim=model.latent_dim,
-                           capacity_factor=model.capacity_factor,
-                           query_dim=cfg.features.query_dim if table else 0, key=jax.random.fold_in(key, 2))
-    _check_scaffold(anchors, model.voxel_size, points)
-    nets = init_nets(key, cfg, num_train_views, banks)
-    state = TrainState(anchors=anchors, nets=nets, opt_state=None,
-                       densify={s.name: s.init_state(anchors.capacity) for s in strategies},
-                       step=jnp.int32(0), skipped=jnp.int32(0))
-    tx = make_optimizer(cfg.optim, state.trainable, cfg.train.iterations, extent, cfg.train.batch_size)
-    return state.replace(opt_state=tx.init(state.trainable)), tx
+    layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor)
+    _check_scaffold(int(layout["alive"].sum()), model.voxel_size, points)
+
+    def fresh(layout, banks):
+        """Everything but the optimiser state (traceable)."""
+        key = jax.random.PRNGKey(cfg.train.seed)
+        anchors = anchors_of_layout(layout, n_offsets=model.n_offsets, latent_dim=model.latent_dim,
+                                    query_dim=cfg.features.query_dim if table else 0, key=jax.random.fold_in(key, 2))
+        return TrainState(anchors=anchors, nets=init_nets(key, cfg, num_train_views, banks), opt_state=None,
+                          densify={s.name: s.init_state(anchors.capacity) for s in strategies},
+                          step=jnp.int32(0), skipped=jnp.int32(0))
+
+    # the optimiser is built from the tree's structure, then state and optimiser state in one program (one
+    # compile, not one per array: the values are those of the same calls made eagerly)
+    tx = make_optimizer(cfg.optim, jax.eval_shape(fresh, layout, banks).trainable, cfg.train.iterations, extent,
+                        cfg.train.batch_size)
+
+    @jax.jit
+    def init_state(layout, banks):
+        state = fresh(layout, banks)
+        return state.replace(opt_state=tx.init(state.trainable))
+
+    return init_state(layout, banks), tx
