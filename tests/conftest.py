@@ -81,7 +81,7 @@ def compilation_cache(tmp_path_factory):
     fixtures of conftest). With the cache, a program compiled once in the session (same canonical HLO, options
     and devices) is loaded instead of compiled again: the same executable, so the same numbers. It starts
     empty every session, so every program is compiled once per session and nothing is carried between runs;
-    the jit caches the tests inspect (``_cache_size()``) are per function and unaffected. Writes are locked
+    the compile counts the tests inspect (the ``compiles`` fixture) count a cache load as a compile. Writes are locked
     (filelock, when installed) so that one worker never reads an entry the other is still writing.
     CUSGS_TEST_COMPILATION_CACHE=0 turns it off (every program compiled in the process that runs it).
     """
@@ -186,3 +186,13 @@ def tiny_sweep(tmp_path_factory):
     scene = generate_demo_scene(tmp_path_factory.mktemp("sweep_scene") / "demo", num_views=9, width=32, height=24,
                                 num_points=800)
     return scene, list(TINY_SWEEP)
+
+
+@pytest.fixture
+def compiles():
+    """Every XLA program compiled (or loaded from the persistent cache) during the test, by jitted function name
+    (:class:`cusgs_jax.app.compiles.CompileLog`, JAX's public monitoring events): ``compiles.count("jit(f)")``."""
+    from cusgs_jax.app.compiles import CompileLog
+
+    with CompileLog() as log:
+        yield log

@@ -360,3 +360,23 @@ def test_data_random_init_validation():
     assert compose_config(["data.random_init=cube_and_rays"]).data.random_init == "cube_and_rays"
     with pytest.raises(ConfigError, match="data.random_init='sphere': must be auto .* cube .* or cube_and_rays"):
         compose_config(["data.random_init=sphere"])
+
+
+def test_the_pallas_compositor_with_a_tile_that_is_not_a_power_of_two_is_refused_at_the_setting():
+    from cusgs_jax.config import SplatConfig
+
+    with pytest.raises(ConfigError, match="splat.tile_size.*power of two with splat.backend=pallas"):
+        SplatConfig(backend="pallas", tile_size=12)
+    assert SplatConfig(backend="jax", tile_size=12).tile_size == 12  # the JAX compositor takes any tile
+
+
+def test_a_config_that_is_not_a_config_is_a_type_error_naming_the_caller():
+    from cusgs_jax.app.run import run
+    from cusgs_jax.training.step import make_train_step
+
+    with pytest.raises(TypeError, match="run: cfg must be a cusgs_jax.config.Config, got NoneType"):
+        run(None, "unused")
+    with pytest.raises(TypeError, match="run: cfg must be .* got dict"):
+        run({"train": {}}, "unused")
+    with pytest.raises(TypeError, match="make_train_step: cfg must be .* got NoneType"):
+        make_train_step(None, None, ())

@@ -33,3 +33,13 @@ def lists_to_tuples(obj) -> None:
         value = getattr(obj, field.name)
         if isinstance(value, list):
             object.__setattr__(obj, field.name, tuple(value))
+
+
+def require_config(cfg, where: str) -> None:
+    """TypeError naming ``where`` when ``cfg`` is not a :class:`cusgs_jax.config.Config` (a dict, an OmegaConf
+    node, None): research code calling the library gets the argument named, not an AttributeError deep inside."""
+    kind = type(cfg)
+    if (kind.__module__, kind.__name__) != ("cusgs_jax.config", "Config"):  # by name: config imports this module
+        hint = ("convert it with from_omegaconf(cfg)" if type(cfg).__name__ == "DictConfig"
+                else "build one with Config() or compose_config([...overrides])")
+        raise TypeError(f"{where}: cfg must be a cusgs_jax.config.Config, got {type(cfg).__name__}: {hint}")

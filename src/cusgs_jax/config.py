@@ -12,9 +12,8 @@ passes, converts the two YAML spellings of :data:`YAML_SPELLINGS`: ``model.voxel
 ``features.models`` = ``auto`` / ``demo`` / a list of dicts → None / :data:`DEMO_FEATURE_MODELS` / a
 tuple of :class:`FeatureModelConfig`. Both Nones ("auto") are resolved once, in setup, from the scene.
 
-Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``,
-``dataclasses.replace``) or composes them like the CLI does
-(:func:`compose_config`).
+Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``, ``dataclasses.replace``)
+or composes them like the CLI does (:func:`compose_config`).
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ import typing
 from typing import Any, Optional
 
 from cusgs_jax.checks import at_least as _at_least, finite_number as _number, lists_to_tuples as _tuples
-from cusgs_jax.checks import require  # noqa: F401  (re-exported: training modules import it from here)
+from cusgs_jax.checks import require, require_config  # noqa: F401  (re-exported: the shell imports them from here)
 from cusgs_jax.errors import ConfigError
 
 # M3's split of its 160 query channels when all six models are present (docs/method.md#hierarchical-queries).
@@ -69,17 +68,14 @@ class DataConfig:
     format: str = "auto"  # auto | colmap | blender | nerfstudio
     downscale: int = 1  # 2, 4, 8 read images_2/… when present, else downscale images/
     holdout_every: int = 8  # every 8th image is held out (Mip-NeRF 360); 0 = none
-    # Rotation of the normalised frame (data/normalize.py): "none" keeps the model's axes, "principal"
-    # turns them onto the principal axes of the SfM points (gsplat's align_principal_axes).
+    # The normalised frame (data/normalize.py): "none" keeps the model's axes, "principal" turns them onto the SfM
+    # points' principal axes (gsplat's align_principal_axes).
     align: str = "none"
     random_points: int = 100_000  # Blender scenes, nerfstudio scenes without a PLY (3DGS: 100k)
-    # Where those points go (data/random_points.py): "cube" (3DGS's), "cube_and_rays" (half along the training rays:
-    # a room's walls) or "auto": cube for Blender scenes, cube_and_rays for nerfstudio scenes without a PLY.
-    random_init: str = "auto"
+    random_init: str = "auto"  # data/random_points.py: cube (3DGS), cube_and_rays (a room's walls) or by layout
     carve: str = "auto"  # auto: drop random points no training view can hold (frusta, alpha; data/carve.py) | none
-    # Distorted cameras: "lens" keeps the images and rasterises through the lens (splat/lens.py: no resampling blur);
-    # "crop" undistorts to the largest valid rectangle (data/undistort.py, COLMAP's undistorter, as gsplat does);
-    # "mask" undistorts to the source frame and leaves its invalid pixels out of the loss, metrics and targets.
+    # Distorted cameras: "lens" rasterises through the lens (splat/lens.py), "crop" undistorts to the largest valid
+    # rectangle (data/undistort.py, as gsplat), "mask" to the source frame with its invalid pixels left out.
     undistort: str = "lens"
     demo: DemoConfig = dataclasses.field(default_factory=DemoConfig)
 
@@ -114,8 +110,8 @@ class TrainOptions:
     checkpoint_every: int = 1000
     log_every: int = 10
     progress: bool = True
-    # Views per step (gsplat's batch_size): the loss is their mean, the densification statistics add
-    # every view, learning rates follow training/optim.py::batch_scaled (√B, Adam β^B).
+    # Views per step (gsplat's batch_size): the loss is their mean, the densification statistics add every view,
+    # learning rates follow training/optim.py::batch_scaled (√B, Adam β^B).
     batch_size: int = 1
     # Local devices the B views are sharded over (training/parallel.py): "auto" = the most that divide B.
     devices: str = "auto"
@@ -176,15 +172,13 @@ class ModelConfig:
     appearance_dim: int = 32
     capacity_factor: float = 2.0
     frustum_margin: float = 0.15
-    # Anchors in the view frustum are gathered into ceil(visible_fraction · A)
-    # slots before decoding, so culled anchors cost nothing. This is only the
-    # first capacity: a view that sees more grows it and the step is replayed
-    # (training/capacity.py), so no anchor is ever left out. 1.0 decodes every slot.
+    # Frustum anchors are gathered into ceil(visible_fraction · A) slots before decoding (culled ones cost nothing);
+    # a first guess: a view that sees more grows it and the step replays (training/capacity.py). 1.0: every slot.
     visible_fraction: float = 0.6
     # feature queries: "per_anchor" (hierarchical q_v → q_{v,n}) or "per_gaussian" (ablation)
     query_granularity: str = "per_anchor"
-    # The networks' matmuls (precision.py): "highest" = the same numbers on every backend; "default" = the
-    # backend's choice (TF32 on NVIDIA GPUs since Ampere). Geometry is at full float32 whatever this says.
+    # The networks' matmuls (precision.py): "highest" = the same numbers on every backend; "default" = the backend's
+    # (TF32 on NVIDIA GPUs since Ampere). Geometry is at full float32 whatever this says.
     matmul_precision: str = "highest"
 
     def __post_init__(self):
@@ -225,9 +219,8 @@ class SplatConfig:
 
     tile_size: int = 8
     chunk_size: int = 16
-    # First guesses of two work capacities (training/capacity.py; each grows, and the step replays, when a view
-    # needs more): the share of the decoded S·N Gaussians that reach the splatter (model/active.py), and the
-    # tile–Gaussian pairs per such active Gaussian.
+    # First guesses of two work capacities (training/capacity.py: grown, and the step replayed, when a view needs
+    # more): the share of the S·N decoded Gaussians reaching the splatter (model/active.py), tile pairs per such one.
     active_fraction: float = 0.375
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
@@ -240,6 +233,9 @@ class SplatConfig:
         _tuples(self)
         _at_least(self, "splat", 1, "tile_size", "chunk_size")
         require(self.backend in COMPOSITORS, "splat.backend", self.backend, f"must be one of {', '.join(COMPOSITORS)}")
+        require(self.backend != "pallas" or self.tile_size & (self.tile_size - 1) == 0, "splat.tile_size",
+                self.tile_size, "must be a power of two with splat.backend=pallas (the kernels' blocks)",
+                "e.g. splat.tile_size=8 or 16")
         require(_number(self.max_pairs_per_gaussian) and self.max_pairs_per_gaussian > 0,
                 "splat.max_pairs_per_gaussian", self.max_pairs_per_gaussian, "must be > 0")
         require(_number(self.active_fraction) and 0 < self.active_fraction <= 1, "splat.active_fraction",
@@ -284,9 +280,8 @@ class OptimConfig:
     appearance: tuple[float, float] = (0.05, 0.0005)
     features: tuple[float, float] = (0.0005, 0.0005)  # query and memory heads (M3 f_emb)
     eps: float = 1e-15
-    # Row-sparse update (gsplat's "visible Adam"): with one view per step only the anchors the view
-    # decoded — their rows of the per-anchor parameters and Adam moments — are updated; the moments of
-    # unseen anchors stay as they are. false: dense Adam over every alive anchor row (moments decay).
+    # Row-sparse update (gsplat's "visible Adam"): with one view per step only the decoded anchors' rows of the
+    # parameters and Adam moments are updated (unseen moments stay). false: dense Adam over every alive row.
     sparse: bool = True
 
     def __post_init__(self):

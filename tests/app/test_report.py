@@ -226,3 +226,16 @@ def test_the_format_column_shows_each_runs_scene_layout(tmp_path):
     assert "| job | run | status | Pareto | format | params |" in md
     assert "| 0 | prune.ratio=0.01 | ok | ★ | blender | 1,000 |" in md
     assert [r["dataset_format"] for r in _csv_rows(root / "report" / "report.csv")] == ["blender", "colmap", ""]
+
+
+def test_a_job_rerun_that_finished_after_its_failure_is_ok_and_a_later_failure_is_not(tmp_path):
+    import os
+
+    job = _job(tmp_path, "0", 0.01)
+    (job / "failed.json").write_text(json.dumps({"error": "UserError: refused"}))
+    _eval(job, 25.0, 0.8, 1000, 90, 10.0, 3.0)
+    old = job.stat().st_mtime - 100
+    os.utime(job / "failed.json", (old, old))  # the failure came first, the rerun's eval.json after it
+    assert load_job(job)["status"] == "ok"
+    os.utime(job / "eval.json", (old - 50, old - 50))  # now the failure is the newer record
+    assert load_job(job)["status"] == "failed: UserError: refused"

@@ -503,3 +503,29 @@ def test_compiling_ahead_changes_when_programs_compile_not_what_they_compute(str
                                                                          plain["alive_anchors"])
     assert result["compilations"]["ahead"] >= 2 and plain["compilations"]["ahead"] == 0
     assert set(result["time"]) >= {"compile_wait", "compile"} and plain["time"]["compile_wait"] > 0
+
+
+def test_learning_rates_that_diverge_end_the_run_with_exit_2_and_a_record(tiny_scene, tmp_path):
+    """Every update skipped as NaN is not a trained model: the record is written, the run is refused naming optim."""
+    from cusgs_jax.errors import UserError
+
+    wild = ["train.iterations=10", "eval.every=0", "train.checkpoint_every=0", "eval.save_renders=false",
+            "optim.offsets=[100,1]", "optim.mlp_opacity=[20,0.2]", "optim.mlp_color=[80,0.5]",
+            "optim.mlp_cov=[40,40]", "optim.appearance=[500,5]", "optim.latent=[75,75]", "optim.scaling=[70,70]"]
+    with pytest.raises(UserError, match=r"of 10 updates were skipped .* optim\."):
+        run(_cfg(tiny_scene, *wild), tmp_path / "wild")
+    assert json.loads((tmp_path / "wild" / "eval.json").read_text())["skipped_updates"] > 5
+
+
+def test_resuming_over_a_record_of_a_newer_version_is_refused_not_overwritten(straight, tiny_scene, tmp_path):
+    import shutil
+
+    from cusgs_jax.errors import UserError
+
+    folder = tmp_path / "copy"
+    shutil.copytree(straight[0], folder)
+    record = json.loads((folder / "eval.json").read_text())
+    (folder / "eval.json").write_text(json.dumps(dict(record, version=99)))
+    with pytest.raises(UserError, match="eval.json"):
+        run(_cfg(tiny_scene, "train.resume=true", "train.iterations=40"), folder)
+    assert json.loads((folder / "eval.json").read_text())["version"] == 99

@@ -108,3 +108,25 @@ def test_a_busy_port_is_said_when_the_viewer_moves_to_another(feature_run, caplo
             assert f"port {port} on 127.0.0.1 is busy: serving on port {viewer.port} instead" in caplog.text
         finally:
             viewer.stop()
+
+
+@pytest.mark.parametrize("host, port, message", [
+    ("127.0.0.1", 70000, "--port 70000: must be 0-65535"),
+    ("999.1.1.1", 0, "--host 999.1.1.1: does not resolve"),
+    ("192.0.2.1", 0, "--host 192.0.2.1: cannot listen there"),  # TEST-NET-1: never an address of this machine
+])
+def test_an_address_the_server_cannot_listen_on_is_refused_before_it_starts(host, port, message):
+    from cusgs_jax.app.view import _check_address
+    from cusgs_jax.errors import UserError
+
+    with pytest.raises(UserError, match=message):
+        _check_address(host, port)
+
+
+def test_serving_every_interface_is_warned_about(caplog):
+    from cusgs_jax.app.view import _check_address
+
+    _check_address("127.0.0.1", 0)
+    assert not caplog.records
+    _check_address("0.0.0.0", 0)
+    assert "every network interface, without a login" in caplog.text

@@ -86,3 +86,12 @@ def test_load_cameras_are_the_scenes_cameras_without_reading_an_image(scenes, ca
         assert getattr(cameras, key).dtype == getattr(scene, key).dtype
     assert (cameras.width, cameras.height) == (scene.width, scene.height)
     assert (cameras.lens is None) == (scene.lens is None)
+
+
+def test_data_that_is_not_a_data_config_is_a_type_error_saying_what_to_pass(tmp_path):
+    from cusgs_jax.config import Config
+
+    with pytest.raises(TypeError, match="got dict: build one with DataConfig"):
+        load_scene(tmp_path, data={"downscale": 2})
+    with pytest.raises(TypeError, match="got Config: pass cfg.data"):
+        load_scene(tmp_path, data=Config())

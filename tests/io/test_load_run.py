@@ -102,3 +102,10 @@ def test_stored_cameras_keep_a_lens_run_s_lenses():
     np.testing.assert_allclose(cameras.lens.coeffs[:, 0], [0.1, 0.2])
     assert cameras.lens.bounds.shape == (2, 4) and cameras.lens.fisheye is False
     assert _stored_cameras(dict(stored, lens=dict(lens, coeffs=[[0.1, 0, 0, 0, 0, 0]]))) is None
+
+
+def test_a_step_that_is_not_an_int_is_a_type_error_naming_it(tmp_path):
+    with pytest.raises(TypeError, match=r"step must be an int .* got '10' \(str\); e.g. step=10"):
+        load_trained(tmp_path, step="10")
+    with pytest.raises(TypeError, match="step must be an int"):
+        load_trained(tmp_path, step=1.5)

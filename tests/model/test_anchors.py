@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from cusgs_jax.model.anchors import (AnchorParams, AnchorState, PerAnchor, compact, compacted_capacity,
                                     init_anchors, map_rows,
@@ -163,3 +164,11 @@ def test_parameter_counts_only_alive_anchors():
     plain = init_anchors(np.random.default_rng(2).uniform(0, 1, (40, 3)), 0.5, n_offsets=2, latent_dim=3)
     alive_count = int(np.sum(np.asarray(plain.alive)))
     assert parameter_counts(plain) == {"anchors": alive_count * (6 + 6 + 3 + 3), "query_table": 0}
+
+
+def test_points_at_one_location_are_refused_naming_the_points_not_a_setting():
+    from cusgs_jax.errors import UserError
+    from cusgs_jax.model.anchors import auto_voxel_size
+
+    with pytest.raises(UserError, match="lie at 1 distinct location.*points3D.*model.voxel_size"):
+        auto_voxel_size(np.ones((50, 3)))

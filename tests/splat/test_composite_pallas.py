@@ -244,3 +244,14 @@ def test_auto_falls_back_to_the_jax_compositor_with_one_warning_when_pallas_trit
         monkeypatch.undo()
         render_module.pallas_gpu_available.cache_clear()
     assert resolve_backend("auto", "gpu") == "pallas"
+
+
+def test_the_pallas_compositor_off_a_gpu_says_once_that_it_interprets(caplog):
+    import logging
+
+    from cusgs_jax.splat import render as render_module
+
+    render_module._interpreting.cache_clear()
+    with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
+        assert resolve_backend("pallas", "cpu") == "pallas" and resolve_backend("pallas", "cpu") == "pallas"
+    assert sum("Pallas's interpreter" in r.getMessage() for r in caplog.records) == 1

@@ -225,7 +225,7 @@ def test_overflow_is_reported_not_silent():
     assert int(small.num_pairs) == 50
 
 
-def test_vmap_batch_equals_single_renders_and_no_recompile():
+def test_vmap_batch_equals_single_renders_and_no_recompile(compiles):
     scene = as_dtype(make_scene(10, num=80), np.float32)
     views = np.stack([scene["viewmat"], scene["viewmat"]])
     views[1, :3, 3] += np.array([0.05, -0.03, 0.1], np.float32)
@@ -235,11 +235,11 @@ def test_vmap_batch_equals_single_renders_and_no_recompile():
     for i in range(2):
         single = _render(dict(scene, viewmat=views[i], K=Ks[i]))
         np.testing.assert_allclose(batch.image[i], single.image, atol=1e-6)
-    before = rasterize._cache_size()
+    before = compiles.count("jit(rasterize)")
     moved = dict(scene, means=scene["means"] + np.float32(0.01))
     _render(moved)
     _render(dict(moved, opacities=scene["opacities"] * np.float32(0.5)))
-    assert rasterize._cache_size() == before
+    assert compiles.count("jit(rasterize)") == before  # new values, the same program
 
 
 def test_check_inputs_accepts_valid_scene():
@@ -265,3 +265,24 @@ def test_zero_gaussians_render_the_background_with_empty_per_gaussian_fields():
         args[0], args[4], background)
     assert grads[0].shape == (0, 3) and grads[1].shape == (0, 3)
     np.testing.assert_allclose(np.asarray(grads[2]), 32 * 24, rtol=1e-6)  # d image / d background = T = 1
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(K=np.eye(2)), r"K must have shape \[3, 3\]"),
+    (dict(colors=lambda s: s["colors"][:-1]), r"colors must have shape \[12, 3\]"),
+    (dict(means=lambda s: s["means"][:, :2]), r"means must have shape \[G, 3\]"),
+    (dict(viewmat=np.eye(3)), r"viewmat must have shape \[4, 4\]"),
+    (dict(tile_size=0), "tile_size must be a positive integer, got 0"),
+    (dict(tile_size=-8), "tile_size must be a positive integer, got -8"),
+    (dict(width=0), "width must be a positive integer"),
+])
+def test_rasterize_names_a_wrong_argument_instead_of_rendering_a_wrong_image(change, message):
+    scene = as_dtype(make_scene(12, num=12), np.float32)
+    args = {k: jnp.asarray(scene[k]) for k in (*KEYS, "viewmat", "K")}
+    sizes = dict(width=scene["width"], height=scene["height"], tile_size=8)
+    for key, value in change.items():
+        value = value(scene) if callable(value) else value
+        (sizes if key in sizes else args)[key] = jnp.asarray(value) if key in args else value
+    with pytest.raises(ValueError, match=message):
+        rasterize(*(args[k] for k in (*KEYS, "viewmat", "K")), sizes["width"], sizes["height"],
+                  tile_size=sizes["tile_size"])

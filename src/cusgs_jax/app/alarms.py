@@ -33,8 +33,24 @@ def loss_alarms(alarmed: set[str], step: int, metrics: dict) -> None:
                         "load); fix or re-extract them with cusgs-extract", step, name, value, FEATURE_L2_ALARM,
                         name)
         elif not math.isfinite(value):
-            log.warning("step %d: the loss term %s is %s (the step's update was skipped): check the scene's images "
-                        "and feature targets for non-finite values", step, key.removeprefix("loss_") or key, value)
+            log.warning("step %d: the loss term %s is %s (the step's update was skipped): learning rates far too "
+                        "large (optim.*) diverge this way; otherwise check the scene's images and feature targets "
+                        "for non-finite values", step, key.removeprefix("loss_") or key, value)
         else:
             continue
         alarmed.add(key)
+
+
+SKIPPED_LIMIT = 0.5  # a run that skipped more than this share of its updates did not train: refused at its end
+
+
+def require_trained(skipped: int, steps: int, record: str) -> None:
+    """UserError (exit 2) when more than :data:`SKIPPED_LIMIT` of the ``steps`` updates were skipped because the
+    loss or a gradient was not finite: the model did not train, whatever its record (``record``) says."""
+    if steps and skipped > SKIPPED_LIMIT * steps:
+        from cusgs_jax.errors import UserError
+
+        raise UserError(f"{skipped} of {steps} updates were skipped because the loss or a gradient was not finite: "
+                        f"the model did not train ({record} records it). Learning rates far too large (optim.*, e.g. "
+                        "optim.offsets, optim.appearance) diverge this way; lower them, or check the scene's images "
+                        "and feature targets for non-finite values")

@@ -191,7 +191,7 @@ def load_job(path, root=None) -> dict:
     record["anchor_curve"] = [(r["step"], r["alive_anchors"]) for r in _read_jsonl(path / METRICS_FILE)
                               if finite_or_none(r.get("step")) is not None
                               and finite_or_none(r.get("alive_anchors")) is not None]
-    if (path / FAILED_FILE).is_file():
+    if (path / FAILED_FILE).is_file() and not _newer(path / EVAL_FILE, path / FAILED_FILE):
         try:
             error = json.loads((path / FAILED_FILE).read_text()).get("error") or "unknown error"
         except (OSError, ValueError, AttributeError) as exc:
@@ -358,3 +358,11 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def _newer(a: Path, b: Path) -> bool:
+    """Whether file ``a`` exists and was written after ``b`` (a job rerun that finished after a failure)."""
+    try:
+        return a.is_file() and a.stat().st_mtime > b.stat().st_mtime
+    except OSError:
+        return False

@@ -42,31 +42,32 @@ from tqdm import tqdm
 from cusgs_jax.app.accelerator import accelerator_record
 from cusgs_jax.app.ahead import Ahead, Program
 from cusgs_jax.app.foresight import Foresight
-from cusgs_jax.app.alarms import loss_alarms
+from cusgs_jax.app.alarms import loss_alarms, require_trained
 from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.compiles import CompileLog
 from cusgs_jax.app.resume import require_not_past, resume
 from cusgs_jax.app.xla_cache import use_compilation_cache
-from cusgs_jax.config import Config, require
+from cusgs_jax.config import Config, require, require_config
 from cusgs_jax.errors import UserError
 from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.data.identity import scene_digest
 from cusgs_jax.data.normalize import WorldTransform
-from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, resolve_background, view_order
+from cusgs_jax.training.inputs import (feature_targets, load_data, load_feature_targets, make_batches,
+                                       resolve_background)
 from cusgs_jax.densify import ops
-from cusgs_jax.densify.base import Probe, Strategy, Tally, run_defaults
+from cusgs_jax.densify.base import Probe, Strategy, Tally, strategy_results, strategy_row
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.eval.features import evaluate_features
 from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes, nearest_train_view
 from cusgs_jax.extract.optional import run_features
-from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, FEATURES_DIR, FEATURES_MD, METRICS_FILE,
-                                      PLOT_FILE, RENDERS_DIR, VERSION as RUN_FOLDER_VERSION, CheckpointMeta, EvalRecord,
-                                      accept_hydra_record, restore_hydra_record, write_eval)
+from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, EVAL_FILE, FEATURES_DIR, FEATURES_MD,
+                                  METRICS_FILE, PLOT_FILE, RENDERS_DIR, VERSION as RUN_FOLDER_VERSION, CheckpointMeta,
+                                  EvalRecord, accept_hydra_record, read_eval, restore_hydra_record, write_eval)
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
 from cusgs_jax.training import capacity
@@ -75,7 +76,6 @@ from cusgs_jax.training.parallel import resolve_devices
 from cusgs_jax.training.render import RgbOfFeatureRender, make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
-from cusgs_jax.splat.lens import Lens
 from cusgs_jax.types import Camera
 from cusgs_jax.view.live import live_view
 from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_model
@@ -115,7 +115,7 @@ class Session:
     budget: TimeBudget | None = None  # seconds per stage (eval.json's time)
     ahead: Ahead | None = None  # the background compiles (app/ahead.py); None: every program compiles on its call
     programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
-    batches: Callable[[int], dict] | None = None  # batch(step): the training views of a step (_batches)
+    batches: Callable[[int], dict] | None = None  # batch(step): the training views of a step (make_batches)
 
     @property
     def evaluated_on(self) -> str:
@@ -161,6 +161,8 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     require_not_past(cfg, latest, ckpt.directory)
+    if cfg.train.resume:
+        read_eval(out)  # a record this version cannot read (newer, damaged) is refused here, not overwritten
     with budget.stage("load"):
         cfg = dataclasses.replace(cfg, features=run_features(cfg))
         scene, world = load_data(cfg)
@@ -209,7 +211,7 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
         session.render = RgbOfFeatureRender(session.feature_render, session.banks)
     else:
         session.render = make_render_fn(session.cfg, session.capacities.for_evaluation(), wrap=wrap)
-    session.batches = _batches(session)
+    session.batches = make_batches(session.scene, session.train_idx, session.cfg, session.targets, session.banks)
     # the programs the loop starts with, compiled in the background from here on
     _step_program(session, session.capacities).prepare(session.state, session.batches(int(session.state.step)))
     _prepare_render(session, session.state.anchors)
@@ -358,44 +360,6 @@ def _exact_step(session: Session, batch: dict) -> dict:
         session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
 
 
-def _batches(session: Session):
-    """``batch(step)``: the training views of ``step`` as the step's input.
-
-    One view per step (:func:`view_order` at position ``step``) for ``train.batch_size = 1``; B > 1
-    stacks the views at positions ``step·B … step·B + B − 1`` of the same epoch-wise permutation
-    sequence (every view once per epoch of ⌈V/B⌉ steps, the same sequence on resume).
-    """
-    scene, idx, size = session.scene, session.train_idx, session.cfg.train.batch_size
-    per_view = dict(image=scene.images[idx].astype(np.float32) / 255.0, K=np.asarray(scene.Ks[idx], np.float32),
-                    viewmat=np.asarray(scene.viewmats[idx], np.float32))
-    if scene.valid is not None:
-        per_view["valid"] = scene.valid[idx]  # [V, H, W] bool
-    if session.banks is not None:
-        per_view["features"] = session.targets
-    per_view = jax.device_put(per_view)  # transfers, not a program per array
-    lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
-    pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
-
-    def batch(step: int) -> dict:
-        if size == 1:
-            view = np.int32(view_order(session.cfg.train.seed, len(idx), step))
-        else:
-            view = np.asarray([view_order(session.cfg.train.seed, len(idx), step * size + b) for b in range(size)],
-                              np.int32)
-        views = pick((per_view, lens), view)
-        (picked, view_lens), view = views, jax.device_put(view)
-        camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
-        out = dict(image=picked["image"], camera=camera, index=view)
-        if "valid" in picked:
-            out["valid"] = picked["valid"]
-        if session.banks is not None:
-            out["features"] = picked["features"]
-            out["banks"] = session.banks
-        return out
-
-    return batch
-
-
 def _densify(session: Session, step: int) -> None:
     """Run every strategy due after ``step`` completed steps (host side, between steps).
 
@@ -441,28 +405,6 @@ def _probe(session: Session, step: int) -> Probe:
     return Probe(step=step, render_ms_per_view=render_ms_per_view)
 
 
-def _strategy_log(session: Session) -> dict:
-    """The densification keys of a ``metrics.jsonl`` row: :func:`run_defaults`, each strategy's
-    ``log_values`` and ``densify`` ({strategy name: tally})."""
-    row = run_defaults(session.cfg)[0]
-    for strategy in session.strategies:
-        row.update(strategy.log_values(session.tallies[strategy.name]))
-    row["densify"] = {name: tally.as_dict() for name, tally in session.tallies.items()}
-    return row
-
-
-def _strategy_results(session: Session) -> dict:
-    """The densification keys of ``eval.json``: :func:`run_defaults`, each strategy's ``results``
-    (a dict value merged into the dict already there) and ``densify`` ({strategy name: tally})."""
-    result = run_defaults(session.cfg)[1]
-    for strategy in session.strategies:
-        for key, value in strategy.results(session.tallies[strategy.name]).items():
-            merge = isinstance(value, dict) and isinstance(result.get(key), dict)
-            result[key] = {**result[key], **value} if merge else value
-    result["densify"] = {name: tally.as_dict() for name, tally in session.tallies.items()}
-    return result
-
-
 def _devices(session: Session) -> int:
     """Devices the step's views are sharded over (1 for a single-view step)."""
     return resolve_devices(session.cfg.train.batch_size, session.cfg.train.devices)
@@ -474,7 +416,7 @@ def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(np.asarray(state.anchors.alive))),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
-               pairs=int(metrics["pairs"]), **_strategy_log(session),
+               pairs=int(metrics["pairs"]), **strategy_row(session.strategies, session.tallies, session.cfg),
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
                dropped_gaussians=int(metrics["dropped_gaussians"]),
                dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
@@ -564,7 +506,7 @@ def finalise(session: Session) -> dict:
         model_bytes=model_bytes(state.anchors, state.nets, session.banks),
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
-        **_strategy_results(session),  # render_ms_before_prune, the prune block, densify
+        **strategy_results(session.strategies, session.tallies, session.cfg),  # render_ms_before_prune, prune, densify
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
         replayed_steps=session.replays,
         recompilations=session.recompilations + session.render.growths
@@ -606,6 +548,7 @@ def finalise(session: Session) -> dict:
              "renders %d)", compiles["count"], compiles["seconds"], compiles["from_cache"], compiles["train_step"],
              compiles["evaluation_renders"])
     log.info("%s", budget.line())
+    require_trained(result["skipped_updates"], int(state.step), str(out / EVAL_FILE))
     return result
 
 
@@ -628,6 +571,7 @@ def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies
     :mod:`cusgs_jax.app.ahead`). While it runs, the noise orbax repeats after a failed checkpoint save
     or read is dropped (:func:`quiet_orbax`).
     """
+    require_config(cfg, "run")
     with quiet_orbax(), CompileLog() as compiles:
         budget = TimeBudget(compiles, start=started)
         with budget.stage("startup"):

@@ -94,6 +94,7 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     hydra_cfg = HydraConfig.get()
     output_dir = hydra_cfg.runtime.output_dir
     sweeping = hydra_cfg.mode == RunMode.MULTIRUN
+    (pathlib.Path(output_dir) / FAILED_FILE).unlink(missing_ok=True)  # a rerun's job: its old failure is history
     started = _STARTED.pop() if _STARTED else None  # only the process's first run charges the start-up to its budget
     if sweeping:  # jobs side by side on one machine share its accelerator (before JAX's backend starts)
         shared = sweep_memory_env(_parallel_jobs(hydra_cfg))

@@ -46,6 +46,32 @@ def _parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _check_address(host: str, port: int) -> None:
+    """Refuse, before the server starts, what would leave it waiting forever (viser's server thread dies on a
+    bind it cannot make while the caller waits): a port outside 0-65535, a host that does not resolve or is
+    not an address of this machine. Warn when every interface is served (the viewer has no login)."""
+    import socket
+
+    if not 0 <= int(port) <= 65535:
+        raise UserError(f"--port {port}: must be 0-65535 (0 picks a free one)")
+    try:
+        infos = socket.getaddrinfo(host, None, type=socket.SOCK_STREAM)
+    except (socket.gaierror, UnicodeError) as e:
+        raise UserError(f"--host {host}: does not resolve ({e}): give an address of this machine, e.g. "
+                        "127.0.0.1 (the default) or 0.0.0.0 for every interface") from None
+    family, *_, address = infos[0]
+    try:
+        with socket.socket(family, socket.SOCK_STREAM) as probe:
+            probe.bind((address[0], 0))
+    except OSError as e:
+        raise UserError(f"--host {host}: cannot listen there ({e.strerror or e}): give an address of this machine, "
+                        "e.g. 127.0.0.1 (the default) or 0.0.0.0 for every interface") from None
+    if address[0] in ("0.0.0.0", "::"):
+        log.warning("--host %s serves the viewer on every network interface, without a login: anyone who can "
+                    "reach this machine can watch the model; use 127.0.0.1 and an SSH tunnel where that matters",
+                    host)
+
+
 def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int | None = None,
                 height: int | None = None, jpeg_quality: int | None = 90, clip: str | None = None,
                 clip_arch: str = "ViT-B-16", clip_net=None):
@@ -59,6 +85,7 @@ def open_viewer(run_dir, *, port: int = 8080, host: str = "127.0.0.1", step: int
         raise UserError("the viewer needs viser: pip install -e '.[viewer]'")
     if jpeg_quality is not None and not 1 <= jpeg_quality <= 100:
         raise UserError(f"--jpeg-quality {jpeg_quality}: must be 1-100")
+    _check_address(host, port)
     # lazy: these import JAX (and orbax); keeps cusgs-view --help free of them
     from cusgs_jax.io.load_run import load_trained
     from cusgs_jax.view.render import from_trained

@@ -66,7 +66,12 @@ def default_background(dataset_format: str) -> tuple[float, float, float]:
 
 
 def check_settings(data: DataConfig) -> DataConfig:
-    """``data`` with its integer settings checked (integral floats accepted); SceneError naming the option."""
+    """``data`` with its integer settings checked (integral floats accepted); SceneError naming the option.
+    A ``data`` that is not a :class:`~cusgs_jax.config.DataConfig` is a TypeError naming what to pass."""
+    if not isinstance(data, DataConfig):
+        hint = ("pass cfg.data, not the whole Config" if type(data).__name__ == "Config" else
+                "build one with DataConfig(**settings)" if isinstance(data, dict) else "pass a DataConfig")
+        raise TypeError(f"data must be a cusgs_jax.config.DataConfig, got {type(data).__name__}: {hint}")
     return dataclasses.replace(data, **{name: check_int_setting(f"data.{name}", getattr(data, name), minimum=minimum)
                                         for name, minimum in _INT_SETTINGS})
 

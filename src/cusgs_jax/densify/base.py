@@ -192,3 +192,25 @@ def run_defaults(cfg: Config) -> tuple[dict, dict]:
             dict(render_ms_before_prune=None,
                  prune=dict(strategy=prune.strategy, ratio=prune.ratio, lambda_norm=prune.lambda_norm,
                             lambda_grad=prune.lambda_grad, passes=0, pruned=0)))
+
+
+def strategy_row(strategies, tallies: Mapping[str, Tally], cfg: Config) -> dict:
+    """The densification keys of a ``metrics.jsonl`` row: :func:`run_defaults`, each strategy's
+    ``log_values`` and ``densify`` ({strategy name: tally})."""
+    row = run_defaults(cfg)[0]
+    for strategy in strategies:
+        row.update(strategy.log_values(tallies[strategy.name]))
+    row["densify"] = {name: tally.as_dict() for name, tally in tallies.items()}
+    return row
+
+
+def strategy_results(strategies, tallies: Mapping[str, Tally], cfg: Config) -> dict:
+    """The densification keys of ``eval.json``: :func:`run_defaults`, each strategy's ``results``
+    (a dict value merged into the dict already there) and ``densify`` ({strategy name: tally})."""
+    result = run_defaults(cfg)[1]
+    for strategy in strategies:
+        for key, value in strategy.results(tallies[strategy.name]).items():
+            merge = isinstance(value, dict) and isinstance(result.get(key), dict)
+            result[key] = {**result[key], **value} if merge else value
+    result["densify"] = {name: tally.as_dict() for name, tally in tallies.items()}
+    return result

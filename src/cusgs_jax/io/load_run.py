@@ -129,6 +129,10 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
         not a folder, no checkpoint, damaged checkpoints, a config or eval.json that
         cannot be read, or stored arrays that are not a cusgs-jax model — the folder named.
     """
+    if step is not None and (isinstance(step, bool) or not isinstance(step, (int, np.integer))):
+        raise TypeError(f"load_trained: step must be an int (a checkpoint's step) or None, got {step!r} "
+                        f"({type(step).__name__}); e.g. step={int(step)}" if str(step).isdigit() else
+                        f"load_trained: step must be an int (a checkpoint's step) or None, got {step!r}")
     run = pathlib.Path(run_dir).expanduser().absolute()
     if not run.is_dir():
         raise UserError(f"{run} is not a folder: pass the output folder of a cusgs-train run "

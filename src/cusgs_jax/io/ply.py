@@ -23,12 +23,11 @@ import os
 import pathlib
 import re
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 from plyfile import PlyData, PlyElement, PlyParseError
 
 from cusgs_jax.errors import UserError
+from cusgs_jax.model.splats import SplatModel  # noqa: F401 (the PLY's model type, re-exported here)
 from cusgs_jax.atomic import atomic_path
 
 __all__ = ["PlyError", "SplatModel", "read_ply", "write_ply", "ply_property_names"]
@@ -39,45 +38,6 @@ _REQUIRED = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", 
 
 class PlyError(UserError):
     """A PLY file that cannot be read or written as a standard 3DGS PLY (file named in the message)."""
-
-
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class SplatModel:
-    """Gaussians as the standard PLY stores them (pre-activation values), float32.
-
-    Attributes:
-      means: [G, 3] world centres (``x y z``).
-      quats: [G, 4] wxyz rotations as stored (``rot_0..3``, unnormalised).
-      log_scales: [G, 3] log standard deviations (``scale_0..2``).
-      opacity_logits: [G] (``opacity``; the opacity is its sigmoid).
-      sh: [G, K, 3] SH coefficients, coefficient-major: ``sh[:, 0, :]`` is ``f_dc``.
-    """
-
-    means: jax.Array
-    quats: jax.Array
-    log_scales: jax.Array
-    opacity_logits: jax.Array
-    sh: jax.Array
-
-    @property
-    def num_gaussians(self) -> int:
-        return int(self.means.shape[0])
-
-    @property
-    def sh_degree(self) -> int:
-        """d with K = (d+1)²."""
-        return int(round(self.sh.shape[-2] ** 0.5)) - 1
-
-    @property
-    def scales(self) -> jax.Array:
-        """[G, 3] linear standard deviations, exp(log_scales)."""
-        return jnp.exp(self.log_scales)
-
-    @property
-    def opacities(self) -> jax.Array:
-        """[G] opacities in (0, 1), sigmoid(opacity_logits)."""
-        return jax.nn.sigmoid(self.opacity_logits)
 
 
 def ply_property_names(sh_degree: int, normals: bool = True) -> list[str]:

@@ -178,7 +178,11 @@ def auto_voxel_size(points: np.ndarray) -> float:
 
     pts = np.unique(np.asarray(points, np.float64), axis=0)
     if len(pts) < 2:
-        raise ValueError("model.voxel_size=auto needs at least two distinct SfM points")
+        from cusgs_jax.errors import UserError
+
+        raise UserError(f"model.voxel_size=auto: the scene's {len(points)} initial points lie at {len(pts)} distinct "
+                        "location(s), which gives no spacing to size a voxel by: check the reconstruction's points "
+                        "(points3D), or set model.voxel_size to a cell size (in units of the scene extent)")
     dist, _ = cKDTree(pts).query(pts, k=2)
     return float(np.median(dist[:, 1]))
 

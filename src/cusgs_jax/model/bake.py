@@ -72,7 +72,7 @@ from cusgs_jax.model.anchors import AnchorParams
 from cusgs_jax.model.decode import decode_gaussians, frustum_mask
 from cusgs_jax.splat.lens import Lens
 from cusgs_jax.splat.project import normalize_quats, quats_to_rotmats
-from cusgs_jax.io.ply import SplatModel
+from cusgs_jax.model.splats import SplatModel
 from cusgs_jax.splat.sh import MAX_SH_DEGREE, num_sh_coeffs, sh_basis, sh_degree
 from cusgs_jax.precision import HIGHEST
 from cusgs_jax.types import camera_center as camera_center_of

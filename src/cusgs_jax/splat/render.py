@@ -85,9 +85,19 @@ def resolve_backend(backend: str, platform: str | None = None) -> str:
     """
     if backend not in COMPOSITORS:
         raise ValueError(f"backend must be one of {COMPOSITORS}, got {backend!r}")
+    platform = platform or jax.default_backend()
     if backend == "auto":
-        return "pallas" if (platform or jax.default_backend()) == "gpu" and pallas_gpu_available() else "jax"
+        return "pallas" if platform == "gpu" and pallas_gpu_available() else "jax"
+    if backend == "pallas" and platform != "gpu":
+        _interpreting(platform)
     return backend
+
+
+@functools.cache
+def _interpreting(platform: str) -> None:
+    """Say once that ``backend="pallas"`` off a GPU runs Pallas's interpreter."""
+    log.warning("splat.backend=pallas on %s runs the Pallas kernels in Pallas's interpreter: exact but about 10-100x "
+                "slower than splat.backend=jax (meant for tests); use splat.backend=auto or jax there", platform)
 
 
 @functools.cache

@@ -11,7 +11,6 @@ import dataclasses
 import logging
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.config import Config, FeatureConfig
@@ -23,6 +22,8 @@ from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
 from cusgs_jax.memory import psc
 from cusgs_jax.model.field import image_pixel_of
+from cusgs_jax.splat.lens import Lens
+from cusgs_jax.types import Camera
 
 log = logging.getLogger("cusgs_jax")
 
@@ -182,3 +183,43 @@ def view_order(seed: int, num_train: int, step: int) -> int:
     """
     epoch, position = divmod(step, num_train)
     return int(np.random.default_rng([seed, epoch]).permutation(num_train)[position])
+
+
+def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: dict, banks: dict | None):
+    """``batch(step)``: the training views (``train_idx``, [V]) of ``step`` as the step's input
+    (:func:`cusgs_jax.training.step.make_train_step`'s batch), with the feature ``targets`` ({model: [V, h, w, D]})
+    and the memory ``banks`` when there are feature models (``banks`` not None).
+
+    One view per step (:func:`view_order` at position ``step``) for ``train.batch_size = 1``; B > 1
+    stacks the views at positions ``step·B … step·B + B − 1`` of the same epoch-wise permutation
+    sequence (every view once per epoch of ⌈V/B⌉ steps, the same sequence on resume).
+    """
+    idx, size = train_idx, cfg.train.batch_size
+    per_view = dict(image=scene.images[idx].astype(np.float32) / 255.0, K=np.asarray(scene.Ks[idx], np.float32),
+                    viewmat=np.asarray(scene.viewmats[idx], np.float32))
+    if scene.valid is not None:
+        per_view["valid"] = scene.valid[idx]  # [V, H, W] bool
+    if banks is not None:
+        per_view["features"] = targets
+    per_view = jax.device_put(per_view)  # transfers, not a program per array
+    lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
+    pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
+
+    def batch(step: int) -> dict:
+        if size == 1:
+            view = np.int32(view_order(cfg.train.seed, len(idx), step))
+        else:
+            view = np.asarray([view_order(cfg.train.seed, len(idx), step * size + b) for b in range(size)],
+                              np.int32)
+        views = pick((per_view, lens), view)
+        (picked, view_lens), view = views, jax.device_put(view)
+        camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
+        out = dict(image=picked["image"], camera=camera, index=view)
+        if "valid" in picked:
+            out["valid"] = picked["valid"]
+        if banks is not None:
+            out["features"] = picked["features"]
+            out["banks"] = banks
+        return out
+
+    return batch

@@ -49,7 +49,9 @@ def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | 
 
 def _check_scaffold(count: int, voxel_size: float, points: np.ndarray) -> None:
     """Refuse a scaffold of ``count`` anchors too coarse to mean anything; warn when it is merely coarse."""
-    hint = f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell"
+    distinct = len(np.unique(np.asarray(points, np.float64), axis=0))
+    hint = (f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell" if distinct >= 2 else
+            f"the {len(points)} points lie at {distinct} location(s): check the reconstruction's points (points3D)")
     require(count >= MIN_ANCHORS, "model.voxel_size", voxel_size,
             f"leaves only {count} anchor(s) for {len(points)} SfM points (the cell is about as large as the "
             "scene, whose extent is 1 in these units)", hint)

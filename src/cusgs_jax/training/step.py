@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax import losses
-from cusgs_jax.config import Config
+from cusgs_jax.config import Config, require_config
 from cusgs_jax.densify.base import Strategy, ViewRecord
 from cusgs_jax.model.active import expand_render, scatter_back
 from cusgs_jax.model.anchors import is_per_anchor, map_rows
@@ -130,6 +130,7 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     ``["dropped_gaussians"]`` / ``["dropped_pairs"]``; the caller grows the
     capacities (:meth:`Capacities.grown`) and replays the same batch.
     """
+    require_config(cfg, "make_train_step")
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
     if cfg.train.batch_size > 1:
         return make_batched_step(cfg, tx, strategies, capacities)
@@ -301,7 +302,7 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
         state, batch = parallel.place_step_inputs(mesh, state, batch)
         return jitted(state, batch)
 
-    placed_step.jitted = jitted  # for compile counts (``jitted._cache_size()``)
+    placed_step.jitted = jitted  # the jitted part (compiled ahead by app/ahead.py)
     placed_step.mesh = mesh
     # for an ahead-of-time compile (app/ahead.py): the jitted step's argument types, and the placement its call does
     placed_step.types = functools.partial(parallel.place_step_types, mesh)
