@@ -239,3 +239,13 @@ def test_a_job_rerun_that_finished_after_its_failure_is_ok_and_a_later_failure_i
     assert load_job(job)["status"] == "ok"
     os.utime(job / "eval.json", (old - 50, old - 50))  # now the failure is the newer record
     assert load_job(job)["status"] == "failed: UserError: refused"
+
+
+def test_compile_seconds_and_the_seconds_waited_for_a_compiler_are_both_columns(tmp_path):
+    job = _job(tmp_path, "0", 0.01)
+    _eval(job, 25.0, 0.8, 1000, 90, 10.0, 3.0)
+    record = json.loads((job / "eval.json").read_text())
+    record.update(compilations={"seconds": 41.5, "count": 30}, time={"compile_wait": 2.25, "compile": 41.5})
+    (job / "eval.json").write_text(json.dumps(record))
+    row = load_job(job)
+    assert (row["compile_s"], row["compile_wait_s"]) == (41.5, 2.25)

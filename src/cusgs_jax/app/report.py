@@ -72,8 +72,11 @@ METRICS = [
      "evaluation and checkpoints not)"),
     ("run_s", "run (s)", "{:.1f}", "the whole run's seconds: load, features, PSC, compiling, training, "
      "evaluation, checkpoints, report (eval.json time.total)"),
-    ("compile_s", "compile (s)", "{:.1f}", "seconds spent compiling XLA programs, tracing included "
-     "(eval.json compilations.seconds; small when the persistent compilation cache held them)"),
+    ("compile_s", "compile (s)", "{:.1f}", "seconds spent compiling XLA programs, tracing included, those compiled "
+     "ahead on the background thread too (eval.json compilations.seconds; small when the persistent compilation "
+     "cache held them)"),
+    ("compile_wait_s", "compile wait (s)", "{:.1f}", "seconds the run stood still for a compiler: compiles on its "
+     "own thread and waits for a program still compiling ahead (eval.json time.compile_wait; absent before it)"),
     ("render_ms", "render ms/view", "{:.1f}", "median held-out render time per view"),
     ("render_ms_before_prune", "render ms/view at 1st prune", "{:.1f}",
      "render time per view of the model just before the first pruning pass (pruning runs only; it has "
@@ -169,6 +172,7 @@ def _eval_metrics(result: dict) -> dict:
         "train_s": finite_or_none(result.get("train_wall_s")),
         "run_s": finite_or_none(time.get("total")) if isinstance(time := result.get("time"), dict) else None,
         "compile_s": finite_or_none(c.get("seconds")) if isinstance(c := result.get("compilations"), dict) else None,
+        "compile_wait_s": finite_or_none(t.get("compile_wait")) if isinstance(t := result.get("time"), dict) else None,
         "render_ms": finite_or_none(result.get("render_ms_per_view")),
         "render_ms_before_prune": finite_or_none(result.get("render_ms_before_prune")),
     }

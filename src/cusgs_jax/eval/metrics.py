@@ -8,9 +8,6 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 
-import functools
-
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -37,14 +34,10 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB, 
       mask: optional [H, W] valid-pixel mask (bool or 0/1): the MSE runs over the valid pixels only
         (``SceneData.valid``); ``max_db`` when none is valid.
     """
-    if np.shape(pred) != np.shape(target):
-        raise ValueError(f"pred and target shapes differ: {np.shape(pred)} vs {np.shape(target)}")
-    return _psnr(pred, target, mask, float(data_range), float(max_db))
-
-
-@functools.partial(jax.jit, static_argnums=(3, 4))
-def _psnr(pred, target, mask, data_range: float, max_db: float) -> jnp.ndarray:
-    """:func:`psnr`'s arithmetic, one program per image size (not one per operation)."""
+    pred = jnp.asarray(pred)
+    target = jnp.asarray(target)
+    if pred.shape != target.shape:
+        raise ValueError(f"pred and target shapes differ: {pred.shape} vs {target.shape}")
     dtype = jnp.promote_types(jnp.promote_types(pred.dtype, target.dtype), jnp.float32)
     diff = pred.astype(dtype) - target.astype(dtype)
     mse = masked_mean(diff * diff, mask)

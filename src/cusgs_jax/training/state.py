@@ -132,23 +132,27 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor)
     _check_scaffold(int(layout["alive"].sum()), model.voxel_size, points)
 
-    def fresh(layout, banks):
+    key = jax.random.PRNGKey(cfg.train.seed)
+    # the networks are drawn call by call, as before: inside one program XLA would fold a division by a constant
+    # into a multiplication (model/field.py's key_proj init moved by 1 ulp) and the run's numbers with it
+    nets = init_nets(key, cfg, num_train_views, banks)
+
+    def fresh(layout, nets):
         """Everything but the optimiser state (traceable)."""
-        key = jax.random.PRNGKey(cfg.train.seed)
         anchors = anchors_of_layout(layout, n_offsets=model.n_offsets, latent_dim=model.latent_dim,
                                     query_dim=cfg.features.query_dim if table else 0, key=jax.random.fold_in(key, 2))
-        return TrainState(anchors=anchors, nets=init_nets(key, cfg, num_train_views, banks), opt_state=None,
+        return TrainState(anchors=anchors, nets=nets, opt_state=None,
                           densify={s.name: s.init_state(anchors.capacity) for s in strategies},
                           step=jnp.int32(0), skipped=jnp.int32(0))
 
-    # the optimiser is built from the tree's structure, then state and optimiser state in one program (one
-    # compile, not one per array: the values are those of the same calls made eagerly)
-    tx = make_optimizer(cfg.optim, jax.eval_shape(fresh, layout, banks).trainable, cfg.train.iterations, extent,
+    # the optimiser is built from the tree's structure, then anchors, statistics and optimiser state in one program
+    # (zeros and the host's layout: one compile, not one per array)
+    tx = make_optimizer(cfg.optim, jax.eval_shape(fresh, layout, nets).trainable, cfg.train.iterations, extent,
                         cfg.train.batch_size)
 
     @jax.jit
-    def init_state(layout, banks):
-        state = fresh(layout, banks)
+    def init_state(layout, nets):
+        state = fresh(layout, nets)
         return state.replace(opt_state=tx.init(state.trainable))
 
-    return init_state(layout, banks), tx
+    return init_state(layout, nets), tx
