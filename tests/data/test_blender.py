@@ -95,8 +95,9 @@ def test_rgba_composited_on_white_by_default(blender):
 
 def test_random_points_and_extent(blender):
     scene = load_blender_scene(blender["root"], num_random_points=500, seed=1)
-    assert scene.points.shape == (500, 3) and scene.points.dtype == np.float64
-    assert scene.point_colors.shape == (500, 3) and scene.point_colors.dtype == np.uint8
+    assert scene.points.shape == (scene.carving.kept, 3) and scene.points.dtype == np.float64
+    assert scene.carving.points == 500 and scene.carving.kept > 0
+    assert scene.point_colors.shape == (scene.carving.kept, 3) and scene.point_colors.dtype == np.uint8
     assert scene.random_points == "cube"  # data.random_init=auto on a Blender scene
     assert np.all(np.abs(scene.points) < 2.0)  # in a cube around the origin the cameras look at
     again = load_blender_scene(blender["root"], num_random_points=500, seed=1)

@@ -70,7 +70,8 @@ def test_dispatch_and_split_and_background_defaults(tmp_path, colmap):
     assert (n.dataset_format, n.split, n.background) == ("nerfstudio", "every_3rd", (0.0, 0.0, 0.0))
     assert (c.dataset_format, c.split, c.background) == ("colmap", "every_3rd", (0.0, 0.0, 0.0))
     np.testing.assert_array_equal(b.test_indices, [4, 5])  # holdout_every does not apply to Blender
-    assert len(b.points) == len(n.points) == 100
+    assert b.carving.points == n.carving.points == 100  # drawn, then carved by the training frusta (data/carve.py)
+    assert (len(b.points), len(n.points)) == (b.carving.kept, n.carving.kept)
     red = load_any_scene(tmp_path / "b", background=(1.0, 0.0, 0.0), num_random_points=100)
     assert red.background == (1.0, 0.0, 0.0) and np.all(red.images[:, 0, 0] == [255, 0, 0])
     assert load_any_scene(colmap, holdout_every=0).split == "none"

@@ -90,16 +90,18 @@ def test_without_ply_random_points(ns):
     from cusgs_jax.data.random_points import random_points
 
     scene = load_nerfstudio_scene(ns["root"], num_random_points=300)
-    assert scene.points.shape == (300, 3) and np.all(scene.point_colors == 128)
+    assert scene.points.shape == (scene.carving.kept, 3) and scene.carving.points == 300
+    assert np.all(scene.point_colors == 128)
     assert scene.random_points == "cube_and_rays"
     train = scene.train_indices
     expected, _ = random_points(scene.viewmats[train], scene.Ks[train], scene.width, scene.height, num=300,
                                 init="cube_and_rays")
-    np.testing.assert_array_equal(scene.points, expected)
+    kept = (expected[:, None] == scene.points[None]).all(-1).any(1)  # carving keeps a subset, in the draw's order
+    np.testing.assert_array_equal(expected[kept], scene.points)
     cube = load_nerfstudio_scene(ns["root"], num_random_points=300, random_init="cube")
     assert cube.random_points == "cube"
-    np.testing.assert_array_equal(cube.points, random_points(scene.viewmats[train], scene.Ks[train], scene.width,
-                                                             scene.height, num=300, init="cube")[0])
+    drawn = random_points(scene.viewmats[train], scene.Ks[train], scene.width, scene.height, num=300, init="cube")[0]
+    np.testing.assert_array_equal(drawn[(drawn[:, None] == cube.points[None]).all(-1).any(1)], cube.points)
 
 
 def test_downscale_prefers_images_d(tmp_path):

@@ -93,7 +93,8 @@ def test_a_blender_scene_loads_on_white_and_the_background_resolves_to_it(tmp_pa
     write_blender_scene(tmp_path / "b")
     cfg = Config(data=DataConfig(path=str(tmp_path / "b"), random_points=300))
     scene, world = load_data(cfg)
-    assert scene.dataset_format == "blender" and scene.extent == 1.0 and len(scene.points) == 300
+    assert scene.dataset_format == "blender" and scene.extent == 1.0 and len(scene.points) == scene.carving.kept
+    assert scene.carving.points == 300
     assert np.all(scene.images[:, 0, 0] == 255)
     assert resolve_background(cfg, scene).splat.background == (1.0, 1.0, 1.0)
     black = cfg.replace(splat=dict(background=(0.0, 0.0, 0.0)))  # set explicitly: kept

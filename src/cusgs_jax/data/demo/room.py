@@ -200,7 +200,13 @@ def cached_scene(final, generate) -> pathlib.Path:
     root, name = final.parent, final.name
     if (final / "scene.json").is_file():
         return final
-    root.mkdir(parents=True, exist_ok=True)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except (FileExistsError, NotADirectoryError) as error:  # a file where the cache folder (or a parent) should be
+        from cusgs_jax.errors import UserError
+
+        raise UserError(f"the demo scene's cache folder {root} cannot be made: {error.filename} is a file, not a "
+                        "folder; point CUSGS_CACHE_DIR at a folder (or unset it to use ~/.cache/cusgs_jax)") from None
     prefix = f".{name}.tmp-"
     # Clear temporary folders left behind by interrupted runs (old enough not to be in progress).
     for stale in root.glob(prefix + "*"):
