@@ -179,7 +179,7 @@ def _carved(raw: RawScene, cameras: FinishedCameras, points: np.ndarray, colors:
     train = cameras.train
     keep, carving = carve(points, raw.viewmats[train], cameras.Ks[train], cameras.width, cameras.height,
                           None if coverage is None else [coverage[i] for i in train])
-    if carving.kept < MIN_CARVED:
+    if carving.kept < min(MIN_CARVED, carving.points):
         raise SceneError(
             f"data.path={str(raw.folder)!r}: carving left {carving.kept} of {carving.points} random initial points "
             f"({carving.outside_frusta} outside every training view, {carving.transparent} in front of a transparent "
