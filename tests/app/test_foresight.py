@@ -1,0 +1,52 @@
+"""app/foresight.py: when the programs after a strategy update are prepared, and for which anchor capacity."""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+
+from cusgs_jax.app.foresight import LEAD, MIN_LEAD_STEPS, PREVIEWS, Foresight
+from cusgs_jax.config import GrowConfig
+from cusgs_jax.densify.scaffold import NEXT_CAPACITY_USE, ScaffoldStrategy
+
+
+class _Every:
+    """A strategy due every ``interval`` steps from ``start``."""
+
+    name = "every"
+
+    def __init__(self, start, interval):
+        self.start, self.interval = start, interval
+
+    def due(self, step):
+        return step >= self.start and (step - self.start) % self.interval == 0
+
+
+def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that():
+    foresight = Foresight([_Every(400, 100)], iterations=3000, step_program=None, prepare_render=None)
+    assert foresight.lead_steps([]) == MIN_LEAD_STEPS  # nothing measured yet
+    for _ in range(10):
+        foresight.stepped(0.2)
+    assert foresight.lead_steps([12.0, 15.0]) == int(np.ceil(LEAD * 15.0 / 0.2))  # the slowest compile, 1.5x
+    assert foresight.lead_steps([0.1]) == MIN_LEAD_STEPS
+    seen = []
+    foresight._preview = lambda session, done, due: seen.append((done, due))
+    session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]), state=None)
+    foresight._next_capacities = lambda session, done: None
+    for done in range(1, 520):
+        foresight.after(session, done)
+    lead = foresight.lead_steps([4.0])  # 30 steps
+    assert seen == [(400 - lead, 400), (400 - lead // 2, 400), (500 - lead, 500), (500 - lead // 2, 500)]
+    assert PREVIEWS == 2
+
+
+def test_scaffold_announces_its_next_capacity_once_the_slots_fill_up_while_it_still_grows():
+    strategy = ScaffoldStrategy(GrowConfig(stop=1000, capacity_growth=1.5), voxel_size=0.01, n_offsets=4, seed=0)
+    alive = np.zeros(1000, bool)
+    state = types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=1000, alive=alive))
+    alive[: int(NEXT_CAPACITY_USE * 1000) - 1] = True
+    assert strategy.next_capacity(state, 500) is None
+    alive[: int(NEXT_CAPACITY_USE * 1000)] = True
+    assert strategy.next_capacity(state, 500) == 1500  # ceil(A · grow.capacity_growth), what update grows to
+    assert strategy.next_capacity(state, 1000) is None  # no growth after grow.stop
