@@ -178,6 +178,14 @@ def _eval_metrics(result: dict) -> dict:
     }
 
 
+def _newer(a: Path, b: Path) -> bool:
+    """Whether file ``a`` exists and was written after ``b`` (a job rerun that finished after a failure)."""
+    try:
+        return a.is_file() and a.stat().st_mtime > b.stat().st_mtime
+    except OSError:
+        return False
+
+
 def load_job(path, root=None) -> dict:
     """One record for one job folder.
 
@@ -362,11 +370,3 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
-
-
-def _newer(a: Path, b: Path) -> bool:
-    """Whether file ``a`` exists and was written after ``b`` (a job rerun that finished after a failure)."""
-    try:
-        return a.is_file() and a.stat().st_mtime > b.stat().st_mtime
-    except OSError:
-        return False
