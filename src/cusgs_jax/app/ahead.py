@@ -164,7 +164,7 @@ class Program:
             place = getattr(self.jitted, "place", None)
             try:
                 return compiled(*(place(*args) if place else args))
-            except TypeError as error:  # raised while checking the arguments: nothing ran, nothing was donated
+            except (TypeError, ValueError) as error:  # argument types or shardings refused before anything ran
                 log.debug("an ahead-compiled program refused its arguments (%s): the jitted function compiles", error)
                 self._ready[key], self.fallbacks = None, self.fallbacks + 1
         return self.jitted(*args)
