@@ -149,7 +149,9 @@ class Program:
 
     def wait(self, *args) -> None:
         """Wait for the program prepared for the types of ``args`` (if one is being compiled)."""
-        key = signature(args)
+        self._resolve(signature(args))
+
+    def _resolve(self, key: tuple) -> None:
         if key in self._pending:
             self._ready[key] = self.ahead.result(self._pending.pop(key))
 
@@ -157,8 +159,7 @@ class Program:
         if not self._ready and not self._pending:
             return self.jitted(*args)
         key = signature(args)
-        if key in self._pending:
-            self._ready[key] = self.ahead.result(self._pending.pop(key))
+        self._resolve(key)
         compiled = self._ready.get(key)
         if compiled is not None:
             place = getattr(self.jitted, "place", None)
