@@ -49,7 +49,14 @@ def child(args) -> dict:
     import numpy as np
 
     from cusgs_jax.config import Config
-    from cusgs_jax.data.colmap import load_scene
+    try:
+        from cusgs_jax.config import DataConfig
+        from cusgs_jax.data.loader import load_scene as _load_scene
+
+        def load_scene(path, holdout_every):
+            return _load_scene(path, DataConfig(format="colmap", holdout_every=holdout_every))
+    except ImportError:  # revisions before data/loader.py: the COLMAP keyword loader
+        from cusgs_jax.data.colmap import load_scene
     from cusgs_jax.data.normalize import normalize_scene
     try:
         from cusgs_jax.densify.factory import make_strategies

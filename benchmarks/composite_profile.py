@@ -27,8 +27,8 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     import jax.numpy as jnp
     import numpy as np
 
-    from cusgs_jax.config import Config
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.config import Config, DataConfig
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.model.active import compact_gaussians, select_active
@@ -46,7 +46,7 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     cfg = Config().replace(features=dict(models=()))
     if tile_size:
         cfg = cfg.replace(splat=dict(tile_size=tile_size))
-    scene, _ = normalize_scene(load_scene(scene_path, holdout_every=8))
+    scene, _ = normalize_scene(load_scene(scene_path, DataConfig(format="colmap", holdout_every=8)))
     cfg = resolve_voxel_size(cfg, scene.points)
     train_idx = scene.train_indices
     state, _ = init_train_state(cfg, scene.points, len(train_idx), scene.extent, make_strategies(cfg))

@@ -23,7 +23,7 @@ import time
 
 def child(src: str) -> dict:
     from cusgs_jax.app import run as run_loop
-    from cusgs_jax.config import compose_config
+    from cusgs_jax.compose import compose_config
 
     session = run_loop.setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
     batch = run_loop._batches(session)

@@ -42,6 +42,8 @@ import subprocess
 import sys
 import time
 
+from cusgs_jax.run_folder import read_eval
+
 ROOT = pathlib.Path(__file__).resolve().parent.parent
 TRAIN = [sys.executable, "-c", "import sys; from cusgs_jax.app.train import main; sys.argv[0] = 'cusgs-train'; main()"]
 TEST_PATHS = ["tests/splat", "tests/model", "tests/training", "tests/test_precision.py"]
@@ -152,15 +154,14 @@ def run_main_job(out: pathlib.Path, name: str, timeout: float, smoke: bool) -> d
     folder = out / name
     cmd = [*TRAIN, f"hydra.run.dir={folder}", "train.progress=false", *(SMOKE_MAIN if smoke else [])]
     result = _run(cmd, out / f"{name}.log", timeout)
-    evaluation = folder / "eval.json"
-    if evaluation.is_file():
-        data = json.loads(evaluation.read_text())
+    data = read_eval(folder)  # the run-folder contract (cusgs_jax/run_folder.py)
+    if data is not None:
         compiles = data.get("compilations", {})
-        result.update(psnr=data["psnr"], ssim=data["ssim"], time=data.get("time"),
+        result.update(psnr=data.psnr, ssim=data.ssim, time=data.get("time"),
                       compilations={k: compiles.get(k) for k in ("count", "compiled", "from_cache", "seconds",
                                                                  "backend_seconds", "train_step",
                                                                  "evaluation_renders", "functions")},
-                      budget_over_wall=round(data["time"]["total"] / result["wall_s"], 4) if data.get("time") else None,
+                      budget_over_wall=round(data.time["total"] / result["wall_s"], 4) if data.get("time") else None,
                       accelerator=data.get("accelerator"))
     return result
 
@@ -174,10 +175,9 @@ def run_sweep(out: pathlib.Path, steps: int, timeout: float, smoke: bool) -> dic
     result = _run(cmd, out / "sweep.log", timeout)
     jobs = []
     for job in ("0", "1"):
-        evaluation = folder / job / "eval.json"
-        if evaluation.is_file():
-            data = json.loads(evaluation.read_text())
-            jobs.append(dict(job=job, psnr=data["psnr"], accelerator=data.get("accelerator"),
+        data = read_eval(folder / job)
+        if data is not None:
+            jobs.append(dict(job=job, psnr=data.psnr, accelerator=data.get("accelerator"),
                              total_s=(data.get("time") or {}).get("total")))
         else:
             jobs.append(dict(job=job, finished=False))

@@ -57,7 +57,7 @@ from scenes import random_scene  # noqa: E402
 from timing import median_seconds  # noqa: E402
 
 from cusgs_jax.errors import UserError  # noqa: E402
-from cusgs_jax.splat import rasterize  # noqa: E402
+from cusgs_jax.splat import Compositor, rasterize  # noqa: E402
 from cusgs_jax.testing.splat_reference import rasterize_reference  # noqa: E402
 
 KEYS = ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")
@@ -214,8 +214,8 @@ def our_renderer(width: int, height: int, tile_size: int, chunk_size: int, max_p
     """``render(*arrays) -> [H, W, 3]`` image of ``cusgs_jax.splat.rasterize``."""
 
     def render(*arrays):
-        return rasterize(*arrays, width, height, tile_size=tile_size, chunk_size=chunk_size,
-                         max_pairs=max_pairs, eps2d=eps2d).image
+        return rasterize(*arrays, width, height, tile_size=tile_size, max_pairs=max_pairs, eps2d=eps2d,
+                         compositor=Compositor(chunk_size=chunk_size)).image
 
     return render
 

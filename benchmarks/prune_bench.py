@@ -37,10 +37,11 @@ import numpy as np
 
 from cusgs_jax.training.inputs import view_order
 from cusgs_jax.app.run import setup
-from cusgs_jax.config import compose_config
+from cusgs_jax.compose import compose_config
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, prune_pass
 from cusgs_jax.eval.views import count_parameters, evaluate_views
 from cusgs_jax.model.anchors import compact
+from cusgs_jax.run_folder import CHECKPOINTS_DIR, HYDRA_DIR
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 
@@ -51,10 +52,10 @@ def _copy(tree):
 
 def _restore(run: pathlib.Path, scratch: str):
     """The run's final state, restored through :func:`cusgs_jax.app.run.setup` (its logs untouched)."""
-    overrides = [line.strip()[2:] for line in (run / ".hydra" / "overrides.yaml").read_text().splitlines()
+    overrides = [line.strip()[2:] for line in (run / HYDRA_DIR / "overrides.yaml").read_text().splitlines()
                  if line.strip().startswith("- ")]
     cfg = compose_config(overrides)
-    cfg = cfg.replace(train=dict(resume=True, checkpoint_dir=str(run / "checkpoints"), progress=False),
+    cfg = cfg.replace(train=dict(resume=True, checkpoint_dir=str(run / CHECKPOINTS_DIR), progress=False),
                       prune=dict(strategy="feature_aware"))
     return setup(cfg, scratch)
 
@@ -86,7 +87,7 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    if not (args.run / ".hydra" / "overrides.yaml").is_file() or not (args.run / "checkpoints").is_dir():
+    if not (args.run / HYDRA_DIR / "overrides.yaml").is_file() or not (args.run / CHECKPOINTS_DIR).is_dir():
         sys.exit(f"{args.run}: expected a cusgs-train run folder with .hydra/overrides.yaml and checkpoints/")
     with tempfile.TemporaryDirectory() as scratch:
         session = _restore(args.run, scratch)

@@ -26,7 +26,8 @@ import numpy as np
 
 from cusgs_jax.app.export import _run_scene, export_run
 from cusgs_jax.io.load_run import load_trained
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.config import DataConfig
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.io import heldout_psnr, read_ply, refine_splats
 
 
@@ -36,8 +37,9 @@ def baked_run(run_dir, scene=None):
     model = load_trained(run_dir)
     scene_path = pathlib.Path(scene) if scene else _run_scene(model)[0]
     data, splat = model.cfg.data, model.cfg.splat
-    loaded = load_any_scene(scene_path, format=data.format, downscale=data.downscale,
-                            holdout_every=data.holdout_every, background=splat.background, num_random_points=2)
+    loaded = load_scene(scene_path, DataConfig(format=data.format, downscale=data.downscale,
+                                               holdout_every=data.holdout_every, random_points=2),
+                        background=splat.background)
     with tempfile.TemporaryDirectory() as tmp:
         bake = export_run(run_dir, pathlib.Path(tmp) / "bake.ply", refine=0, progress=False)
         return model, scene_path, loaded, read_ply(bake["ply"])

@@ -39,8 +39,8 @@ def main() -> None:
     import numpy as np
 
     from cusgs_jax.training.inputs import view_order
-    from cusgs_jax.config import Config
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.config import Config, DataConfig
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.densify.factory import make_strategies
@@ -49,7 +49,7 @@ def main() -> None:
     from cusgs_jax.types import Camera
 
     scene_path = generate_demo_scene(os.path.join(tempfile.mkdtemp(), "demo"))
-    scene, _ = normalize_scene(load_scene(scene_path))
+    scene, _ = normalize_scene(load_scene(scene_path, DataConfig(format="colmap")))
     idx = scene.train_indices
     images = np.asarray(scene.images[idx], np.float32) / 255.0
     base = resolve_voxel_size(Config().replace(train=dict(iterations=30_000)), scene.points)

@@ -36,7 +36,7 @@ from naive_splat import naive_rasterize  # noqa: E402
 from scenes import random_scene  # noqa: E402
 from timing import median_seconds  # noqa: E402
 
-from cusgs_jax.splat import rasterize  # noqa: E402
+from cusgs_jax.splat import Compositor, rasterize  # noqa: E402
 
 KEYS = ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")
 
@@ -90,7 +90,7 @@ def run(gaussians, sizes, tile_sizes, chunk_sizes, naive, repeats, backends=("au
                 first = None
                 for chunk, backend in [(c, b) for c in chunk_sizes for b in backends]:
                     def render(*a, ts=tile_size, ch=chunk, mp=max_pairs, be=backend):
-                        return rasterize(*a, size, size, tile_size=ts, chunk_size=ch, max_pairs=mp, backend=be).image
+                        return rasterize(*a, size, size, tile_size=ts, max_pairs=mp, compositor=Compositor(be, ch)).image
 
                     row = dict(renderer="cusgs_jax", backend=backend, gaussians=num, width=size, height=size,
                                tile_size=tile_size, chunk_size=chunk, max_pairs=max_pairs)
@@ -108,8 +108,8 @@ def run(gaussians, sizes, tile_sizes, chunk_sizes, naive, repeats, backends=("au
                         row.update(image_rel_diff=_rel_diff(outputs["forward"], first["forward"]),
                                    grad_rel_diff=max(_rel_diff(a, b) for a, b in
                                                      zip(outputs["forward_backward"], first["forward_backward"])))
-                    out = rasterize(*args, size, size, tile_size=tile_size, chunk_size=chunk, max_pairs=max_pairs,
-                                    backend=backend)
+                    out = rasterize(*args, size, size, tile_size=tile_size, max_pairs=max_pairs,
+                                    compositor=Compositor(backend, chunk))
                     composited = int(jnp.sum(out.n_contrib))
                     row.update(
                         tile_pairs=int(out.num_pairs), overflow=int(out.overflow),

@@ -16,7 +16,7 @@ import tempfile
 import time
 
 from cusgs_jax.app import run as run_loop
-from cusgs_jax.config import compose_config
+from cusgs_jax.compose import compose_config
 from cusgs_jax.training.step import make_train_step
 
 

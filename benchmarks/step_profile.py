@@ -27,7 +27,7 @@ def build_with_features(features: str):
     """The demo's initial model as ``cusgs-train`` sets it up with feature models ``features``
     (``demo``: daisy, semantic and vgg16 stand-ins), its fitted capacities and its step."""
     from cusgs_jax.app import run
-    from cusgs_jax.config import from_dict
+    from cusgs_jax.compose import from_dict
     from cusgs_jax.training.step import make_train_step
 
     cfg = from_dict(dict(train=dict(progress=False), features=dict(models=features)))  # the YAML spellings
@@ -40,8 +40,8 @@ def build(scene_path: str):
     import jax.numpy as jnp
     import numpy as np
 
-    from cusgs_jax.config import Config
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.config import Config, DataConfig
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.training import capacity
@@ -54,7 +54,7 @@ def build(scene_path: str):
         from cusgs_jax.data.demo import demo_scene_path
         scene_path = str(demo_scene_path())
     cfg = Config().replace(features=dict(models=()))
-    scene, _ = normalize_scene(load_scene(scene_path, holdout_every=8))
+    scene, _ = normalize_scene(load_scene(scene_path, DataConfig(format="colmap", holdout_every=8)))
     cfg = resolve_voxel_size(cfg, scene.points)
     strategies = make_strategies(cfg)
     train_idx = scene.train_indices

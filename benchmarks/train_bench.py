@@ -36,13 +36,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from cusgs_jax.config import DEMO_FEATURE_MODELS, Config
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, DataConfig
 from cusgs_jax.training.inputs import load_feature_targets
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.normalize import normalize_scene
 from cusgs_jax.densify.factory import make_strategies
-from cusgs_jax.extract import extract
+from cusgs_jax.extract import extract_scene
 from cusgs_jax.extract.optional import available_models
 from cusgs_jax.training.state import init_train_state, resolve_voxel_size
 from cusgs_jax.training.step import make_train_step
@@ -65,12 +65,14 @@ def setup(scene_path: str, voxel_size, models: tuple, backend: str = "auto"):
     """(step, state, batch(i) -> batch dict, info) of one variant on the scene at ``scene_path``."""
     cfg = Config().replace(train=dict(iterations=30_000), model=dict(voxel_size=voxel_size),
                            features=dict(models=models), splat=dict(backend=backend))
-    scene, _ = normalize_scene(load_scene(scene_path, holdout_every=0))
+    scene, _ = normalize_scene(load_scene(scene_path, DataConfig(format="colmap", holdout_every=0)))
     cfg = resolve_voxel_size(cfg, scene.points)
     banks, targets, info = None, {}, {}
     if models:
+        # every view as cusgs-extract loads it (its initial points are not needed: 2 random ones, never carved)
+        described = load_scene(scene_path, DataConfig(holdout_every=0, random_points=2, carve="none"))
         for m in models:  # extract here (not in load_feature_targets) to time it
-            summary = extract(scene_path, m.name, overwrite=True, progress=False)
+            summary = extract_scene(described, m.name, overwrite=True, progress=False)
             info[m.name] = dict(dim=summary.dim, resolution=list(summary.resolution),
                                 extract_ms_per_view=1000 * summary.seconds_per_view)
         maps, banks = load_feature_targets(cfg.features, scene, 0)

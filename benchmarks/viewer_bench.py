@@ -26,12 +26,14 @@ import tempfile
 import threading
 import time
 
+from cusgs_jax.run_folder import read_eval
+
 SIZES = ((320, 240), (640, 480))
 
 
 def _train(root: pathlib.Path, iterations: int, *extra: str) -> tuple[pathlib.Path, float]:
     from cusgs_jax.app.run import run
-    from cusgs_jax.config import compose_config
+    from cusgs_jax.compose import compose_config
     from cusgs_jax.data.demo import generate_demo_scene
 
     scene = root / "scene"
@@ -116,8 +118,8 @@ def slowdown(root: pathlib.Path, iterations: int) -> dict:
         stop.set()
         thread.join(timeout=30)
         logging.getLogger("cusgs_jax").removeHandler(handler)
-    plain = json.loads((plain_dir / "eval.json").read_text())["train_wall_s"]
-    live = json.loads((live_dir / "eval.json").read_text())["train_wall_s"]
+    plain = read_eval(plain_dir).train_wall_s  # the run-folder contract (cusgs_jax/run_folder.py)
+    live = read_eval(live_dir).train_wall_s
     return dict(iterations=iterations, train_wall_s_plain=round(plain, 2), train_wall_s_live_steps_only=round(live, 2),
                 run_s_plain=round(plain_s, 2), run_s_live=round(live_s, 2),
                 slowdown_of_the_whole_run=round(live_s / plain_s - 1.0, 3),

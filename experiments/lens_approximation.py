@@ -20,8 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pycolmap
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo.lens import lens_demo_path
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.io import read_ply, recentre_splats, render_splats_exact, scene_camera
 from cusgs_jax.types import Camera
 
@@ -52,7 +53,7 @@ def main():
     parser.add_argument("--scene", default=None, help="a lens demo folder (write_lens_demo) instead of --lens's")
     args = parser.parse_args()
     path = lens_demo_path(lens=args.lens) if args.scene is None else pathlib.Path(args.scene)
-    scene = load_any_scene(path, undistort="lens")
+    scene = load_scene(path, DataConfig(undistort="lens"))
     camera = pycolmap.Reconstruction(str(path / "sparse" / "0")).cameras[1]
     model, shift = recentre_splats(read_ply(args.ply), scene.camera_centers.mean(axis=0))
     jj, ii = np.meshgrid(np.arange(scene.width) + 0.5, np.arange(scene.height) + 0.5)

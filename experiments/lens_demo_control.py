@@ -24,9 +24,10 @@ import imageio.v3 as iio
 import numpy as np
 import pycolmap
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo.lens import lens_demo_path, render_lens_view
 from cusgs_jax.data.demo.render import build_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.undistort import undistorted_cameras
 
 
@@ -36,7 +37,7 @@ def sharp_scene(lens: str, out: pathlib.Path) -> dict:
     rec = pycolmap.Reconstruction(str(src / "sparse" / "0"))
     (cid, lens_cam), = rec.cameras.items()
     pin = undistorted_cameras({cid: lens_cam})[cid]
-    loaded = load_scene(src, holdout_every=0)  # the undistorted images, in name order
+    loaded = load_scene(src, DataConfig(format="colmap", holdout_every=0))  # the undistorted images, in name order
     room = build_scene()
     if out.exists():
         shutil.rmtree(out)

@@ -16,8 +16,9 @@ import sys
 
 import numpy as np
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo.lens import lens_demo_path
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.io import read_ply, recentre_splats, render_splats_exact, scene_camera
 
 RESULTS = pathlib.Path(sys.argv[1] if len(sys.argv) > 1 else "experiments/results/lens_demo_lens")
@@ -27,7 +28,7 @@ MODELS = ["pinhole_crop_s0", "pinhole_crop_s1", "opencv_lens_s0", "opencv_lens_s
 
 def main():
     for lens in ("opencv", "simple_radial"):
-        scene = load_any_scene(lens_demo_path(lens=lens), undistort="lens")
+        scene = load_scene(lens_demo_path(lens=lens), DataConfig(undistort="lens"))
         K = scene.Ks[0]
         jj, ii = np.meshgrid(np.arange(scene.width) + 0.5, np.arange(scene.height) + 0.5)
         radius = np.hypot(jj - K[0, 2], ii - K[1, 2])

@@ -20,12 +20,13 @@ import sys
 import imageio.v3 as iio
 import numpy as np
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import demo_scene_path
+from cusgs_jax.data.loader import load_scene
 
 
 def main(out: str) -> None:
-    scene = load_scene(demo_scene_path())
+    scene = load_scene(demo_scene_path(), DataConfig(format="colmap"))
     out = pathlib.Path(out)
     fx, cx, cy = float(scene.Ks[0, 0, 0]), float(scene.Ks[0, 0, 2]), float(scene.Ks[0, 1, 2])
     assert np.allclose(scene.Ks[:, 0, 0], scene.Ks[:, 1, 1]) and (cx, cy) == (scene.width / 2, scene.height / 2)

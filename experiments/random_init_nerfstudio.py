@@ -18,12 +18,13 @@ import sys
 import imageio.v3 as iio
 import numpy as np
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import demo_scene_path
+from cusgs_jax.data.loader import load_scene
 
 
 def main(out: str) -> None:
-    scene = load_scene(demo_scene_path())
+    scene = load_scene(demo_scene_path(), DataConfig(format="colmap"))
     out = pathlib.Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
     K = scene.Ks[0].astype(np.float64)

@@ -21,6 +21,7 @@ import subprocess
 import sys
 
 from cusgs_jax.data.demo.objects import generate_object_scenes
+from cusgs_jax.run_folder import read_eval
 
 COMMON = ["train.iterations=1500", "features=none", "train.progress=false", "eval.save_renders=false"]
 
@@ -30,7 +31,7 @@ def run(out: pathlib.Path, name: str, overrides: list[str]) -> dict:
     print(" ".join(cmd), flush=True)
     with open(out / f"{name}.log", "w") as log:
         subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT, env=os.environ)
-    d = json.loads((out / name / "eval.json").read_text())
+    d = read_eval(out / name).to_json()  # the run-folder contract (cusgs_jax/run_folder.py)
     row = dict(run=name, overrides=overrides, psnr=d["psnr"], ssim=d["ssim"], lpips_vgg=d.get("lpips_vgg"),
                lpips_alex=d.get("lpips_alex"), alive_anchors=d.get("alive_anchors"),
                voxel_size=d.get("voxel_size"), train_wall_s=d.get("train_wall_s"),

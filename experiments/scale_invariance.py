@@ -21,6 +21,7 @@ import sys
 import time
 
 from cusgs_jax.data.demo import demo_scene_path
+from cusgs_jax.run_folder import read_eval
 from cusgs_jax.testing.scenes import transformed_scene
 
 
@@ -60,7 +61,7 @@ def main(argv=None) -> int:
 
     runs = {}
     for job, scale in enumerate(args.scales):
-        result = json.loads((sweep / str(job) / "eval.json").read_text())
+        result = read_eval(sweep / str(job)).to_json()  # the run-folder contract (cusgs_jax/run_folder.py)
         runs[f"{scale:g}"] = dict(psnr=result["psnr"], ssim=result["ssim"], alive_anchors=result["alive_anchors"],
                                   voxel_size=result["voxel_size"], world_scale=result["world_transform"]["scale"],
                                   iterations=result["iterations"], train_wall_s=result["train_wall_s"])

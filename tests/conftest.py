@@ -125,9 +125,10 @@ def demo(tmp_path_factory):
 @pytest.fixture(scope="module")
 def names(demo):
     """Image names of the ``demo`` fixture's scene."""
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.config import DataConfig
+    from cusgs_jax.data.loader import load_scene
 
-    return load_scene(demo, holdout_every=0).names
+    return load_scene(demo, DataConfig(format="colmap", holdout_every=0)).names
 
 
 @pytest.fixture(scope="session")
@@ -137,7 +138,7 @@ def feature_run(tmp_path_factory):
 
     def build(root):
         from cusgs_jax.app.run import run
-        from cusgs_jax.config import compose_config
+        from cusgs_jax.compose import compose_config
         from cusgs_jax.data.demo import generate_demo_scene
 
         scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)
@@ -158,7 +159,7 @@ def small_run(tmp_path_factory):
 
     def build(root):
         from cusgs_jax.app.run import run
-        from cusgs_jax.config import compose_config
+        from cusgs_jax.compose import compose_config
         from cusgs_jax.data.demo import generate_demo_scene
 
         scene = generate_demo_scene(root / "scene", num_views=6, width=40, height=30, num_points=800)

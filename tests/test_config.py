@@ -13,21 +13,9 @@ import pytest
 from cusgs_jax import config as config_module
 from cusgs_jax import convnets
 from cusgs_jax.errors import ConfigError
-from cusgs_jax.config import (
-    DEMO_FEATURE_MODELS,
-    YAML_SPELLINGS,
-    Config,
-    DecoderConfig,
-    FeatureConfig,
-    FeatureModelConfig,
-    HydraSchema,
-    ModelConfig,
-    PruneConfig,
-    compose_config,
-    compose_node,
-    from_dict,
-    from_omegaconf,
-)
+from cusgs_jax.config import (DEMO_FEATURE_MODELS, Config, DecoderConfig, FeatureConfig, FeatureModelConfig, ModelConfig,
+                              PruneConfig)
+from cusgs_jax.compose import YAML_SPELLINGS, HydraSchema, compose_config, compose_node, from_dict, from_omegaconf, register_configs
 
 SRC = pathlib.Path(config_module.__file__).parent
 CONF = SRC / "conf"
@@ -62,7 +50,7 @@ def test_composed_hydra_node_holds_every_field_with_its_default():
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
-    config_module.register_configs()
+    register_configs()
     GlobalHydra.instance().clear()
     with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
         node = OmegaConf.to_container(compose("config"), resolve=True)
@@ -218,7 +206,7 @@ def test_experiments_compose_and_sweep_config_fields(experiment):
     listed value of each composes too."""
     from omegaconf import OmegaConf
 
-    from cusgs_jax.config import compose_node
+    from cusgs_jax.compose import compose_node
 
     base = [f"experiment={experiment}"]
     assert isinstance(compose_config(base), Config)

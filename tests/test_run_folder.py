@@ -1,5 +1,6 @@
 """run_folder.py: the run folder's records round-trip, a folder written by revision 7f1a80c (before the
-contract) still reads, and a newer version is refused with one line naming both versions."""
+contract) still reads, a newer version is refused with one line naming both versions, and a current record
+with a key it does not define is refused naming the key."""
 
 from __future__ import annotations
 
@@ -14,18 +15,32 @@ from cusgs_jax.run_folder import VERSION, CheckpointMeta, EvalRecord, read_eval,
 OLD = pathlib.Path(__file__).parent / "fixtures" / "run_7f1a80c"  # eval.json and checkpoint metadata of its main job
 
 
-def test_an_eval_record_round_trips_with_its_extra_keys_flat(tmp_path):
+def test_an_eval_record_round_trips_and_the_old_one_reads_every_key_typed(tmp_path):
     old = json.loads((OLD / "eval.json").read_text())
     record = EvalRecord.from_json(old)
     assert record.version == 1 and record.time is None and record.compilations is None  # before the contract
-    assert record.psnr == old["psnr"] and record.get("lpips_vgg") == old["lpips_vgg"]
-    assert set(record.extra) == {"lpips_vgg", "lpips_alex", "render_ms_before_prune", "prune", "densify", "features"}
+    assert record.psnr == old["psnr"] and record.lpips_vgg == old["lpips_vgg"] and record.prune == old["prune"]
+    assert record.extra == {} and record.features == old["features"] and record.densify == old["densify"]
     new = EvalRecord.from_json({**record.to_json(), "version": VERSION, "time": {"total": 1.0}})
     write_eval(tmp_path, new)
     again = read_eval(tmp_path)
     assert again == new and again.to_json() == json.loads((tmp_path / "eval.json").read_text())
     assert {k: v for k, v in again.to_json().items() if k in old} == old  # every key of the old record kept
     assert read_eval(tmp_path / "missing") is None
+
+
+def test_an_unknown_key_is_refused_in_a_current_record_and_kept_in_an_older_one(tmp_path):
+    with pytest.raises(UserError, match=r"x\.json: 'psnrr' is not a key of the run's record \(run-folder version "
+                                        rf"{VERSION}; its keys are .*psnr.*\): the file was edited"):
+        EvalRecord.from_json({"version": VERSION, "psnrr": 30.0}, "x.json")
+    with pytest.raises(UserError, match=r"'a', 'b' are not keys of a checkpoint's metadata"):
+        CheckpointMeta.from_json({"version": VERSION, "step": 3, "a": 1, "b": 2}, "x.json")
+    (tmp_path / "eval.json").write_text(json.dumps({"version": VERSION, "psnr": 30.0, "psnrr": 1}))
+    with pytest.raises(UserError, match="'psnrr' is not a key"):
+        read_eval(tmp_path)  # every reader goes through read_eval
+    older = EvalRecord.from_json({"version": 2, "psnr": 30.0, "counted_views": 4}, "x.json")  # a v2 strategy's key
+    assert older.extra == {"counted_views": 4} and older.get("counted_views") == 4
+    assert older.to_json()["counted_views"] == 4  # written back flat, as version 2 wrote it
 
 
 def test_checkpoint_metadata_round_trips_and_the_old_one_reads():

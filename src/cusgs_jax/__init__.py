@@ -20,12 +20,11 @@ __version__ = "0.1.0"
 _EXPORTS = {
     # configuration and types
     "Config": "config", "DataConfig": "config", "ModelConfig": "config", "SplatConfig": "config", "GrowConfig": "config",
-    "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "config",
+    "PruneConfig": "config", "FeatureConfig": "config", "DecoderConfig": "config", "compose_config": "compose",
     "Camera": "types",
     # data
     "SceneData": "data.scene_data", "SceneError": "data.colmap", "load_scene": "data.loader",
-    "load_any_scene": "data.layouts", "detect_format": "data.layouts",
-    "load_blender_scene": "data.blender", "load_nerfstudio_scene": "data.nerfstudio",
+    "load_cameras": "data.loader", "SceneCameras": "data.loader", "detect_format": "data.layouts",
     "normalize_scene": "data.normalize", "WorldTransform": "data.normalize",
     "UserError": "errors", "ConfigError": "errors", "CheckpointError": "errors",
     "demo_scene_path": "data.demo", "generate_demo_scene": "data.demo",

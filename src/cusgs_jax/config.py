@@ -1,37 +1,31 @@
 """Configuration: frozen dataclasses, the ONLY place a default value is written.
 
 ``Config()`` is exactly what ``cusgs-train`` runs with no overrides (the 3000-step demo schedule). Hydra's
-schema is built from the same classes (:class:`HydraSchema`, registered as ``base_config`` by
-:func:`register_configs`), ``conf/config.yaml`` composes it first, and the YAML group options under ``conf/``
+schema is built from the same classes (:mod:`cusgs_jax.compose`: the composition, the schema's twins and the
+YAML spellings), ``conf/config.yaml`` composes it first, and the YAML group options under ``conf/``
 (``grow=scaffold``, ``prune=none``, ``features=demo``, the sweeps) hold only *overrides* of these values.
-Unknown keys and values of the wrong type are rejected by Hydra against this schema. Configuration is closed
-over by factories (``make_train_step(cfg, …)``) and never traced; the frozen classes make that safe.
-
-Fields hold what their type says; :func:`from_dict`, which every composed or stored configuration
-passes, converts the two YAML spellings of :data:`YAML_SPELLINGS`: ``model.voxel_size=auto`` → None,
-``features.models`` = ``auto`` / ``demo`` / a list of dicts → None / :data:`DEMO_FEATURE_MODELS` / a
-tuple of :class:`FeatureModelConfig`. Both Nones ("auto") are resolved once, in setup, from the scene.
+Configuration is closed over by factories (``make_train_step(cfg, …)``) and never traced; the frozen classes
+make that safe. Fields hold what their type says; every ``auto`` (None) is resolved once, in setup, from the
+scene (:mod:`cusgs_jax.app.resolve`).
 
 Python code builds configs directly (``Config(model=ModelConfig(voxel_size=0.1))``, ``dataclasses.replace``)
-or composes them like the CLI does (:func:`compose_config`).
+or composes them like the CLI does (:func:`cusgs_jax.compose.compose_config`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import typing
-from typing import Any, Optional
+from typing import Optional
 
 from cusgs_jax.checks import at_least as _at_least, finite_number as _number, lists_to_tuples as _tuples
 from cusgs_jax.checks import require, require_config  # noqa: F401  (re-exported: the shell imports them from here)
-from cusgs_jax.errors import ConfigError
 
 # M3's split of its 160 query channels when all six models are present (docs/method.md#hierarchical-queries).
 M3_QUERY_DIMS = {"clip": 16, "siglip": 32, "dinov2": 32, "seem": 16, "llama3": 32, "llamav": 32}
 PRUNE_STRATEGIES = ("feature_aware", "scaffold", "none")
 QUERY_GRANULARITIES = ("per_anchor", "per_gaussian")
 CAMERA_FRAMES = ("crop", "mask", "lens")  # data.undistort; a scene's camera_frame (data/scene_data.py)
-COMPOSITORS = ("auto", "jax", "pallas")  # splat.backend; rasterize(backend=...) (splat/render.py)
+COMPOSITORS = ("auto", "jax", "pallas")  # splat.backend; splat.Compositor.backend (splat/render.py)
 MATMUL_PRECISIONS = ("highest", "default")  # model.matmul_precision (cusgs_jax/precision.py)
 DATASET_FORMATS = ("colmap", "blender", "nerfstudio")  # data.format, besides "auto" (data/layouts.py)
 RANDOM_POINT_RULES = ("cube", "cube_and_rays")  # where random initial points go (data/random_points.py)
@@ -312,9 +306,15 @@ class GrowConfig:
     init_factor: int = 16  # update_init_factor
     hierarchy_factor: int = 4  # update_hierachy_factor
     capacity_growth: float = 1.5
+    # Random starts (no points): Scaffold-GS's opacity prune every early_cull_every steps before `start`
+    # (densify/early_cull.py); auto = on for random starts, off for SfM points.
+    early_cull: str = "auto"  # auto | on | off
+    early_cull_every: int = 50
 
     def __post_init__(self):
-        _at_least(self, "grow", 1, "interval", "levels", "init_factor", "hierarchy_factor")
+        _at_least(self, "grow", 1, "interval", "levels", "init_factor", "hierarchy_factor", "early_cull_every")
+        require(self.early_cull in ("auto", "on", "off"), "grow.early_cull", self.early_cull,
+                "must be auto (on for random starts, off for SfM points), on or off", "e.g. grow.early_cull=off")
         require(_number(self.capacity_growth) and self.capacity_growth > 1, "grow.capacity_growth",
                 self.capacity_growth, "must be > 1")
 
@@ -379,16 +379,6 @@ class FeatureModelConfig:
             object.__setattr__(self, "query_dim", M3_QUERY_DIMS.get(self.name, 16))
 
 
-def _feature_model(values) -> FeatureModelConfig:
-    """One ``features.models`` entry as YAML gives it: a dict of :class:`FeatureModelConfig` fields."""
-    known = [f.name for f in dataclasses.fields(FeatureModelConfig)]
-    require(isinstance(values, dict), "features.models", values, f"each model must be a mapping of {known}",
-            "e.g. 'features.models=[{name: daisy}]'")
-    unknown = sorted(set(values) - set(known))
-    require(not unknown, "features.models", values, f"unknown key(s) {unknown}; each model takes {known}")
-    return FeatureModelConfig(**values)
-
-
 # The demo scene's stand-in "foundation models" (features=auto on the demo scene, features=demo):
 # DAISY descriptors (104-D), the generator's per-object vectors (32-D) and ImageNet VGG16 relu3_3
 # (256-D at 1/4 resolution; PSC bank of about 840 entries at gamma 0.45, extract/vgg.py says why).
@@ -404,7 +394,7 @@ class FeatureConfig:
     ``models``: a tuple of :class:`FeatureModelConfig`, or None ("auto"): the demo's
     models (:data:`DEMO_FEATURE_MODELS`) on the built-in demo scene and none on a user's
     scene, resolved by :meth:`resolve` in setup (unresolved it means none). In YAML and on the
-    command line: ``auto``, ``demo`` or a list of ``{name: …, query_dim: …}`` (:func:`from_dict`
+    command line: ``auto``, ``demo`` or a list of ``{name: …, query_dim: …}`` (:func:`cusgs_jax.compose.from_dict`
     converts them).
     """
 
@@ -476,124 +466,3 @@ class Config:
             current = getattr(self, name)
             changes[name] = (dataclasses.replace(current, **values) if isinstance(values, dict) else values)
         return dataclasses.replace(self, **changes)
-
-
-# --- Hydra -----------------------------------------------------------------------------------
-
-
-def _voxel_size_from_yaml(value) -> Optional[float]:
-    """``model.voxel_size`` as YAML / the command line give it: ``auto`` (or null) → None, a number → float."""
-    if value is None or value == "auto":
-        return None
-    require(_number(value) and value > 0, "model.voxel_size", value,
-            "must be 'auto' or a cell size > 0 in units of the scene extent",
-            "e.g. model.voxel_size=0.01 (1 % of the extent) or model.voxel_size=auto")
-    return float(value)
-
-
-def _feature_models_from_yaml(value) -> Optional[tuple[FeatureModelConfig, ...]]:
-    """``features.models`` as YAML / the command line give it: ``auto`` (or null) → None, ``demo`` →
-    :data:`DEMO_FEATURE_MODELS`, a list of dicts → a tuple of :class:`FeatureModelConfig`."""
-    if value is None or value == "auto":
-        return None
-    if value == "demo":
-        return DEMO_FEATURE_MODELS
-    require(isinstance(value, (list, tuple)), "features.models", value, "must be 'auto', 'demo' or a list of "
-            "models", "e.g. 'features.models=[{name: daisy}]'")
-    return tuple(_feature_model(m) for m in value)
-
-
-#: Options whose YAML / command-line spelling is not their typed value: (YAML → value, value → YAML).
-YAML_SPELLINGS = {
-    "model.voxel_size": (_voxel_size_from_yaml, lambda size: "auto" if size is None else size),
-    "features.models": (_feature_models_from_yaml,
-                        lambda models: "auto" if models is None else tuple(dataclasses.asdict(m) for m in models)),
-}
-
-
-class HydraSchema:
-    """Hydra's schema of :class:`Config` (``base_config``): a mutable twin of each frozen class — Hydra
-    must merge overrides into it, and frozen ones would reach it read-only — with the same fields,
-    types and defaults, except that the :data:`YAML_SPELLINGS` options are typed ``Any`` and default to
-    their YAML spelling (``model.voxel_size: auto``). The twins are attributes of this class
-    (``HydraSchema.Config``, ``HydraSchema.ModelConfig``, …), so composed configs pickle (launchers)."""
-
-
-def _twin(defaults, prefix: str = "") -> type:
-    """The :class:`HydraSchema` twin of the config instance ``defaults`` (its values become the defaults)."""
-    hints, spec, name = typing.get_type_hints(type(defaults)), [], type(defaults).__name__
-    for field in dataclasses.fields(defaults):
-        option, value = prefix + field.name, getattr(defaults, field.name)
-        if dataclasses.is_dataclass(value):
-            spec.append((field.name, (twin := _twin(value, f"{option}.")), dataclasses.field(default_factory=twin)))
-        elif option in YAML_SPELLINGS:
-            spec.append((field.name, Any, dataclasses.field(default=YAML_SPELLINGS[option][1](value))))
-        else:
-            spec.append((field.name, hints[field.name], dataclasses.field(default=value)))
-    twin = dataclasses.make_dataclass(name, spec, namespace={"__module__": __name__,
-                                                             "__qualname__": f"HydraSchema.{name}"})
-    setattr(HydraSchema, name, twin)
-    return twin
-
-
-_twin(Config())
-
-
-def register_configs() -> None:
-    """Register :class:`HydraSchema` (:class:`Config` with its defaults) as Hydra's ``base_config`` schema."""
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(name="base_config", node=HydraSchema.Config)
-
-
-def from_omegaconf(cfg) -> Config:
-    """The frozen :class:`Config` of a composed Hydra config (the ``hydra`` node ignored)."""
-    from omegaconf import OmegaConf
-
-    values = OmegaConf.to_container(cfg, resolve=True)
-    values.pop("hydra", None)
-    return from_dict(values)
-
-
-def from_dict(values: dict) -> Config:
-    """:class:`Config` from a nested dict of plain values (a composed Hydra config, a run's
-    ``.hydra/config.yaml``, a checkpoint's record), the :data:`YAML_SPELLINGS` converted;
-    unknown keys raise ``ValueError``."""
-    return _build(Config, values, "")
-
-
-def _build(cls, values: dict, prefix: str):
-    values = dict(values or {})
-    kwargs = {}
-    for field in dataclasses.fields(cls):
-        if field.name not in values:
-            continue
-        value = values.pop(field.name)
-        sub = field.default_factory if field.default_factory is not dataclasses.MISSING else None
-        if dataclasses.is_dataclass(sub) and isinstance(value, dict):
-            value = _build(sub, value, f"{prefix}{field.name}.")
-        elif prefix + field.name in YAML_SPELLINGS:
-            value = YAML_SPELLINGS[prefix + field.name][0](value)
-        kwargs[field.name] = value
-    if values:
-        raise ConfigError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
-                         f"valid: {[prefix + f.name for f in dataclasses.fields(cls)]}")
-    return cls(**kwargs)
-
-
-def compose_node(overrides: tuple[str, ...] | list[str] = (), return_hydra_config: bool = False):
-    """The OmegaConf node ``cusgs-train <overrides>`` composes (Hydra's compose API); with
-    ``return_hydra_config`` it also holds the ``hydra`` node (launcher, sweeper)."""
-    from hydra import compose, initialize_config_module
-    from hydra.core.global_hydra import GlobalHydra
-
-    register_configs()
-    if GlobalHydra.instance().is_initialized():
-        GlobalHydra.instance().clear()
-    with initialize_config_module("cusgs_jax.conf", version_base="1.3"):
-        return compose("config", overrides=list(overrides), return_hydra_config=return_hydra_config)
-
-
-def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
-    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
-    return from_omegaconf(compose_node(overrides))

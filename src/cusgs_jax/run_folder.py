@@ -18,7 +18,9 @@ readers (``cusgs-report``, ``load_trained`` and through it ``cusgs-export`` and 
 them through :func:`read_eval` and :meth:`CheckpointMeta.from_json`. Both records carry
 ``version`` (:data:`VERSION`). A record without one was written before the contract (version 1, up
 to revision 7f1a80c): it reads, its newer fields None. A record of a newer version is refused with
-one line naming both versions.
+one line naming both versions. A current-version record holds its fields and nothing else: a key
+the record does not define (a misspelling, a hand edit) is refused naming it; records of older
+versions keep such keys in ``extra`` (version 2 wrote a strategy's own keys at the top level).
 """
 
 from __future__ import annotations
@@ -37,8 +39,9 @@ __all__ = ["VERSION", "EVAL_FILE", "METRICS_FILE", "CURVE_FILE", "PLOT_FILE", "R
            "FEATURES_MD", "CHECKPOINTS_DIR", "BANKS_FILE", "FAILED_FILE", "HYDRA_DIR", "HYDRA_FILES", "EvalRecord",
            "CheckpointMeta", "accept_hydra_record", "read_eval", "restore_hydra_record", "write_eval"]
 
-#: The run-folder version this code writes; it reads every version up to it (1: unversioned records).
-VERSION = 2
+#: The run-folder version this code writes; it reads every version up to it (1: unversioned records;
+#: 3: every key typed, a research strategy's own ``eval.json`` keys under ``strategies``).
+VERSION = 3
 
 EVAL_FILE = "eval.json"
 METRICS_FILE = "metrics.jsonl"
@@ -98,8 +101,9 @@ def _version(data: dict, where: str) -> int:
 
 
 class _Record:
-    """What both records share: read from and written to a JSON object with their fields typed and every key
-    they do not know kept in ``extra`` (written back flat beside the fields), checked for their version."""
+    """What both records share: read from and written to a JSON object with their fields typed, checked for
+    their version. A current-version record may hold its fields only; an older one keeps the keys it does not
+    know in ``extra`` (written back flat beside the fields)."""
 
     _what = "a run-folder record"  # how a message names the kind of record
 
@@ -109,14 +113,20 @@ class _Record:
 
     @classmethod
     def from_json(cls, data: dict, where: str):
-        """The record of a parsed JSON object (``where`` names it in messages); UserError for a newer version.
-        Every field may be absent (None): an unfinished or older record still reads."""
+        """The record of a parsed JSON object (``where`` names it in messages); UserError for a newer version
+        or, in a current-version record, a key the record does not define. Every field may be absent (None):
+        an unfinished or older record still reads."""
         if not isinstance(data, dict):
             raise UserError(f"{where} holds {type(data).__name__}, not {cls._what} (a JSON object)")
         version = _version(data, where)
         names = cls._names()
         known = {k: v for k, v in data.items() if k in names}
         extra = {k: v for k, v in data.items() if k not in names}
+        if extra and version == VERSION:
+            unknown = ", ".join(repr(k) for k in sorted(extra))
+            raise UserError(f"{where}: {unknown} {'is not a key' if len(extra) == 1 else 'are not keys'} of "
+                            f"{cls._what} (run-folder version {VERSION}; its keys are {', '.join(sorted(names))}): "
+                            "the file was edited or written by other code; restore it or rerun the job")
         return cls(**{**known, "version": version}, extra=extra)
 
     def to_json(self) -> dict:
@@ -134,10 +144,10 @@ class _Record:
 
 @dataclasses.dataclass(frozen=True)
 class EvalRecord(_Record):
-    """``eval.json``. The fields every run writes are typed here; ``extra`` holds what a strategy or an
-    optional part adds at the top level (``prune``, ``render_ms_before_prune``, ``densify``, the LPIPS
-    keys ``lpips_vgg`` / ``lpips_alex``, ``features``), written flat beside them. Fields a version-1
-    record lacks are None."""
+    """``eval.json``: every key a run writes, typed. Fields an older record lacks are None (a version-2
+    record keeps the keys it held beyond these in ``extra``); the optional parts' keys are None when the
+    part did not run (``lpips_vgg`` / ``lpips_alex`` without the ``lpips`` extra, ``features`` without
+    feature models, ``render_ms_before_prune`` without feature-aware pruning)."""
 
     psnr: float | None = None
     ssim: float | None = None
@@ -179,6 +189,15 @@ class EvalRecord(_Record):
     compilations: dict | None = None
     time: dict | None = None
     carving: dict | None = None  # what carving did to random initial points (data/carve.py), None otherwise
+    # written flat by version 2 too (kept in its ``extra`` there)
+    lpips_vgg: float | None = None
+    lpips_alex: float | None = None
+    features: dict | None = None  # the feature metrics of each model (eval/features.py) and their markdown
+    render_ms_before_prune: float | None = None
+    prune: dict | None = None  # cfg.prune and what its passes did (densify/base.run_defaults)
+    densify: dict | None = None  # {strategy name: tally} (densify/base.Tally)
+    # version 3
+    strategies: dict | None = None  # keys a research strategy's ``results`` adds that are none of these fields
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 

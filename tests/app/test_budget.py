@@ -48,3 +48,18 @@ def test_an_unknown_stage_is_refused():
     with pytest.raises(KeyError, match="unknown stage 'lunch'"):
         with TimeBudget(CompileLog()).stage("lunch"):
             pass
+
+
+def test_the_budget_owns_the_training_clock_and_a_resume_continues_it():
+    budget = TimeBudget()  # no compile log: compiles are not told apart, "compile" is None
+    with budget.clock:
+        time.sleep(0.02)
+        with budget.clock.paused():
+            time.sleep(0.05)  # e.g. a probe render: not training time
+    assert 0.02 <= budget.clock.total < 0.05
+    budget.resume_clock(100.0)  # a resumed run starts from its checkpoint's wall_s
+    with budget.clock:
+        time.sleep(0.01)
+    assert 100.01 <= budget.clock.total < 100.05
+    table = budget.as_dict()
+    assert table["compile"] is None and table["compile_wait"] == 0.0 and " (compiling" not in budget.line()

@@ -6,7 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cusgs_jax.app.ahead import Program
 from cusgs_jax.app.compiles import CompileLog
+
+
+class _Placed:
+    """What the batched step looks like to the compile log: a callable holding its jitted part as ``jitted``."""
+
+    def __init__(self, jitted):
+        self.jitted = jitted
 
 
 def test_each_new_program_is_recorded_once_by_name_and_a_cached_call_is_not():
@@ -18,7 +26,8 @@ def test_each_new_program_is_recorded_once_by_name_and_a_cached_call_is_not():
         fn(jnp.ones(7)).block_until_ready()
         fn(jnp.ones(7)).block_until_ready()  # jit's in-memory cache: nothing compiled
         fn(jnp.ones(9)).block_until_ready()  # a new shape: a new program
-    assert log.count("jit(my_distinct_function)") == 2
+    assert log.count("jit(my_distinct_function)") == 2 == log.count(fn)  # by name, or by the function itself
+    assert log.count(Program(fn)) == 2 == log.count(_Placed(fn))  # through what wraps it (app/ahead.py, the batched step)
     records = [r for r in log.records if r["function"] == "jit(my_distinct_function)"]
     assert all(r["seconds"] >= r["backend_seconds"] > 0 for r in records)
     assert log.seconds >= log.backend_seconds >= sum(r["backend_seconds"] for r in records) - 1e-3

@@ -18,7 +18,7 @@ import cusgs_jax
 from cusgs_jax.app.export import export_run, main
 from cusgs_jax.app.render_ply import evaluate_ply
 from cusgs_jax.app.run import run
-from cusgs_jax.config import compose_config
+from cusgs_jax.compose import compose_config
 from cusgs_jax.errors import UserError
 from cusgs_jax.io import read_ply
 from cusgs_jax.io.load_run import load_trained

@@ -63,7 +63,7 @@ def test_a_fisheye_past_90_degrees_is_refused_by_every_cli_that_undistorts(tmp_p
 
     from cusgs_jax.app.render_ply import main as render_ply
     from cusgs_jax.app.run import setup
-    from cusgs_jax.config import compose_config
+    from cusgs_jax.compose import compose_config
     from cusgs_jax.errors import UserError
     from cusgs_jax.io import SplatModel, write_ply
     from cusgs_jax.testing.distorted_scenes import distorted_colmap_scene

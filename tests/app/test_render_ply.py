@@ -15,8 +15,9 @@ import pytest
 
 import cusgs_jax
 from cusgs_jax.app.render_ply import main
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.io import SplatModel, write_ply
 
 C0 = 0.28209479177387814
@@ -27,7 +28,7 @@ def scene_and_ply(tmp_path_factory):
     """The demo scene's SfM points as small isotropic degree-0 Gaussians, in the COLMAP frame."""
     root = tmp_path_factory.mktemp("render_ply")
     scene_dir = generate_demo_scene(root / "scene", num_views=4, width=32, height=24, num_points=300)
-    scene = load_scene(scene_dir, holdout_every=0)
+    scene = load_scene(scene_dir, DataConfig(format="colmap", holdout_every=0))
     points = scene.points.astype(np.float64)
     dist = np.linalg.norm(points[:, None] - points[None], axis=-1)
     np.fill_diagonal(dist, np.inf)
@@ -55,7 +56,7 @@ def test_render_ply_cli(scene_and_ply, tmp_path, capsys):
     assert math.isfinite(result["psnr"]) and math.isfinite(result["ssim"])
     # the SfM points as small Gaussians cover part of each view: they must beat a blank (black background)
     # render of the same views by 1.2 dB. Measured: blank 8.59 dB, the render 10.53 dB (+1.94)
-    scene = load_scene(scene_dir, holdout_every=2)
+    scene = load_scene(scene_dir, DataConfig(format="colmap", holdout_every=2))
     targets = scene.images[scene.test_indices].astype(np.float64) / 255
     blank = np.mean([-10 * np.log10(np.mean(t ** 2)) for t in targets])
     assert result["psnr"] > blank + 1.2, (result["psnr"], blank)

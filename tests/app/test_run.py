@@ -14,7 +14,8 @@ import pytest
 from cusgs_jax.training.inputs import load_data
 from cusgs_jax.run_folder import accept_hydra_record
 from cusgs_jax.app.run import finalise, run, setup, train
-from cusgs_jax.config import DEMO_FEATURE_MODELS, compose_config
+from cusgs_jax.config import DEMO_FEATURE_MODELS
+from cusgs_jax.compose import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
@@ -102,9 +103,9 @@ def test_run_writes_all_outputs(straight, tiny_scene):
     # the training views' mean colour scores 13.76 dB (a 90-step run reaches 15.37 dB, but takes 35 s longer)
     scene, _ = load_data(_cfg(tiny_scene))
     targets = scene.images[scene.test_indices].astype(np.float64) / 255
-    assert [v["name"] for v in result["per_view"]] == [scene.names[i] for i in scene.test_indices]
+    assert [v["name"] for v in result.per_view] == [scene.names[i] for i in scene.test_indices]
     blank = np.mean([_psnr(np.broadcast_to(scene.background, t.shape), t) for t in targets])
-    assert np.isfinite(result["psnr"]) and result["psnr"] > blank + 3.0, (result["psnr"], blank)
+    assert np.isfinite(result.psnr) and result.psnr > blank + 3.0, (result.psnr, blank)
     for name in ("metrics.jsonl", "eval_curve.jsonl", "eval.json", "error_vs_time.png"):
         assert (tmp_path / name).is_file(), name
     rows = _jsonl(tmp_path / "metrics.jsonl")
@@ -113,7 +114,7 @@ def test_run_writes_all_outputs(straight, tiny_scene):
     curve = _jsonl(tmp_path / "eval_curve.jsonl")
     assert [c["step"] for c in curve] == [15, 30]
     evaluation = json.loads((tmp_path / "eval.json").read_text())
-    assert evaluation == json.loads(json.dumps(result))  # the returned dict is what eval.json holds
+    assert evaluation == json.loads(json.dumps(result.to_json()))  # the returned record is what eval.json holds
     assert len(evaluation["per_view"]) == 2 and evaluation["params"]["total"] > 0
     assert evaluation["checkpoint_bytes"] > 0 and evaluation["render_ms_per_view"] > 0
     # feature-aware pruning ran at steps 10, 20, 30 and its count matches the anchors lost
@@ -124,7 +125,7 @@ def test_run_writes_all_outputs(straight, tiny_scene):
     assert len(list((tmp_path / "renders").glob("*.png"))) == 2
     assert not any(key.startswith("lpips") for point in curve for key in point)  # LPIPS: final evaluation only
     if lpips_available():  # the lpips extra; AlexNet needs ≥ 31 pixels and these views are 40×30
-        assert 0 < evaluation["lpips_vgg"] < 1 and "lpips_alex" not in evaluation
+        assert 0 < evaluation["lpips_vgg"] < 1 and evaluation["lpips_alex"] is None  # every key written, None: not computed
         assert evaluation["lpips_vgg"] == pytest.approx(np.mean([v["lpips_vgg"] for v in evaluation["per_view"]]))
 
 
@@ -140,8 +141,8 @@ def test_eval_json_model_bytes_is_the_models_arrays_without_optimiser_state(stra
     want = sum(np.asarray(x)[alive].nbytes for x in rows)
     want += sum(np.asarray(x).nbytes for x in jax.tree_util.tree_leaves(model.nets))
     want += sum(np.asarray(b).nbytes for b in (model.banks or {}).values())
-    assert result["model_bytes"] == want == 4 * result["params"]["total"]
-    assert result["model_bytes"] < result["checkpoint_bytes"]  # the checkpoint adds the Adam moments
+    assert result.model_bytes == want == 4 * result.params["total"]
+    assert result.model_bytes < result.checkpoint_bytes  # the checkpoint adds the Adam moments
 
 
 def test_last_curve_point_equals_the_final_evaluation_and_the_curve_rises(learning):
@@ -150,10 +151,10 @@ def test_last_curve_point_equals_the_final_evaluation_and_the_curve_rises(learni
     tmp_path, result = learning
     curve = _jsonl(tmp_path / "eval_curve.jsonl")
     assert [c["step"] for c in curve] == [20, 40, 60]
-    assert curve[-1]["step"] == result["iterations"] == 60
-    assert curve[-1]["psnr"] == result["psnr"] and curve[-1]["ssim"] == result["ssim"]
-    assert result["psnr"] == pytest.approx(np.mean([v["psnr"] for v in result["per_view"]]), abs=1e-12)
-    assert result["curve"] == curve  # eval.json carries the same curve as eval_curve.jsonl
+    assert curve[-1]["step"] == result.iterations == 60
+    assert curve[-1]["psnr"] == result.psnr and curve[-1]["ssim"] == result.ssim
+    assert result.psnr == pytest.approx(np.mean([v["psnr"] for v in result.per_view]), abs=1e-12)
+    assert result.curve == curve  # eval.json carries the same curve as eval_curve.jsonl
     # Measured (2-core CPU): 13.187, 13.772, 14.478 dB; rises of +0.585 and +0.706 dB, +1.291 dB first to last,
     # which clears RISE_DB = 0.6 by 0.69 dB. A curve that stays flat or falls fails both checks.
     psnr = [c["psnr"] for c in curve]
@@ -210,8 +211,8 @@ def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp
         assert _strictly_increasing(values) and len(set(values)) == len(values)
     assert _strictly_increasing([r["wall_s"] for r in rows])
     assert _strictly_increasing([c["wall_s"] for c in curve])
-    assert result["curve"] == curve and result["iterations"] == 45
-    assert curve[-1]["psnr"] == result["psnr"]  # the last point is the final evaluation
+    assert result.curve == curve and result.iterations == 45
+    assert curve[-1]["psnr"] == result.psnr  # the last point is the final evaluation
     assert _latest_checkpoint(out) == 45
 
 
@@ -222,7 +223,7 @@ def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp
 def test_feature_run_reports_table2_metrics_and_retrieval(tiny_scene, tmp_path, granularity):
     result = run(_cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "train.iterations=20",
                       "eval.every=20", f"model.query_granularity={granularity}"), tmp_path)
-    feats = result["features"]
+    feats = result.features
     models = {m.name for m in available_models(DEMO_FEATURE_MODELS)}  # daisy, semantic (+ vgg16 with lpips)
     assert set(feats["models"]) == models
     for row in feats["models"].values():
@@ -246,12 +247,12 @@ def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_sc
              "eval.save_renders=false"]
     base = run(_cfg(tiny_scene, *short), tmp_path / "base")
     big = run(_cfg(moved, *short), tmp_path / "big")
-    assert big["voxel_size"] == pytest.approx(base["voxel_size"], rel=1e-4)  # in units of the extent
-    assert big["world_transform"]["scale"] == pytest.approx(base["world_transform"]["scale"] / 1000, rel=1e-4)
-    assert abs(big["alive_anchors"] - base["alive_anchors"]) <= 0.01 * base["alive_anchors"]
+    assert big.voxel_size == pytest.approx(base.voxel_size, rel=1e-4)  # in units of the extent
+    assert big.world_transform["scale"] == pytest.approx(base.world_transform["scale"] / 1000, rel=1e-4)
+    assert abs(big.alive_anchors - base.alive_anchors) <= 0.01 * base.alive_anchors
     losses = [[row["loss"] for row in _jsonl(folder / "metrics.jsonl")] for folder in (tmp_path / "base", tmp_path / "big")]
     np.testing.assert_allclose(losses[1], losses[0], rtol=1e-2)
-    assert big["psnr"] == pytest.approx(base["psnr"], abs=0.1)
+    assert big.psnr == pytest.approx(base.psnr, abs=0.1)
 
 
 @pytest.mark.slow  # 38 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
@@ -272,12 +273,12 @@ def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_pat
     assert [row["step"] for row in rows] == [1, 2, 3, 4, 5, 6]
     assert all(row["dropped_anchors"] == row["dropped_gaussians"] == row["dropped_pairs"] == 0 for row in rows)
     assert all(row["visible_anchors"] == row["alive_anchors"] for row in rows)  # every anchor in every view
-    assert result["replayed_steps"] >= 3 and result["recompilations"] >= result["replayed_steps"]
-    grown = result["capacities"]
+    assert result.replayed_steps >= 3 and result.recompilations >= result.replayed_steps
+    grown = result.capacities
     assert grown["visible_fraction"] > 0.05 and grown["active_fraction"] > 0.05 and grown["pairs_per_active"] > 0.05
-    assert result["dropped_anchors"] == result["dropped_pairs"] == 0
+    assert result.dropped_anchors == result.dropped_pairs == 0
     # no held-out views (data.holdout_every=0): the evaluation says it measured training views
-    assert result["evaluated_on"] == "train" and result["held_out_views"] == 0
+    assert result.evaluated_on == "train" and result.held_out_views == 0
 
 
 def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_path, caplog):
@@ -360,7 +361,7 @@ def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_
                                           r"train\.resume=true"):
         setup(_cfg(tiny_scene), out)
     result = run(_cfg(tiny_scene, "train.resume=true"), out)  # nothing left to train: evaluates again
-    assert result["psnr"] == straight[1]["psnr"] and _latest_checkpoint(out) == 30
+    assert result.psnr == straight[1].psnr and _latest_checkpoint(out) == 30
 
 
 def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, tiny_scene, tmp_path):
@@ -378,7 +379,7 @@ def test_the_run_folder_records_are_the_current_version(straight):
     from cusgs_jax.run_folder import VERSION, read_eval
 
     record = read_eval(straight[0])
-    assert record.version == VERSION == straight[1]["version"] and record.scene_digest and record.time["total"] > 0
+    assert record.version == VERSION == straight[1].version and record.scene_digest and record.time["total"] > 0
     assert record.camera_frame == "crop" and record.compilations["train_step"] >= 1
 
 
@@ -412,7 +413,7 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
 
     cfg = Config()
     state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
-    session = SimpleNamespace(cfg=cfg, state=state, banks=None, clock=SimpleNamespace(total=1.0),
+    session = SimpleNamespace(cfg=cfg, state=state, banks=None, budget=SimpleNamespace(clock=SimpleNamespace(total=1.0)),
                               strategies=(), tallies={}, replays=0, recompilations=0, alarmed=set())
     normal = dict(loss=0.5, loss_image=0.3, loss_l1=0.2, loss_feature=0.4, loss_feat_semantic_l2=0.05,
                   loss_feat_semantic_cos=0.35, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
@@ -439,8 +440,8 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
 def test_two_views_per_step_over_two_devices_train_and_are_recorded(tiny_scene, tmp_path, two_devices):
     result = run(_cfg(tiny_scene, "train.batch_size=2", "train.iterations=10", "eval.every=10", "grow.start=4",
                       "grow.interval=4", "grow.stop=10", "prune.start=6", "prune.interval=6"), tmp_path)
-    assert result["batch_size"] == 2 and result["devices"] == 2
-    assert np.isfinite(result["psnr"]) and result["prune"]["passes"] == 1
+    assert result.batch_size == 2 and result.devices == 2
+    assert np.isfinite(result.psnr) and result.prune["passes"] == 1
     rows = _jsonl(tmp_path / "metrics.jsonl")
     assert rows[-1]["step"] == 10 and all(r["dropped_anchors"] == 0 == r["dropped_pairs"] for r in rows)
     with pytest.raises(ConfigError, match=r"train.devices='8': only 2 device\(s\) are present"):
@@ -499,10 +500,10 @@ def test_compiling_ahead_changes_when_programs_compile_not_what_they_compute(str
     assert step == plain_step
     for a, b in zip(leaves, plain_leaves):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    assert (result["psnr"], result["ssim"], result["alive_anchors"]) == (plain["psnr"], plain["ssim"],
-                                                                         plain["alive_anchors"])
-    assert result["compilations"]["ahead"] >= 2 and plain["compilations"]["ahead"] == 0
-    assert set(result["time"]) >= {"compile_wait", "compile"} and plain["time"]["compile_wait"] > 0
+    assert (result.psnr, result.ssim, result.alive_anchors) == (plain.psnr, plain.ssim,
+                                                                         plain.alive_anchors)
+    assert result.compilations["ahead"] >= 2 and plain.compilations["ahead"] == 0
+    assert set(result.time) >= {"compile_wait", "compile"} and plain.time["compile_wait"] > 0
 
 
 def test_learning_rates_that_diverge_end_the_run_with_exit_2_and_a_record(tiny_scene, tmp_path):
@@ -529,3 +530,20 @@ def test_resuming_over_a_record_of_a_newer_version_is_refused_not_overwritten(st
     with pytest.raises(UserError, match="eval.json"):
         run(_cfg(tiny_scene, "train.resume=true", "train.iterations=40"), folder)
     assert json.loads((folder / "eval.json").read_text())["version"] == 99
+
+
+def test_a_run_reads_its_scene_once_and_extracts_features_from_the_images_it_trains_on(tmp_path, monkeypatch):
+    """Setup loads the scene once (data.loader.load_scene); the missing built-in features are extracted from that
+    loaded scene (extract.scene.extract_scene), not from a second read of the folder."""
+    from cusgs_jax.data import layouts
+
+    scene = generate_demo_scene(tmp_path / "scene", width=40, height=30, num_views=4, num_points=1500)
+    reads = []
+    reader = layouts.READERS["colmap"]
+    monkeypatch.setitem(layouts.READERS, "colmap", lambda folder, data: reads.append(folder) or reader(folder, data))
+    session = setup(_cfg(scene, "features.models=[{name: daisy}]", "features.sample_pixels=200"),
+                    tmp_path / "run")
+    assert reads == [scene] and sorted(session.banks) == ["daisy"]
+    meta = json.loads((scene / "features" / "daisy" / "meta.json").read_text())
+    assert meta["image_size"] == [session.scene.width, session.scene.height]
+    session.ckpt.close()

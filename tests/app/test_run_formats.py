@@ -7,7 +7,8 @@ import json
 import pytest
 
 from cusgs_jax.app.run import run
-from cusgs_jax.config import compose_config
+from cusgs_jax.config import DataConfig
+from cusgs_jax.compose import compose_config
 from cusgs_jax.testing.transforms_scenes import write_blender_scene
 
 # eval.every=6: the held-out curve is evaluated once, at the last step (no test reads a mid-run point, and one at
@@ -42,7 +43,7 @@ def test_blender_scene_trains_and_evaluates_on_its_test_split(blender_run):
     assert saved["background"] == [1.0, 1.0, 1.0]  # splat.background not set: white for Blender
     assert 0 < saved["voxel_size"] < 0.2 and saved["alive_anchors"] > 100  # auto on the random points
     assert saved["initial_points"] == "cube"  # data.random_init=auto on a Blender scene
-    assert result["psnr"] == saved["psnr"] and saved["psnr"] > 0
+    assert result.psnr == saved["psnr"] and saved["psnr"] > 0
 
 
 def test_render_ply_on_a_blender_scene(tmp_path, capsys):
@@ -85,7 +86,7 @@ def test_blender_run_exports_to_the_scenes_own_frame(blender_run, tmp_path):
 
     from cusgs_jax.app.export import export_run
     from cusgs_jax.app.render_ply import evaluate_ply
-    from cusgs_jax.data.layouts import load_any_scene
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.io import read_ply
 
@@ -95,7 +96,7 @@ def test_blender_run_exports_to_the_scenes_own_frame(blender_run, tmp_path):
     scene_frame = export_run(out, tmp_path / "scene_frame.ply", progress=False, refine=0)
     normalised = export_run(out, tmp_path / "normalised.ply", colmap_frame=False, progress=False, refine=0)
 
-    raw = load_any_scene(truth["root"], num_random_points=2)  # the Blender frame, as every tool reads it
+    raw = load_scene(truth["root"], DataConfig(random_points=2))  # the Blender frame, as every tool reads it
     trained, _ = normalize_scene(raw)
 
     def pixels(points, viewmats, Ks):
@@ -119,15 +120,15 @@ def test_a_lens_demo_trains_through_its_lens_on_the_whole_frame(tmp_path, monkey
     overrides = ["data.demo.lens=opencv", "data.demo.views=6", "data.demo.width=48", "data.demo.height=36",
                  "data.holdout_every=3", "features=none", *TINY[:-1]]
     result = run(compose_config([*overrides, "data.undistort=lens"]), tmp_path / "lens")
-    assert (result["width"], result["height"]) == (48, 36) and result["camera_frame"] == "lens"
-    assert result["valid_pixels"] == 1.0 and result["psnr"] > 8
+    assert (result.width, result.height) == (48, 36) and result.camera_frame == "lens"
+    assert result.valid_pixels == 1.0 and result.psnr > 8
     assert not (tmp_path / "cache" / "undistorted").exists()
     from cusgs_jax import load_trained
 
     trained = load_trained(tmp_path / "lens")  # the recorded training cameras keep their lens
     assert trained.cameras.lens is not None and trained.cameras.lens.coeffs.shape == (len(trained.cameras.K), 6)
     cropped = run(compose_config([*overrides, "data.undistort=crop"]), tmp_path / "crop")
-    assert cropped["camera_frame"] == "crop" and cropped["width"] < 48
+    assert cropped.camera_frame == "crop" and cropped.width < 48
 
 
 @pytest.mark.parametrize("ply", [pytest.param(False, id="random_points"),
@@ -145,4 +146,4 @@ def test_nerfstudio_scene_trains_and_evaluates(tmp_path, ply):
     assert saved["evaluated_on"] == "held_out" and saved["held_out_views"] == 2  # frames 0 and 8 of 9
     assert saved["initial_points"] == ("scene_points" if ply else "cube_and_rays")
     assert saved["background"] == [0.0, 0.0, 0.0] and saved["camera_frame"] == "crop"
-    assert result["psnr"] == saved["psnr"] and saved["psnr"] > 0 and saved["alive_anchors"] > 0
+    assert result.psnr == saved["psnr"] and saved["psnr"] > 0 and saved["alive_anchors"] > 0

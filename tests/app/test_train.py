@@ -15,7 +15,8 @@ from hydra import compose, initialize_config_module
 from omegaconf import OmegaConf
 
 from cusgs_jax.app.train import record_failure
-from cusgs_jax.config import Config, compose_config, register_configs
+from cusgs_jax.config import Config
+from cusgs_jax.compose import compose_config, register_configs
 from cusgs_jax.data.demo import generate_demo_scene
 
 APP = [sys.executable, "-m", "cusgs_jax.app.train"]

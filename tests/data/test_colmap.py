@@ -11,7 +11,10 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from cusgs_jax.data.colmap import SceneData, SceneError, load_cameras, load_scene  # noqa: E402
+from cusgs_jax.config import DataConfig  # noqa: E402
+from cusgs_jax.data.colmap import SceneData, SceneError  # noqa: E402
+from cusgs_jax.data.loader import load_cameras, load_scene  # noqa: E402
+from cusgs_jax.errors import ConfigError  # noqa: E402
 from cusgs_jax.testing.scenes import axis_angle_rotation  # noqa: E402
 
 W, H = 32, 24
@@ -101,7 +104,7 @@ def _check_matches_truth(scene: SceneData, truth, *, downscale=1):
 @pytest.mark.parametrize("text", [False, True], ids=["binary", "text"])
 def test_load_model(tmp_path, text):
     truth = make_scene(tmp_path, n=3, text=text)
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     _check_matches_truth(scene, truth)
     assert (scene.width, scene.height) == (W, H)
     for i, name in enumerate(scene.names):
@@ -125,31 +128,31 @@ def test_model_without_rig_and_frame_files_in_sparse(tmp_path):
     truth = make_scene(tmp_path, model_dir="sparse")
     for f in ("rigs.bin", "frames.bin"):
         (tmp_path / "sparse" / f).unlink()
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     _check_matches_truth(scene, truth)
 
 
 def test_holdout_split(tmp_path):
     make_scene(tmp_path, n=9, num_points=3)
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     np.testing.assert_array_equal(scene.test_indices, [0, 8])
     np.testing.assert_array_equal(scene.train_indices, np.arange(1, 8))
     assert scene.test_indices.dtype == np.int32 and scene.train_indices.dtype == np.int32
-    scene = load_scene(tmp_path, holdout_every=3)
+    scene = load_scene(tmp_path, DataConfig(format="colmap", holdout_every=3))
     np.testing.assert_array_equal(scene.test_indices, [0, 3, 6])
-    scene = load_scene(tmp_path, holdout_every=0)
+    scene = load_scene(tmp_path, DataConfig(format="colmap", holdout_every=0))
     assert scene.test_indices.size == 0
     np.testing.assert_array_equal(scene.train_indices, np.arange(9))
     with pytest.raises(SceneError, match="data.holdout_every"):
-        load_scene(tmp_path, holdout_every=1)
-    with pytest.raises(SceneError, match="data.holdout_every"):
-        load_scene(tmp_path, holdout_every=-1)
+        load_scene(tmp_path, DataConfig(format="colmap", holdout_every=1))
+    with pytest.raises(ConfigError, match="data.holdout_every"):  # refused by DataConfig itself
+        load_scene(tmp_path, DataConfig(format="colmap", holdout_every=-1))
 
 
 def test_simple_pinhole_and_per_image_cameras(tmp_path):
     cams = [("SIMPLE_PINHOLE", (28.0, 15.5, 12.5), W, H), ("PINHOLE", PINHOLE, W, H)]
     truth = make_scene(tmp_path, n=4, cameras=cams)
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     _check_matches_truth(scene, truth)
     for i, name in enumerate(scene.names):
         if truth["camera"][name] == 1:
@@ -163,16 +166,16 @@ def test_load_cameras_matches_load_scene_without_reading_images(tmp_path):
     cams = [("SIMPLE_PINHOLE", (28.0, 15.5, 12.5), W, H), ("PINHOLE", PINHOLE, W, H)]
     make_scene(tmp_path, n=9, cameras=cams)
     for downscale, every in ((1, 8), (2, 3), (1, 0)):
-        scene = load_scene(tmp_path, downscale=downscale, holdout_every=every)
-        viewmats, Ks, width, height, train = load_cameras(tmp_path, downscale=downscale, holdout_every=every)
-        np.testing.assert_array_equal(viewmats, scene.viewmats)
-        np.testing.assert_array_equal(Ks, scene.Ks)
-        assert (width, height) == (scene.width, scene.height) and Ks.dtype == np.float32
-        np.testing.assert_array_equal(train, scene.train_indices)
+        scene = load_scene(tmp_path, DataConfig(format="colmap", downscale=downscale, holdout_every=every))
+        cams = load_cameras(tmp_path, DataConfig(format="colmap", downscale=downscale, holdout_every=every))
+        np.testing.assert_array_equal(cams.viewmats, scene.viewmats)
+        np.testing.assert_array_equal(cams.Ks, scene.Ks)
+        assert (cams.width, cams.height) == (scene.width, scene.height) and cams.Ks.dtype == np.float32
+        np.testing.assert_array_equal(cams.train_indices, scene.train_indices)
     shutil.rmtree(tmp_path / "images")  # no image is read
-    assert load_cameras(tmp_path)[0].shape == (9, 4, 4)
+    assert load_cameras(tmp_path, DataConfig(format="colmap")).viewmats.shape == (9, 4, 4)
     with pytest.raises(SceneError, match="data.holdout_every"):
-        load_cameras(tmp_path, holdout_every=1)
+        load_cameras(tmp_path, DataConfig(format="colmap", holdout_every=1))
 
 
 @pytest.mark.parametrize("model,params", [  # distorted models that are not undistorted for the user
@@ -182,19 +185,19 @@ def test_load_cameras_matches_load_scene_without_reading_images(tmp_path):
 def test_unsupported_camera_rejected(tmp_path, model, params):
     make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), (model, params, W, H)])
     with pytest.raises(SceneError, match=rf"camera 2 .*cameras\.bin.*{model}.*undistort") as e:
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     assert "image_undistorter" in str(e.value)
 
 
 def test_grey_and_rgba_images(tmp_path):
     truth = make_scene(tmp_path, image_mode="L")
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     for i, name in enumerate(scene.names):
         np.testing.assert_array_equal(scene.images[i], np.repeat(truth["images"][name][..., None],
                                                                  3, -1))
     shutil.rmtree(tmp_path / "images")
     truth = make_scene(tmp_path, image_mode="RGBA")
-    scene = load_scene(tmp_path)  # alpha composited onto the default black background
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))  # alpha composited onto the default black background
     for i, name in enumerate(scene.names):
         rgba = truth["images"][name].astype(np.float64)
         expect = np.round(rgba[..., :3] * (rgba[..., 3:] / 255.0)).astype(np.uint8)
@@ -203,7 +206,7 @@ def test_grey_and_rgba_images(tmp_path):
 
 def test_downscale_from_images_folder(tmp_path):
     truth = make_scene(tmp_path)
-    scene = load_scene(tmp_path, downscale=2)
+    scene = load_scene(tmp_path, DataConfig(format="colmap", downscale=2))
     assert (scene.width, scene.height) == (W // 2, H // 2)
     assert scene.images.shape == (3, H // 2, W // 2, 3)
     fx, fy, cx, cy = PINHOLE
@@ -218,7 +221,7 @@ def test_downscale_from_images_folder(tmp_path):
 def test_downscale_odd_size_rounds(tmp_path):
     """33×25 camera with downscale 2 → round(16.5)=17 × round(12.5)=13, anti-aliased."""
     make_scene(tmp_path, cameras=[("PINHOLE", (30.0, 30.0, 16.5, 12.5), 33, 25)])
-    scene = load_scene(tmp_path, downscale=2)
+    scene = load_scene(tmp_path, DataConfig(format="colmap", downscale=2))
     assert (scene.width, scene.height) == (17, 13)
     np.testing.assert_allclose(scene.Ks[0], [[15, 0, 8.25], [0, 15, 6.25], [0, 0, 1]])
 
@@ -231,14 +234,14 @@ def test_downscale_from_prescaled_folder(tmp_path):
     for name in truth["names"].values():
         small[name] = rng.integers(0, 256, (H // 2, W // 2, 3), dtype=np.uint8)
         iio.imwrite(tmp_path / "images_2" / name, small[name])
-    scene = load_scene(tmp_path, downscale=2)
+    scene = load_scene(tmp_path, DataConfig(format="colmap", downscale=2))
     for i, name in enumerate(scene.names):
         np.testing.assert_array_equal(scene.images[i], small[name])
     fx, fy, cx, cy = PINHOLE
     np.testing.assert_allclose(scene.Ks[0], [[fx / 2, 0, cx / 2], [0, fy / 2, cy / 2], [0, 0, 1]])
     # Prescaled folder alone is enough (images/ not needed).
     shutil.rmtree(tmp_path / "images")
-    assert load_scene(tmp_path, downscale=2).images.shape == (3, H // 2, W // 2, 3)
+    assert load_scene(tmp_path, DataConfig(format="colmap", downscale=2)).images.shape == (3, H // 2, W // 2, 3)
     # images_2 with ±1 px (floor instead of round) is accepted.
     shutil.rmtree(tmp_path / "images_2")
     make_scene(tmp_path / "odd", cameras=[("PINHOLE", PINHOLE, 33, 25)], images_dir="images_2",
@@ -246,7 +249,7 @@ def test_downscale_from_prescaled_folder(tmp_path):
     (tmp_path / "odd" / "images_2").mkdir()
     for name in ("img_00.png", "img_01.png", "img_02.png"):
         iio.imwrite(tmp_path / "odd" / "images_2" / name, np.zeros((12, 16, 3), np.uint8))
-    assert load_scene(tmp_path / "odd", downscale=2).images.shape == (3, 12, 16, 3)
+    assert load_scene(tmp_path / "odd", DataConfig(format="colmap", downscale=2)).images.shape == (3, 12, 16, 3)
 
 
 def test_prescaled_folder_with_wrong_factor(tmp_path):
@@ -255,7 +258,7 @@ def test_prescaled_folder_with_wrong_factor(tmp_path):
     for name in truth["names"].values():  # actually 4× smaller
         iio.imwrite(tmp_path / "images_2" / name, np.zeros((H // 4, W // 4, 3), np.uint8))
     with pytest.raises(SceneError, match=r"images_2.*img_00\.png is 8x6.*16x12.*data\.downscale=4"):
-        load_scene(tmp_path, downscale=2)
+        load_scene(tmp_path, DataConfig(format="colmap", downscale=2))
 
 
 def test_images_smaller_than_camera_suggest_downscale(tmp_path):
@@ -264,20 +267,20 @@ def test_images_smaller_than_camera_suggest_downscale(tmp_path):
     for name in truth["names"].values():
         iio.imwrite(tmp_path / "images" / name, np.zeros((H // 2, W // 2, 3), np.uint8))
     with pytest.raises(SceneError, match=r"img_00\.png is 16x12.*32x24.*images_2.*data\.downscale=2"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_image_size_disagrees_with_camera(tmp_path):
     make_scene(tmp_path)
     iio.imwrite(tmp_path / "images" / "img_01.png", np.zeros((20, 30, 3), np.uint8))
     with pytest.raises(SceneError, match=r"img_01\.png is 30x20 .*camera 1 \(32x24\).*32x24"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_cameras_of_different_sizes(tmp_path):
     make_scene(tmp_path, cameras=[("PINHOLE", PINHOLE, W, H), ("PINHOLE", PINHOLE, 40, 30)])
     with pytest.raises(SceneError, match=r"images\.bin.*32x24.*40x30"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 # ------------------------------------------------------------------------------------------
@@ -287,27 +290,27 @@ def test_cameras_of_different_sizes(tmp_path):
 
 def test_error_path_missing(tmp_path):
     with pytest.raises(SceneError, match=r"nope.*does not exist.*data\.path"):
-        load_scene(tmp_path / "nope")
+        load_scene(tmp_path / "nope", DataConfig(format="colmap"))
     (tmp_path / "file").write_text("x")
     with pytest.raises(SceneError, match=r"file.*not a folder"):
-        load_scene(tmp_path / "file")
+        load_scene(tmp_path / "file", DataConfig(format="colmap"))
 
 
 def test_error_images_folder_missing(tmp_path):
     make_scene(tmp_path, write_images=False)
     with pytest.raises(SceneError, match=re.escape(str(tmp_path / "images")) + ".*does not exist"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     with pytest.raises(SceneError, match=r"images_2.*data\.downscale=2"):
-        load_scene(tmp_path, downscale=2)
+        load_scene(tmp_path, DataConfig(format="colmap", downscale=2))
 
 
 def test_error_model_folder_missing(tmp_path):
     (tmp_path / "images").mkdir()
     with pytest.raises(SceneError, match=r"no COLMAP model folder.*sparse"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     (tmp_path / "sparse" / "1").mkdir(parents=True)
     with pytest.raises(SceneError, match=r"no COLMAP model in .*sparse.*sub-folders 1"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 @pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
@@ -315,7 +318,7 @@ def test_error_model_file_missing(tmp_path, part):
     make_scene(tmp_path)
     (tmp_path / "sparse" / "0" / f"{part}.bin").unlink()
     with pytest.raises(SceneError, match=rf"incomplete COLMAP model in .*sparse.0.*{part}\.bin/\.txt"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_error_model_unparsable(tmp_path):
@@ -323,27 +326,27 @@ def test_error_model_unparsable(tmp_path):
     model = tmp_path / "sparse" / "0"
     (model / "cameras.bin").write_bytes(b"\x01\x00")
     with pytest.raises(SceneError, match=r"cameras\.bin is truncated or corrupt"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     make_scene(tmp_path, write_images=False)
     data = (model / "images.bin").read_bytes()
     (model / "images.bin").write_bytes(data[:40])  # count intact, records cut off
     with pytest.raises(SceneError, match=r"images\.bin is truncated or corrupt"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     (model / "images.bin").write_bytes(data[:8] + b"\xff" * (len(data) - 8))  # garbage records
     with pytest.raises(SceneError, match=r"sparse.0"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     shutil.rmtree(tmp_path / "sparse")
     make_scene(tmp_path, text=True, write_images=False)
     (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 NOT_A_MODEL 32 24 1 2 3\n")
     with pytest.raises(SceneError, match=r"pycolmap could not read .*cameras\.txt"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_error_image_missing_on_disk(tmp_path):
     make_scene(tmp_path)
     (tmp_path / "images" / "img_01.png").unlink()
     with pytest.raises(SceneError, match=r"'img_01\.png'.*missing.*images.img_01\.png"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # imageio probing its legacy plugins
@@ -351,7 +354,7 @@ def test_error_image_corrupt(tmp_path):
     make_scene(tmp_path)
     (tmp_path / "images" / "img_02.png").write_bytes(b"\x89PNG not really")
     with pytest.raises(SceneError, match=r"cannot decode image .*img_02\.png.*corrupt"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_a_downscale_that_leaves_no_pixel_is_refused_before_reading_images(tmp_path):
@@ -359,33 +362,33 @@ def test_a_downscale_that_leaves_no_pixel_is_refused_before_reading_images(tmp_p
     (tmp_path / "images" / "img_00.png").write_bytes(b"")  # not read: the check comes first
     with pytest.raises(SceneError, match=rf"data\.downscale=64 shrinks the images \({W}x{H} in .*cameras\..*\) to "
                                          r"\d+x0 pixels; use data\.downscale="):
-        load_scene(tmp_path, downscale=64)
+        load_scene(tmp_path, DataConfig(format="colmap", downscale=64))
 
 
 def test_error_no_points(tmp_path):
     make_scene(tmp_path, num_points=0)
     with pytest.raises(SceneError, match=r"no points.*points3D\.bin.*triangulat"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_error_non_finite_pose(tmp_path):
     make_scene(tmp_path, nan_pose=True)  # image id 2 = img_01.png
     with pytest.raises(SceneError, match=r"'img_01\.png'.*images\.bin.*non-finite"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_error_zero_images(tmp_path):
     make_scene(tmp_path, n=0, num_points=0)
     with pytest.raises(SceneError, match=r"images\.bin.*no registered images"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
 
 
 def test_error_bad_downscale(tmp_path):
     make_scene(tmp_path)
+    with pytest.raises(ConfigError, match=r"data\.downscale"):  # refused by DataConfig itself
+        load_scene(tmp_path, DataConfig(format="colmap", downscale=0))
     with pytest.raises(SceneError, match=r"data\.downscale"):
-        load_scene(tmp_path, downscale=0)
-    with pytest.raises(SceneError, match=r"data\.downscale"):
-        load_scene(tmp_path, downscale=1.5)
+        load_scene(tmp_path, DataConfig(format="colmap", downscale=1.5))
 
 
 def test_multi_camera_rig(tmp_path):
@@ -421,7 +424,7 @@ def test_multi_camera_rig(tmp_path):
     (tmp_path / "images").mkdir()
     for c in (1, 2):
         iio.imwrite(tmp_path / "images" / f"cam{c}.png", np.zeros((H, W, 3), np.uint8))
-    scene = load_scene(tmp_path)
+    scene = load_scene(tmp_path, DataConfig(format="colmap"))
     assert scene.names == ("cam1.png", "cam2.png")
     np.testing.assert_allclose(scene.viewmats[0, :3, :3], r_w, atol=1e-6)
     np.testing.assert_allclose(scene.viewmats[0, :3, 3], t_w, atol=1e-6)
@@ -444,7 +447,7 @@ def demo_copy(demo, tmp_path):
 
 def test_demo_binary_model_loads(demo_copy):
     """The intact pycolmap-written model passes the structural walk and loads."""
-    scene = load_scene(demo_copy, holdout_every=0)
+    scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0))
     assert scene.num_images == 4 and scene.points.shape[0] > 0
 
 
@@ -459,7 +462,7 @@ def test_error_binary_model_truncated_mid_record(demo_copy, part, record, cut):
     path.write_bytes(path.read_bytes()[:-cut])
     with pytest.raises(SceneError, match=rf"{part}\.bin is truncated or corrupt: {record} "
                                          rf".*runs {cut} bytes past the end.*model_converter"):
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
 
 
 @pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
@@ -469,7 +472,7 @@ def test_error_binary_model_trailing_bytes(demo_copy, part):
     path.write_bytes(path.read_bytes() + b"\0" * 5)
     with pytest.raises(SceneError, match=rf"{part}\.bin is truncated or corrupt: 5 trailing bytes"
                                          rf".*end at byte {size} of {size + 5}.*rerun SfM"):
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
 
 
 def test_error_binary_camera_model_unknown(demo_copy):
@@ -479,7 +482,7 @@ def test_error_binary_camera_model_unknown(demo_copy):
     path.write_bytes(bytes(data))
     with pytest.raises(SceneError, match=r"cameras\.bin .*camera record 1 of 1 \(camera id 1.*"
                                          r"unknown camera model id 99"):
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
 
 
 @pytest.mark.parametrize("part", ["cameras", "images", "points3D"])
@@ -488,7 +491,7 @@ def test_error_binary_model_implausible_count(demo_copy, part):
     data = path.read_bytes()
     path.write_bytes((10**12).to_bytes(8, "little") + data[8:])
     with pytest.raises(SceneError, match=rf"{part}\.bin .*claims 1000000000000 .*can hold at most"):
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
 
 
 def test_error_binary_track_length_implausible(demo_copy):
@@ -499,7 +502,7 @@ def test_error_binary_track_length_implausible(demo_copy):
     path.write_bytes(bytes(data))
     with pytest.raises(SceneError, match=r"points3D\.bin .*point record 1 of \d+ \(byte offset 8, "
                                          r"point id \d+, track length 1099511627776\)"):
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
 
 
 def _write_text_model(root, images):
@@ -520,12 +523,12 @@ def test_error_duplicate_image_names(tmp_path):
     _write_text_model(tmp_path, [(1, "a.png"), (5, "b.png"), (7, "a.png")])
     with pytest.raises(SceneError, match=r"images\.txt has 2 registered images named 'a\.png' "
                                          r"\(image ids 1, 7\).*unique name.*image_deleter"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))
     # Unique names load (the text model above is otherwise valid).
     shutil.rmtree(tmp_path / "sparse")
     shutil.rmtree(tmp_path / "images")
     _write_text_model(tmp_path, [(1, "a.png"), (5, "b.png"), (7, "c.png")])
-    assert load_scene(tmp_path).names == ("a.png", "b.png", "c.png")
+    assert load_scene(tmp_path, DataConfig(format="colmap")).names == ("a.png", "b.png", "c.png")
 
 
 def test_error_duplicate_image_names_binary(tmp_path):
@@ -536,4 +539,4 @@ def test_error_duplicate_image_names_binary(tmp_path):
     for part in ("cameras", "images", "points3D"):
         (model / f"{part}.txt").unlink()
     with pytest.raises(SceneError, match=r"images\.bin has 2 registered images named 'a\.png'"):
-        load_scene(tmp_path)
+        load_scene(tmp_path, DataConfig(format="colmap"))

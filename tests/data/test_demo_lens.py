@@ -18,8 +18,8 @@ from scipy.ndimage import gaussian_filter
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from cusgs_jax.config import DemoConfig  # noqa: E402
-from cusgs_jax.data.colmap import load_scene  # noqa: E402
+from cusgs_jax.config import DataConfig, DemoConfig  # noqa: E402
+from cusgs_jax.data.loader import load_scene  # noqa: E402
 from cusgs_jax.data.demo import generate_demo_scene  # noqa: E402
 from cusgs_jax.data.demo.lens import (LENSES, configured_demo, lens_camera, lens_demo_folder, lens_demo_path,  # noqa: E402
                                       render_lens_view, write_lens_demo)
@@ -71,7 +71,7 @@ def test_pinhole_lens_is_the_demo(tmp_path):
 def test_undistorted_lens_images_are_the_pinhole_renders(tmp_path, lens, room):
     root = write_lens_demo(tmp_path / lens, *lens_camera(lens, 64, 48), **TINY)
     raw = iio.imread(root / "images" / "view_000.png")
-    scene = load_scene(root, holdout_every=0, undistort="crop")
+    scene = load_scene(root, DataConfig(format="colmap", holdout_every=0, undistort="crop"))
     assert scene.width < 64 and scene.height < 48  # pincushion: cropped, no blank border
     for v in range(TINY["num_views"]):
         R, t = scene.viewmats[v][:3, :3], scene.viewmats[v][:3, 3]
@@ -115,7 +115,7 @@ def test_keypoints_see_their_points(tmp_path, room):
 def test_maps_line_up_with_the_loaded_images(tmp_path, room):
     """depth/ and object_ids/ are the ray casts of the undistorted camera the loader gives."""
     root = write_lens_demo(tmp_path / "s", *lens_camera("simple_radial", 64, 48), **TINY)
-    scene = load_scene(root, holdout_every=0, undistort="crop")
+    scene = load_scene(root, DataConfig(format="colmap", holdout_every=0, undistort="crop"))
     K = scene.Ks[1].astype(np.float64)
     _, depth, ids, _ = render_view(room, scene.viewmats[1][:3, :3], scene.viewmats[1][:3, 3], scene.width,
                                    scene.height, (K[0, 0], K[1, 1], K[0, 2], K[1, 2]), supersample=False)
@@ -164,10 +164,10 @@ def test_lens_demo_path_caches(cache_dir):
 def test_masked_maps_line_up_with_the_images_undistorted_with_a_mask(tmp_path, room):
     """masked/depth/ and masked/object_ids/ are the ray casts of the source-frame camera that
     data.undistort=mask gives, and the semantic features of a masked scene are extracted from them."""
-    from cusgs_jax.extract import extract
+    from cusgs_jax.extract import extract_scene
 
     root = write_lens_demo(tmp_path / "s", *lens_camera("simple_radial", 64, 48), **TINY)
-    scene = load_scene(root, holdout_every=0, undistort="mask")
+    scene = load_scene(root, DataConfig(format="colmap", holdout_every=0, undistort="mask"))
     assert (scene.width, scene.height) == (64, 48) and scene.valid is not None
     K = scene.Ks[1].astype(np.float64)
     _, depth, ids, _ = render_view(room, scene.viewmats[1][:3, :3], scene.viewmats[1][:3, 3], 64, 48,
@@ -175,7 +175,7 @@ def test_masked_maps_line_up_with_the_images_undistorted_with_a_mask(tmp_path, r
     np.testing.assert_allclose(np.load(root / "masked" / "depth" / "view_001.npy"), depth, rtol=1e-4)
     assert np.mean(np.load(root / "masked" / "object_ids" / "view_001.npy") == ids) > 0.99
     assert json.loads((root / "scene.json").read_text())["masked_maps_camera"]["width"] == 64
-    extract(root, "semantic", progress=False, undistort="mask")
+    extract_scene(scene, "semantic", progress=False)  # the masked scene loaded above
     from cusgs_jax.data.features import load_features
 
     fs = load_features(root, "semantic", scene.names)

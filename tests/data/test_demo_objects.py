@@ -8,8 +8,8 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cusgs_jax.data.blender import load_blender_scene
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.demo.objects import OBJECTS, composite_white, generate_object_scenes
 
 
@@ -34,8 +34,8 @@ def test_split_and_layout(tiny):
 
 def test_both_loaders_agree(tiny):
     """The Blender and the COLMAP folder give the same cameras, images and held-out views."""
-    b = load_blender_scene(tiny["blender"], num_random_points=100)
-    c = load_scene(tiny["colmap"], holdout_every=7, background=(1.0, 1.0, 1.0))
+    b = load_scene(tiny["blender"], DataConfig(format="blender", random_points=100))
+    c = load_scene(tiny["colmap"], DataConfig(format="colmap", holdout_every=7), background=(1.0, 1.0, 1.0))
     order = tiny["train"] + tiny["test"]  # Blender lists train frames then test frames
     assert list(b.names) == [f"{s}/r_{k:03d}.png" for s, ks in (("train", tiny["train"]), ("test", tiny["test"]))
                              for k in ks]
@@ -53,7 +53,7 @@ def test_both_loaders_agree(tiny):
 def test_points_lie_on_objects(tiny):
     """The COLMAP points project onto pixels that see an object (alpha > 0): all but a few at silhouettes of
     the thin table and chair legs (under half a pixel wide at this size), against ~20 % coverage by chance."""
-    c = load_scene(tiny["colmap"], holdout_every=7, background=(1.0, 1.0, 1.0))
+    c = load_scene(tiny["colmap"], DataConfig(format="colmap", holdout_every=7), background=(1.0, 1.0, 1.0))
     assert len(c.points) > 100
     hits, total = 0, 0
     for v in range(len(c.names)):
@@ -71,11 +71,9 @@ def test_points_lie_on_objects(tiny):
 def test_carving_keeps_every_surface_point_and_drops_most_random_points(tiny):
     """The Blender layout's alpha carves its random start (data/carve.py); the COLMAP layout's SfM-style
     surface points of the same objects, in the same world frame, all survive the same carving."""
-    from cusgs_jax.config import DataConfig
     from cusgs_jax.data.blender import read_blender
     from cusgs_jax.data.carve import carve
     from cusgs_jax.data.finish import check_settings, finish_cameras, finish_scene
-    from cusgs_jax.data.loader import load_scene
 
     data = check_settings(DataConfig(random_points=5000))
     raw = read_blender(tiny["blender"], data)

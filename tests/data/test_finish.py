@@ -11,9 +11,10 @@ import pytest
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import (check_settings, data_settings, default_background, existing_folder,
-                                   finish_cameras, finish_scene)
+from cusgs_jax.data.finish import check_settings, default_background, existing_folder, finish_cameras, finish_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.raw import RawScene, Split, ViewCamera
+from cusgs_jax.errors import ConfigError
 
 V = 6
 
@@ -112,15 +113,17 @@ def test_differing_sizes_and_duplicate_names_are_refused_naming_the_file_and_vie
     assert not seen  # refused before any image was read
 
 
-def test_settings_are_checked_as_scene_errors_naming_the_option():
+def test_settings_are_checked_as_scene_errors_naming_the_option(tmp_path):
     assert check_settings(DataConfig(downscale=2.0)).downscale == 2
     with pytest.raises(SceneError, match=r"data.downscale=1.5 must be an integer >= 1"):
         check_settings(DataConfig(downscale=1.5))
-    with pytest.raises(SceneError, match=r"data.holdout_every=-1 must be an integer >= 0"):
-        data_settings(holdout_every=-1)
-    with pytest.raises(SceneError, match=r"data.undistort='blur'"):
-        data_settings(undistort="blur")
-    assert dataclasses.asdict(data_settings(downscale=4)) == dataclasses.asdict(DataConfig(downscale=4))
+    with pytest.raises(SceneError, match=r"data.downscale=1.5 must be an integer >= 1"):
+        load_scene(tmp_path, DataConfig(downscale=1.5))  # checked before the folder is looked at
+    with pytest.raises(ConfigError, match=r"data.holdout_every=-1: must be a number >= 0"):
+        load_scene(tmp_path, DataConfig(holdout_every=-1))
+    with pytest.raises(ConfigError, match=r"data.undistort='blur'"):
+        load_scene(tmp_path, DataConfig(undistort="blur"))
+    assert dataclasses.asdict(check_settings(DataConfig(downscale=4))) == dataclasses.asdict(DataConfig(downscale=4))
 
 
 def test_existing_folder(tmp_path):

@@ -13,7 +13,9 @@ import pytest
 
 pytest.importorskip("pycolmap")
 
-from cusgs_jax.data.colmap import SceneError, load_scene  # noqa: E402
+from cusgs_jax.config import DataConfig  # noqa: E402
+from cusgs_jax.data.colmap import SceneError  # noqa: E402
+from cusgs_jax.data.loader import load_scene  # noqa: E402
 from cusgs_jax.data.images import to_rgb_uint8, check_background  # noqa: E402
 
 BACKGROUND = (0.2, 0.6, 1.0)
@@ -61,10 +63,10 @@ def _alpha_warnings(caplog) -> list[str]:
 
 
 def test_rgba_composited_onto_background(demo_copy, caplog):
-    names = load_scene(demo_copy, holdout_every=0).names
+    names = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0)).names
     written = _write_alpha_images(demo_copy, names)
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        scene = load_scene(demo_copy, holdout_every=0, background=BACKGROUND)
+        scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0), background=BACKGROUND)
     for i, name in enumerate(scene.names):
         rgb, alpha = written[name]
         np.testing.assert_array_equal(scene.images[i], _composite(rgb, alpha, BACKGROUND))
@@ -77,10 +79,10 @@ def test_rgba_composited_onto_background(demo_copy, caplog):
 
 
 def test_opaque_rgba_equals_rgb(demo_copy, caplog):
-    rgb_scene = load_scene(demo_copy, holdout_every=0)
+    rgb_scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0))
     _write_alpha_images(demo_copy, rgb_scene.names[:2], opaque=True)
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        scene = load_scene(demo_copy, holdout_every=0, background=BACKGROUND)
+        scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0), background=BACKGROUND)
     np.testing.assert_array_equal(scene.images, rgb_scene.images)
     (msg,) = _alpha_warnings(caplog)
     assert "2 of 4 images" in msg and "0 with transparent pixels" in msg
@@ -88,15 +90,15 @@ def test_opaque_rgba_equals_rgb(demo_copy, caplog):
 
 def test_no_warning_without_alpha(demo_copy, caplog):
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        load_scene(demo_copy, background=BACKGROUND)
+        load_scene(demo_copy, DataConfig(format="colmap"), background=BACKGROUND)
     assert _alpha_warnings(caplog) == []
 
 
 def test_rgba_composited_before_downscale(demo_copy):
     """Downscaling (2×2 box) averages the composite, not the colour under the alpha."""
-    names = load_scene(demo_copy, holdout_every=0).names
+    names = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0)).names
     written = _write_alpha_images(demo_copy, names)
-    scene = load_scene(demo_copy, holdout_every=0, downscale=2, background=BACKGROUND)
+    scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0, downscale=2), background=BACKGROUND)
     for i, name in enumerate(scene.names):
         full = _composite(*written[name], BACKGROUND).astype(np.float64)
         h, w = scene.height, scene.width
@@ -105,14 +107,14 @@ def test_rgba_composited_before_downscale(demo_copy):
 
 
 def test_grey_alpha_composited(demo_copy):
-    names = load_scene(demo_copy, holdout_every=0).names
+    names = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0)).names
     grey = {}
     for i, name in enumerate(names):
         g = iio.imread(demo_copy / "images" / name)[..., 0]
         alpha = _alpha_pattern(*g.shape, seed=10 + i)
         iio.imwrite(demo_copy / "images" / name, np.stack([g, alpha], -1))  # grey+alpha PNG
         grey[name] = (np.repeat(g[..., None], 3, -1), alpha)
-    scene = load_scene(demo_copy, holdout_every=0, background=BACKGROUND)
+    scene = load_scene(demo_copy, DataConfig(format="colmap", holdout_every=0), background=BACKGROUND)
     for i, name in enumerate(scene.names):
         np.testing.assert_array_equal(scene.images[i], _composite(*grey[name], BACKGROUND))
 
@@ -140,11 +142,12 @@ def test_16bit_alpha_scaled_consistently():
                                  (float("nan"), 0.0, 0.0), "white"])
 def test_error_bad_background(demo_copy, bad):
     with pytest.raises(SceneError, match=r"splat\.background=.*three floats in \[0, 1\]"):
-        load_scene(demo_copy, background=bad)
+        load_scene(demo_copy, DataConfig(format="colmap"), background=bad)
 
 
 def test_no_background_is_the_layouts_default(demo_copy):
-    assert load_scene(demo_copy, background=None).background == (0.0, 0.0, 0.0)  # COLMAP: black
+    colmap = DataConfig(format="colmap")
+    assert load_scene(demo_copy, colmap, background=None).background == (0.0, 0.0, 0.0)  # COLMAP: black
 
 
 def test_check_background_accepts_sequences():
@@ -159,10 +162,10 @@ def test_an_empty_or_undecodable_image_is_named_without_a_backend_install_hint(d
     path.write_bytes(b"")
     with pytest.raises(SceneError, match=r"image .*view_001\.png is an empty file \(0 bytes\).*replace it with a valid "
                                          r"copy or remove the image from the reconstruction") as raised:
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
     assert "pip install" not in str(raised.value)
     path.write_bytes(good[:300])  # truncated
     with pytest.raises(SceneError, match=r"cannot decode image .*view_001\.png \(300 bytes; .*corrupt or not an image"
                        ) as raised:
-        load_scene(demo_copy)
+        load_scene(demo_copy, DataConfig(format="colmap"))
     assert "pip install" not in str(raised.value)

@@ -8,10 +8,12 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from cusgs_jax.config import DataConfig, SplatConfig, compose_config
+from cusgs_jax.config import DataConfig, SplatConfig
+from cusgs_jax.compose import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.layouts import default_background, detect_format, load_any_scene
+from cusgs_jax.data.layouts import default_background, detect_format, read_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.testing.transforms_scenes import opencv_look_at, write_blender_scene, write_nerfstudio_scene
 
@@ -39,7 +41,7 @@ def test_detect_prefers_colmap_over_transforms_json(tmp_path, colmap, caplog):
     with caplog.at_level("INFO", logger="cusgs_jax"):
         assert detect_format(both) == "colmap"
     assert "data.format=nerfstudio" in caplog.text
-    assert load_any_scene(both, format="nerfstudio", holdout_every=0).dataset_format == "nerfstudio"
+    assert load_scene(both, DataConfig(format="nerfstudio", holdout_every=0)).dataset_format == "nerfstudio"
 
 
 def test_detect_nothing_recognisable(tmp_path):
@@ -57,44 +59,43 @@ def test_detect_missing_folder_and_file(tmp_path):
     with pytest.raises(SceneError, match=r"is a file, not a folder"):
         detect_format(tmp_path / "f")
     with pytest.raises(SceneError, match=r"data.path is empty"):
-        load_any_scene("")
+        read_scene("", DataConfig())  # load_scene("") is the demo scene (data/loader.py::scene_folder)
 
 
 def test_dispatch_and_split_and_background_defaults(tmp_path, colmap):
     write_blender_scene(tmp_path / "b")
     write_nerfstudio_scene(tmp_path / "n")
-    b = load_any_scene(tmp_path / "b", holdout_every=3, num_random_points=100)
-    n = load_any_scene(tmp_path / "n", holdout_every=3, num_random_points=100)
-    c = load_any_scene(colmap, holdout_every=3)
+    b = load_scene(tmp_path / "b", DataConfig(holdout_every=3, random_points=100))
+    n = load_scene(tmp_path / "n", DataConfig(holdout_every=3, random_points=100))
+    c = load_scene(colmap, DataConfig(holdout_every=3))
     assert (b.dataset_format, b.split, b.background) == ("blender", "transforms_test", (1.0, 1.0, 1.0))
     assert (n.dataset_format, n.split, n.background) == ("nerfstudio", "every_3rd", (0.0, 0.0, 0.0))
     assert (c.dataset_format, c.split, c.background) == ("colmap", "every_3rd", (0.0, 0.0, 0.0))
     np.testing.assert_array_equal(b.test_indices, [4, 5])  # holdout_every does not apply to Blender
     assert b.carving.points == n.carving.points == 100  # drawn, then carved by the training frusta (data/carve.py)
     assert (len(b.points), len(n.points)) == (b.carving.kept, n.carving.kept)
-    red = load_any_scene(tmp_path / "b", background=(1.0, 0.0, 0.0), num_random_points=100)
+    red = load_scene(tmp_path / "b", DataConfig(random_points=100), background=(1.0, 0.0, 0.0))
     assert red.background == (1.0, 0.0, 0.0) and np.all(red.images[:, 0, 0] == [255, 0, 0])
-    assert load_any_scene(colmap, holdout_every=0).split == "none"
+    assert load_scene(colmap, DataConfig(holdout_every=0)).split == "none"
     assert default_background("blender") == (1.0, 1.0, 1.0) and default_background("colmap") == (0.0, 0.0, 0.0)
 
 
 def test_explicit_format_of_the_wrong_layout(tmp_path, colmap):
     write_nerfstudio_scene(tmp_path / "n")
     with pytest.raises(SceneError, match=r"transforms_train.json does not exist: a Blender"):
-        load_any_scene(tmp_path / "n", format="blender")
+        load_scene(tmp_path / "n", DataConfig(format="blender"))
     with pytest.raises(SceneError, match=r"no COLMAP model folder"):
-        load_any_scene(tmp_path / "n", format="colmap")
+        load_scene(tmp_path / "n", DataConfig(format="colmap"))
     with pytest.raises(SceneError, match=r"transforms.json does not exist: a nerfstudio scene"):
-        load_any_scene(colmap, format="nerfstudio")
-    with pytest.raises(SceneError, match=r"data.format='llff' must be auto, colmap, blender or nerfstudio"):
-        load_any_scene(colmap, format="llff")
+        load_scene(colmap, DataConfig(format="nerfstudio"))
+    with pytest.raises(ConfigError, match=r"data.format='llff': must be auto or one of colmap, blender, nerfstudio"):
+        load_scene(colmap, DataConfig(format="llff"))
 
 
 def test_blender_scene_has_the_cameras_of_the_equivalent_colmap_scene(tmp_path):
     """The same cameras written as a Blender scene and as a COLMAP model (PINHOLE f, W/2, H/2; poses from an
     OpenCV look-at, built independently of the OpenGL ones) load to the same viewmats and Ks."""
     pycolmap = pytest.importorskip("pycolmap")
-    from cusgs_jax.data.colmap import load_scene
 
     W, H = 16, 12
     truth = write_blender_scene(tmp_path / "blender", width=W, height=H, rgba=False, with_val=False)
@@ -117,8 +118,8 @@ def test_blender_scene_has_the_cameras_of_the_equivalent_colmap_scene(tmp_path):
     (tmp_path / "colmap" / "sparse" / "0").mkdir(parents=True)
     rec.write(str(tmp_path / "colmap" / "sparse" / "0"))
 
-    blender = load_any_scene(tmp_path / "blender", num_random_points=100)
-    col = load_scene(tmp_path / "colmap", holdout_every=0)
+    blender = load_scene(tmp_path / "blender", DataConfig(random_points=100))
+    col = load_scene(tmp_path / "colmap", DataConfig(format="colmap", holdout_every=0))
     order = [col.names.index(name) for name in blender.names]
     np.testing.assert_allclose(blender.viewmats, col.viewmats[order], atol=1e-6)
     np.testing.assert_allclose(blender.Ks, col.Ks[order], rtol=1e-6)

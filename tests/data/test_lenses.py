@@ -14,7 +14,9 @@ import pytest
 
 pycolmap = pytest.importorskip("pycolmap")
 
-from cusgs_jax.data.colmap import SceneError, load_scene  # noqa: E402
+from cusgs_jax.config import DataConfig  # noqa: E402
+from cusgs_jax.data.colmap import SceneError  # noqa: E402
+from cusgs_jax.data.loader import load_scene  # noqa: E402
 from cusgs_jax.data.lenses import (WIDENINGS, check_undistortable, lens_coefficients, lens_of_camera,  # noqa: E402
                                     scene_lens)
 from cusgs_jax.splat.project import project_gaussians  # noqa: E402
@@ -108,7 +110,7 @@ def _marker_offsets(scene):
 @pytest.mark.parametrize("model", sorted(CAMERAS))
 def test_lens_mode_keeps_the_images_and_renders_markers_in_place(tmp_path, model):
     distorted_colmap_scene(tmp_path / "s", [(model, CAMERAS[model])])
-    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="lens")
+    scene = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="lens"))
     assert scene.valid is None and scene.lens is not None and scene.lens.fisheye == (model == "OPENCV_FISHEYE")
     assert (scene.width, scene.height) == (64, 48)
     for name, image in zip(scene.names, scene.images):
@@ -124,8 +126,8 @@ def test_lens_mode_keeps_the_images_and_renders_markers_in_place(tmp_path, model
 
 def test_lens_mode_downscale_scales_K_and_keeps_the_lens(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
-    full = load_scene(tmp_path / "s", holdout_every=0, undistort="lens")
-    half = load_scene(tmp_path / "s", holdout_every=0, undistort="lens", downscale=2)
+    full = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="lens"))
+    half = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="lens", downscale=2))
     assert (half.width, half.height) == (32, 24)
     np.testing.assert_allclose(half.Ks[:, :2], full.Ks[:, :2] / 2, rtol=1e-6)
     np.testing.assert_array_equal(half.lens.coeffs, full.lens.coeffs)
@@ -134,8 +136,8 @@ def test_lens_mode_downscale_scales_K_and_keeps_the_lens(tmp_path):
 
 def test_lens_mode_on_pinhole_cameras_is_the_plain_scene(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("PINHOLE", (50.0, 50.0, 32.0, 24.0))])
-    plain = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
-    lens = load_scene(tmp_path / "s", holdout_every=0, undistort="lens")
+    plain = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"))
+    lens = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="lens"))
     assert lens.lens is None
     np.testing.assert_array_equal(lens.images, plain.images)
     np.testing.assert_array_equal(lens.Ks, plain.Ks)
@@ -168,4 +170,4 @@ def test_a_scene_with_a_folding_lens_is_refused_in_every_mode(tmp_path, mode):
     distorted_colmap_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, -2.0))])
     for undistort in (mode, "lens"):
         with pytest.raises(SceneError, match=r"camera 1 in .*cameras.bin: its SIMPLE_RADIAL lens .*not one-to-one"):
-            load_scene(tmp_path / "s", holdout_every=0, undistort=undistort)
+            load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort=undistort))

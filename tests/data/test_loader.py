@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import cusgs_jax
-from cusgs_jax.config import DataConfig, compose_config
+from cusgs_jax.config import DataConfig
+from cusgs_jax.compose import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.loader import load_cameras, load_scene, scene_folder
 from cusgs_jax.data.normalize import normalize_scene

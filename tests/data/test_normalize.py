@@ -7,7 +7,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.data.normalize import WorldTransform, camera_extent, normalize_scene, principal_axes
 from cusgs_jax.testing.scenes import random_rotation, transformed_scene
 
@@ -21,7 +22,7 @@ def _project(scene, view):
 
 
 def test_normalised_frame_has_extent_one_and_keeps_every_pixel(demo):
-    scene = load_scene(demo, holdout_every=0)
+    scene = load_scene(demo, DataConfig(format="colmap", holdout_every=0))
     normalized, world = normalize_scene(scene)
     assert normalized.extent == 1.0
     extent, center = camera_extent(normalized.camera_centers, normalized.points)
@@ -39,10 +40,11 @@ def test_normalised_frame_has_extent_one_and_keeps_every_pixel(demo):
 @pytest.mark.parametrize("scale", [1000.0, 0.001])
 def test_similarity_transformed_model_normalises_to_the_same_frame(demo, tmp_path, scale):
     """The same capture at another scale and origin (pycolmap Sim3d): identical normalised points and poses."""
-    base, _ = normalize_scene(load_scene(demo, holdout_every=0))
+    base, _ = normalize_scene(load_scene(demo, DataConfig(format="colmap", holdout_every=0)))
     moved_path = transformed_scene(demo, tmp_path / "moved", scale=scale, translation=(5.0, -3.0, 2.0))
-    moved, world = normalize_scene(load_scene(moved_path, holdout_every=0))
-    assert world.scale == pytest.approx(1.0 / (scale * load_scene(demo, holdout_every=0).extent), rel=1e-4)
+    moved, world = normalize_scene(load_scene(moved_path, DataConfig(format="colmap", holdout_every=0)))
+    extent = load_scene(demo, DataConfig(format="colmap", holdout_every=0)).extent
+    assert world.scale == pytest.approx(1.0 / (scale * extent), rel=1e-4)
     np.testing.assert_allclose(moved.points, base.points, atol=1e-5)
     np.testing.assert_allclose(moved.viewmats, base.viewmats, atol=1e-5)
 
@@ -103,10 +105,11 @@ def test_principal_alignment_makes_a_rotated_model_normalise_to_the_same_frame(d
     """data.align=principal: a rotated, scaled and moved copy of a model gives the same normalised points and
     poses as the original (so the voxel grid no longer depends on the SfM run's axes); with
     data.align=none the points differ by the rotation."""
-    base, base_world = normalize_scene(load_scene(demo, holdout_every=0), align="principal")
+    base, base_world = normalize_scene(load_scene(demo, DataConfig(format="colmap", holdout_every=0)),
+                                       align="principal")
     moved_path = transformed_scene(demo, tmp_path / "rotated", scale=3.0, translation=(1.0, 2.0, -4.0),
                                    rotation_xyzw=rotation_xyzw)
-    moved_scene = load_scene(moved_path, holdout_every=0)
+    moved_scene = load_scene(moved_path, DataConfig(format="colmap", holdout_every=0))
     moved, world = normalize_scene(moved_scene, align="principal")
     np.testing.assert_allclose(moved.points, base.points, atol=1e-5)
     np.testing.assert_allclose(moved.viewmats, base.viewmats, atol=1e-5)

@@ -19,7 +19,10 @@ import pytest
 pycolmap = pytest.importorskip("pycolmap")
 
 from cusgs_jax.data import undistort  # noqa: E402
-from cusgs_jax.data.colmap import SceneError, load_cameras, load_scene  # noqa: E402
+from cusgs_jax.config import DataConfig  # noqa: E402
+from cusgs_jax.data.colmap import SceneError  # noqa: E402
+from cusgs_jax.data.loader import load_cameras, load_scene  # noqa: E402
+from cusgs_jax.errors import ConfigError  # noqa: E402
 from cusgs_jax.data.images import downscale_image, scaled_size  # noqa: E402
 from cusgs_jax.testing.distorted_scenes import (BACKGROUND, CAMERAS, H, N_VIEWS, W,  # noqa: E402
                                                 distorted_colmap_scene, marker_errors)
@@ -55,7 +58,7 @@ MIXED = [("OPENCV", CAMERAS["OPENCV"]), ("OPENCV", (50.0, 51.0, 31.8, 24.2, -0.2
                          ids=list(CAMERAS) + ["mixed_sizes", "mixed_sizes_jpeg"])
 def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
     distorted_colmap_scene(tmp_path / "s", cameras, subfolder=len(cameras) > 1, ext=ext)
-    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
+    scene = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"))
     assert len(calls) == 1 and scene.images.shape == (N_VIEWS, scene.height, scene.width, 3)
     # Pinhole K of COLMAP's undistorted camera (centre-cropped to the common size when mixed).
     full = {cid: pycolmap.undistort_camera(pycolmap.UndistortCameraOptions(),
@@ -81,7 +84,8 @@ def test_distorted_scene_loads_as_pinhole(tmp_path, cameras, ext, calls):
 def test_no_black_border(tmp_path, model):
     """Crop, not mask: a uniformly bright source gives uniformly bright undistorted images."""
     distorted_colmap_scene(tmp_path / "s", [(model, CAMERAS[model])], uniform=True)
-    images = load_scene(tmp_path / "s", holdout_every=0, undistort="crop").images.astype(int)
+    images = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop")).images
+    images = images.astype(int)
     borders = np.concatenate([images[:, 0], images[:, -1], images[:, :, 0], images[:, :, -1]], 1)
     assert borders.min() >= BACKGROUND - 1, f"dark border pixel {borders.min()}"
     assert np.abs(images - BACKGROUND).max() <= 1
@@ -90,7 +94,7 @@ def test_no_black_border(tmp_path, model):
 def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
     with caplog.at_level(logging.INFO, logger="cusgs_jax"):
-        first = load_scene(tmp_path / "s", undistort="crop")
+        first = load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
         assert len(calls) == 1
         line = f"undistorted {N_VIEWS} images OPENCV → PINHOLE {first.width}×{first.height}, cached in"
         assert line in caplog.text
@@ -98,7 +102,7 @@ def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
         assert len(folders) == 1 and folders[0].name.startswith("s-")
         assert sorted(p.name for p in folders[0].iterdir()) == ["images", "undistort.json"]
         caplog.clear()
-        second = load_scene(tmp_path / "s", undistort="crop")
+        second = load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
         assert len(calls) == 1 and "using cached undistorted images" in caplog.text
     np.testing.assert_array_equal(first.images, second.images)
     np.testing.assert_array_equal(first.Ks, second.Ks)
@@ -106,7 +110,7 @@ def test_cache_reused_and_invalidated(tmp_path, cache_dir, calls, caplog):
     path = tmp_path / "s" / "images" / "v03.png"
     iio.imwrite(path, np.full((H, W, 3), 7, np.uint8))
     os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 10**9))
-    third = load_scene(tmp_path / "s", undistort="crop")
+    third = load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     assert len(calls) == 2 and len(list((cache_dir / "undistorted").iterdir())) == 2
     assert third.images[3].max() <= 8 and np.array_equal(third.images[2], first.images[2])
     assert not list((cache_dir / "undistorted").glob(".*tmp-*"))  # temporary folders renamed
@@ -123,7 +127,7 @@ def test_lost_race_uses_the_winners_copy(tmp_path, cache_dir, monkeypatch):
         shutil.copytree(tmp, final)  # the other job got there first
 
     monkeypatch.setattr(undistort, "_undistort_into", racing)
-    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
+    scene = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"))
     assert [p.name.startswith("s-") for p in (cache_dir / "undistorted").iterdir()] == [True]
     assert max(marker_errors(scene)) < 0.25
 
@@ -141,7 +145,7 @@ def test_read_only_scene(tmp_path, cache_dir):
     for p in modes:
         p.chmod(stat.S_IMODE(modes[p]) & ~0o222)
     try:
-        scene = load_scene(scene_dir, undistort="crop")
+        scene = load_scene(scene_dir, DataConfig(format="colmap", undistort="crop"))
     finally:
         for p, mode in modes.items():
             p.chmod(stat.S_IMODE(mode))
@@ -159,22 +163,23 @@ def test_unsupported_model(tmp_path, model, params, calls):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"]), (model, params)], uniform=True)
     with pytest.raises(SceneError, match=rf"camera 2 in .*cameras\.bin uses the {model} camera "
                                          r"model.*colmap image_undistorter"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     with pytest.raises(SceneError, match=model):
-        load_cameras(tmp_path / "s", undistort="crop")
+        load_cameras(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     assert not calls
 
 
 @pytest.mark.parametrize("downscale", [1, 2])
 def test_load_cameras_agrees_with_load_scene(tmp_path, calls, downscale):
     distorted_colmap_scene(tmp_path / "s", MIXED)
-    viewmats, Ks, width, height, train = load_cameras(tmp_path / "s", downscale=downscale, undistort="crop")
+    data = DataConfig(format="colmap", downscale=downscale, undistort="crop")
+    cams = load_cameras(tmp_path / "s", data)
     assert not calls  # no image is undistorted (or read) for the cameras
-    scene = load_scene(tmp_path / "s", downscale=downscale, undistort="crop")
-    assert (width, height) == (scene.width, scene.height)
-    np.testing.assert_array_equal(Ks, scene.Ks)
-    np.testing.assert_array_equal(viewmats, scene.viewmats)
-    np.testing.assert_array_equal(train, scene.train_indices)
+    scene = load_scene(tmp_path / "s", data)
+    assert (cams.width, cams.height) == (scene.width, scene.height)
+    np.testing.assert_array_equal(cams.Ks, scene.Ks)
+    np.testing.assert_array_equal(cams.viewmats, scene.viewmats)
+    np.testing.assert_array_equal(cams.train_indices, scene.train_indices)
 
 
 def test_downscale_uses_undistorted_full_resolution(tmp_path):
@@ -184,8 +189,8 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
     shutil.copytree(tmp_path / "s" / "images", tmp_path / "s" / "images_2")
     for p in (tmp_path / "s" / "images_2").iterdir():
         iio.imwrite(p, np.zeros((H // 2, W // 2, 3), np.uint8))  # would be black if used
-    full = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
-    half = load_scene(tmp_path / "s", downscale=2, holdout_every=0, undistort="crop")
+    full = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"))
+    half = load_scene(tmp_path / "s", DataConfig(format="colmap", downscale=2, holdout_every=0, undistort="crop"))
     out_hw = (scaled_size(full.height, 2), scaled_size(full.width, 2))
     assert (half.height, half.width) == out_hw
     for a, b in zip(full.images, half.images):
@@ -195,7 +200,7 @@ def test_downscale_uses_undistorted_full_resolution(tmp_path):
 
 def test_zero_distortion_is_a_pinhole(tmp_path, calls):
     distorted_colmap_scene(tmp_path / "s", [("SIMPLE_RADIAL", (50.0, 32.0, 24.0, 0.0))])
-    scene = load_scene(tmp_path / "s", holdout_every=0, undistort="crop")
+    scene = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"))
     assert not calls and (scene.width, scene.height) == (W, H)
     np.testing.assert_allclose(scene.Ks[0], [[50, 0, 32], [0, 50, 24], [0, 0, 1]])
     assert max(marker_errors(scene)) < 0.25
@@ -205,7 +210,7 @@ def test_invalid_distorted_camera(tmp_path, calls):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", (50.0, 52.0, 32.0, 24.0, np.nan, 0.0, 0.0, 0.0))],
                uniform=True)
     with pytest.raises(SceneError, match=r"camera 1 in .*cameras\.bin has invalid parameters \(OPENCV"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     assert not calls
 
 
@@ -213,13 +218,13 @@ def test_missing_and_corrupt_images(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])], uniform=True)
     (tmp_path / "s" / "images" / "v02.png").unlink()
     with pytest.raises(SceneError, match=r"'v02\.png' .*missing"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     (tmp_path / "s" / "images" / "v02.png").write_bytes(b"not an image")
     with pytest.raises(SceneError, match=r"undistorter could not read image .*v02\.png"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
     shutil.rmtree(tmp_path / "s" / "images")
     with pytest.raises(SceneError, match=r"images does not exist.*distorted"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
 
 
 def test_unwritable_cache(tmp_path, monkeypatch):
@@ -227,7 +232,7 @@ def test_unwritable_cache(tmp_path, monkeypatch):
     (tmp_path / "file").write_text("")
     monkeypatch.setenv("CUSGS_CACHE_DIR", str(tmp_path / "file"))  # a file, not a folder
     with pytest.raises(SceneError, match=r"cannot write the undistorted images.*CUSGS_CACHE_DIR"):
-        load_scene(tmp_path / "s", undistort="crop")
+        load_scene(tmp_path / "s", DataConfig(format="colmap", undistort="crop"))
 
 
 def _rgba(seed):
@@ -249,7 +254,8 @@ def test_alpha_kept_and_composited(tmp_path, background, caplog):
     rgba = _rgba(1)
     iio.imwrite(tmp_path / "s" / "images" / "v01.png", rgba)
     with caplog.at_level(logging.WARNING, logger="cusgs_jax"):
-        scene = load_scene(tmp_path / "s", holdout_every=0, background=background, undistort="crop")
+        scene = load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="crop"),
+                           background=background)
     assert "drops it" not in caplog.text and "1 of 8 images" in caplog.text  # the loader's own warning
     cam = pycolmap.Camera(camera_id=1, model="OPENCV", width=W, height=H, params=list(CAMERAS["OPENCV"]))
     a = rgba[..., 3:] / 255.0
@@ -291,7 +297,7 @@ def test_mask_mode_keeps_the_frame(tmp_path, model):
     is exactly the bright part of a uniformly bright source, and the markers still sit on their
     pinhole projections."""
     distorted_colmap_scene(tmp_path / "u", [(model, CAMERAS[model])], uniform=True)
-    scene = load_scene(tmp_path / "u", holdout_every=0, undistort="mask")
+    scene = load_scene(tmp_path / "u", DataConfig(format="colmap", holdout_every=0, undistort="mask"))
     source = pycolmap.Camera(model=model, width=W, height=H, params=list(CAMERAS[model]))
     assert (scene.width, scene.height) == (W, H)
     np.testing.assert_allclose(scene.Ks[0], [[source.focal_length_x, 0, source.principal_point_x],
@@ -313,20 +319,20 @@ def test_mask_mode_keeps_the_frame(tmp_path, model):
     if model == "SIMPLE_RADIAL":  # pincushion: the corners of the pinhole frame lie outside the source
         assert 0.02 < 1 - scene.valid.mean() < 0.3
     distorted_colmap_scene(tmp_path / "m", [(model, CAMERAS[model])])
-    marked = load_scene(tmp_path / "m", holdout_every=0, undistort="mask")
+    marked = load_scene(tmp_path / "m", DataConfig(format="colmap", holdout_every=0, undistort="mask"))
     errors = marker_errors(marked)
     assert len(errors) >= 4 * N_VIEWS and max(errors) < 0.25, max(errors)
     # load_cameras gives the same cameras without undistorting
-    _, Ks, width, height, _ = load_cameras(tmp_path / "m", holdout_every=0, undistort="mask")
-    assert (width, height) == (W, H) and np.allclose(Ks, marked.Ks)
+    cams = load_cameras(tmp_path / "m", DataConfig(format="colmap", holdout_every=0, undistort="mask"))
+    assert (cams.width, cams.height) == (W, H) and np.allclose(cams.Ks, marked.Ks)
     # crop mode has no mask and its own cache folder
-    assert load_scene(tmp_path / "m", holdout_every=0, undistort="crop").valid is None
+    assert load_scene(tmp_path / "m", DataConfig(format="colmap", holdout_every=0, undistort="crop")).valid is None
 
 
 def test_mask_mode_downscale_is_conservative(tmp_path):
     distorted_colmap_scene(tmp_path / "u", [("SIMPLE_RADIAL", CAMERAS["SIMPLE_RADIAL"])], uniform=True)
-    full = load_scene(tmp_path / "u", holdout_every=0, undistort="mask")
-    half = load_scene(tmp_path / "u", holdout_every=0, undistort="mask", downscale=2)
+    full = load_scene(tmp_path / "u", DataConfig(format="colmap", holdout_every=0, undistort="mask"))
+    half = load_scene(tmp_path / "u", DataConfig(format="colmap", holdout_every=0, undistort="mask", downscale=2))
     assert half.valid.shape == (N_VIEWS, scaled_size(H, 2), scaled_size(W, 2))
     # a downscaled pixel is valid only when no black pixel was mixed into it
     assert np.abs(half.images.astype(int)[half.valid] - BACKGROUND).max() <= 1
@@ -337,5 +343,5 @@ def test_mask_mode_downscale_is_conservative(tmp_path):
 
 def test_bad_undistort_mode(tmp_path):
     distorted_colmap_scene(tmp_path / "s", [("OPENCV", CAMERAS["OPENCV"])])
-    with pytest.raises(SceneError, match=r"data.undistort.*'blur'.*crop.*mask.*lens"):  # refused before any reading
-        load_scene(tmp_path / "s", holdout_every=0, undistort="blur")
+    with pytest.raises(ConfigError, match=r"data.undistort.*'blur'.*crop.*mask.*lens"):  # refused before any reading
+        load_scene(tmp_path / "s", DataConfig(format="colmap", holdout_every=0, undistort="blur"))

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cusgs_jax.app import run as run_module
-from cusgs_jax.config import compose_config
+from cusgs_jax.compose import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.densify.base import Probe, Strategy, Tally, UpdateInfo
 from cusgs_jax.densify.factory import make_strategies
@@ -90,16 +90,16 @@ def test_a_strategy_defined_outside_the_package_is_trained_and_recorded(tmp_path
     result = run_module.run(cfg, tmp_path / "run", extra_strategies=(toy,))
 
     assert toy.probed == [2]  # once, before its first update (after 2 steps), not again at step 4
-    finite_views = 4 - result["skipped_updates"]
-    tally = result["densify"]["count_views"]
+    finite_views = 4 - result.skipped_updates
+    tally = result.densify["count_views"]
     assert tally["updates"] == 2 and tally["grown"] == tally["pruned"] == 0 and tally["last"] == {"views": finite_views}
     assert tally["values"]["first_step"] == 2 and tally["values"]["render_ms"] > 0
-    assert result["counted_views"] == finite_views  # its results hook
-    assert "scaffold" in result["densify"]  # the configured strategies are recorded the same way
+    assert result.strategies["counted_views"] == finite_views  # its results hook
+    assert "scaffold" in result.densify  # the configured strategies are recorded the same way
     # the keys every run had keep their values without feature-aware pruning
-    assert result["render_ms_before_prune"] is None
-    assert result["prune"]["strategy"] == "none" and (result["prune"]["passes"], result["prune"]["pruned"]) == (0, 0)
-    assert json.loads((tmp_path / "run" / "eval.json").read_text())["densify"] == result["densify"]
+    assert result.render_ms_before_prune is None
+    assert result.prune["strategy"] == "none" and (result.prune["passes"], result.prune["pruned"]) == (0, 0)
+    assert json.loads((tmp_path / "run" / "eval.json").read_text())["densify"] == result.densify
 
     rows = [json.loads(line) for line in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [1, 2, 3, 4]

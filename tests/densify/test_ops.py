@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config, FeatureConfig, FeatureModelConfig, ModelConfig
+from cusgs_jax.config import Config, DataConfig, FeatureConfig, FeatureModelConfig, ModelConfig
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.model.anchors import voxelize
@@ -183,7 +183,7 @@ def test_resize_capacity_moves_the_alive_rows_of_every_per_anchor_array_to_the_f
 def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_path):
     """Dead slots contribute nothing: the step on the compacted capacity gives the alive anchors the
     same loss and the same new parameters (float32 tolerance: the gathers' padding differs)."""
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.training.capacity import Capacities
@@ -191,8 +191,8 @@ def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_pat
     from cusgs_jax.training.step import make_train_step
     from cusgs_jax.types import Camera
 
-    scene, _ = normalize_scene(load_scene(generate_demo_scene(tmp_path / "demo", width=40, height=30, num_views=4,
-                                                              num_points=1500), holdout_every=0))
+    scene_dir = generate_demo_scene(tmp_path / "demo", width=40, height=30, num_views=4, num_points=1500)
+    scene, _ = normalize_scene(load_scene(scene_dir, DataConfig(format="colmap", holdout_every=0)))
     cfg = Config().replace(features=dict(models=()), model=dict(n_offsets=3, latent_dim=8, hidden=16))
     cfg = resolve_voxel_size(cfg, scene.points)
     strategies = make_strategies(cfg)

@@ -6,15 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import generate_demo_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.extract import descriptors as desc
 
 W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 
 
 def test_lab_triples_the_dimension(demo):
-    img = load_scene(demo, holdout_every=0).images[0]
+    img = load_scene(demo, DataConfig(format="colmap", holdout_every=0)).images[0]
     for fn, d in [(desc.daisy_features, 104), (desc.hog_features, 36), (desc.gabor_features, 18)]:
         grey, lab = fn(img), fn(img, lab=True)
         assert grey.shape == (H, W, d) and lab.shape == (H, W, 3 * d)
@@ -90,7 +91,7 @@ def test_daisy_is_view_consistent(tmp_path):
     views, w, h = 24, 80, 60
     scene_dir = generate_demo_scene(tmp_path / "orbit", num_views=views, width=w, height=h,
                                     num_points=300)
-    scene = load_scene(scene_dir, holdout_every=0)
+    scene = load_scene(scene_dir, DataConfig(format="colmap", holdout_every=0))
     rng = np.random.default_rng(0)
     for a in (0, 7, 15):
         b = a + 1

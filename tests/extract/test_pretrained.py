@@ -16,12 +16,19 @@ import os
 import numpy as np
 import pytest
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.features import FeatureError, feature_dir, load_features
-from cusgs_jax.extract import extract
+from cusgs_jax.data.loader import load_scene
+from cusgs_jax.extract import extract_scene
 from cusgs_jax.extract.pretrained import _INSTALL_HINT, _require_modules
 
 W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 _DEPS = {"clip": ("torch", "open_clip"), "dinov2": ("torch", "timm")}
+
+
+def _loaded(path, **data):
+    """The scene as ``cusgs-extract`` loads it: every view, two random points never carved (none are needed)."""
+    return load_scene(path, DataConfig(holdout_every=0, random_points=2, carve="none", **data))
 
 
 def _have(*modules):
@@ -43,11 +50,10 @@ def _maps(scene, model, names):
 @pytest.mark.parametrize("model", ["clip", "dinov2"])
 def test_foundation_models_need_local_weights(demo, model):
     with pytest.raises(FeatureError, match="needs local weights: pass --weights PATH") as e:
-        extract(demo, model, overwrite=True, progress=False)
+        extract_scene(_loaded(demo), model, overwrite=True, progress=False)
     assert "Nothing is ever downloaded" in str(e.value) and "pip install -e '.[pretrained]'" in str(e.value)
     with pytest.raises(FeatureError, match="not found"):
-        extract(demo, model, weights=demo / "no_such_weights.bin", overwrite=True,
-                progress=False)
+        extract_scene(_loaded(demo), model, weights=demo / "no_such_weights.bin", overwrite=True, progress=False)
 
 
 @pytest.mark.parametrize("model", ["clip", "dinov2"])
@@ -57,7 +63,7 @@ def test_foundation_models_without_packages_say_how_to_install(demo, model, tmp_
     weights = tmp_path / "weights.bin"
     weights.write_bytes(b"")
     with pytest.raises(FeatureError, match="optional package") as e:
-        extract(demo, model, weights=weights, overwrite=True, progress=False)
+        extract_scene(_loaded(demo), model, weights=weights, overwrite=True, progress=False)
     assert _INSTALL_HINT[model] in str(e.value)
 
 
@@ -67,7 +73,7 @@ def test_clip_vit_b16_with_random_weights(demo, names):
     torch, open_clip = _modules("clip")
     torch.manual_seed(0)
     net = open_clip.create_model("ViT-B-16", pretrained=None)
-    s = extract(demo, "clip", net=net, overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "clip", net=net, overwrite=True, progress=False)
     # 14x14 tokens of the 224x224 input; 40x30 at long side 14 would be 14x10 (aspect off 5 %) → 28x21
     assert (s.num_views, s.dim, s.resolution, s.dtype, s.valid_fraction) == (V, 512, (28, 21), "float16", 1.0)
     meta = json.loads((s.folder / "meta.json").read_text())
@@ -77,7 +83,8 @@ def test_clip_vit_b16_with_random_weights(demo, names):
     assert fs.maps.std() > 0 and not np.allclose(fs.maps[0], fs.maps[1])  # depends on the image
 
     # The 14x14 grid itself, against the visual tower run by hand (tokens after ln_post, @ proj).
-    s = extract(demo, "clip", net=net, resolution=(14, 14), dtype="float32", overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "clip", net=net, resolution=(14, 14), dtype="float32", overwrite=True,
+                      progress=False)
     assert s.resolution == (14, 14)
     from skimage import transform
 
@@ -115,17 +122,17 @@ def test_clip_loads_a_local_checkpoint_file(demo, names, tmp_path):
     folder.mkdir()
     torch.save(net.state_dict(), folder / "open_clip_pytorch_model.bin")
 
-    s = extract(demo, "clip", weights=folder, arch="cusgs-tiny-vit", overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "clip", weights=folder, arch="cusgs-tiny-vit", overwrite=True, progress=False)
     assert (s.dim, s.resolution) == (32, (4, 3))  # 4x4 tokens of a 64x64 input → 4x3 (exact aspect)
     assert "open_clip_pytorch_model.bin" in json.loads((s.folder / "meta.json").read_text())["source"]
     from_file = _maps(demo, "clip", names)
-    extract(demo, "clip", net=net, overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "clip", net=net, overwrite=True, progress=False)
     for n, arr in _maps(demo, "clip", names).items():
         np.testing.assert_array_equal(from_file[n], arr)
 
     with pytest.raises(FeatureError, match="cannot load open_clip 'ViT-B-32'"):  # wrong architecture
-        extract(demo, "clip", weights=folder / "open_clip_pytorch_model.bin", arch="ViT-B-32", overwrite=True,
-                progress=False)
+        extract_scene(_loaded(demo), "clip", weights=folder / "open_clip_pytorch_model.bin", arch="ViT-B-32",
+                      overwrite=True, progress=False)
 
 
 def test_dinov2_vit_small_with_random_weights_from_a_local_checkpoint(demo, names, tmp_path):
@@ -140,7 +147,7 @@ def test_dinov2_vit_small_with_random_weights_from_a_local_checkpoint(demo, name
     folder.mkdir()
     save_file(net.state_dict(), str(folder / "model.safetensors"))
 
-    s = extract(demo, "dinov2", weights=folder, input_size=112, overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "dinov2", weights=folder, input_size=112, overwrite=True, progress=False)
     # 40x30 → long side 112 → 112x84 = 8x6 patches of 14
     assert (s.num_views, s.dim, s.resolution, s.dtype, s.valid_fraction) == (V, 384, (8, 6), "float16", 1.0)
     meta = json.loads((s.folder / "meta.json").read_text())
@@ -148,22 +155,22 @@ def test_dinov2_vit_small_with_random_weights_from_a_local_checkpoint(demo, name
     fs = load_features(demo, "dinov2", names, image_size=(W, H))
     assert fs.maps.shape == (V, 6, 8, 384) and np.all(np.isfinite(fs.maps)) and fs.maps.std() > 0
     from_file = _maps(demo, "dinov2", names)
-    extract(demo, "dinov2", net=net, input_size=112, overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "dinov2", net=net, input_size=112, overwrite=True, progress=False)
     for n, arr in _maps(demo, "dinov2", names).items():
         np.testing.assert_array_equal(from_file[n], arr)
 
-    s = extract(demo, "dinov2", net=net, input_size=112, resolution=(20, 15), dtype="float32", overwrite=True,
-                progress=False)
+    s = extract_scene(_loaded(demo), "dinov2", net=net, input_size=112, resolution=(20, 15), dtype="float32",
+                      overwrite=True, progress=False)
     assert s.resolution == (20, 15) and _maps(demo, "dinov2", names)[names[0]].shape == (15, 20, 384)
 
     with pytest.raises(FeatureError, match="cannot load timm 'vit_small_patch14_reg4_dinov2'"):
-        extract(demo, "dinov2", weights=folder, arch="vit_small_patch14_reg4_dinov2", overwrite=True,
-                progress=False)
+        extract_scene(_loaded(demo), "dinov2", weights=folder, arch="vit_small_patch14_reg4_dinov2",
+                      overwrite=True, progress=False)
     hf = tmp_path / "dinov2-small"  # a transformers snapshot: other file and parameter names
     hf.mkdir()
     (hf / "config.json").write_text('{"model_type": "dinov2"}')
     with pytest.raises(FeatureError, match="transformers snapshot"):
-        extract(demo, "dinov2", weights=hf, overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "dinov2", weights=hf, overwrite=True, progress=False)
 
 
 def test_clip_with_local_weights(demo, names):
@@ -171,8 +178,8 @@ def test_clip_with_local_weights(demo, names):
     weights = os.environ.get("CUSGS_CLIP_WEIGHTS")
     if not weights:
         pytest.skip("set CUSGS_CLIP_WEIGHTS to a local open_clip ViT-B-16 checkpoint")
-    s = extract(demo, "clip", weights=weights, arch=os.environ.get("CUSGS_CLIP_ARCH", "ViT-B-16"),
-                overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "clip", weights=weights, arch=os.environ.get("CUSGS_CLIP_ARCH", "ViT-B-16"),
+                      overwrite=True, progress=False)
     fs = load_features(demo, "clip", names, image_size=(W, H))
     assert fs.dim == s.dim and fs.valid.mean() > 0.99
 
@@ -182,7 +189,8 @@ def test_dinov2_with_local_weights(demo, names):
     weights = os.environ.get("CUSGS_DINOV2_WEIGHTS")
     if not weights:
         pytest.skip("set CUSGS_DINOV2_WEIGHTS to a local timm DINOv2 checkpoint (vit_small_patch14_dinov2)")
-    s = extract(demo, "dinov2", weights=weights, arch=os.environ.get("CUSGS_DINOV2_ARCH", "vit_small_patch14_dinov2"),
-                input_size=112, overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "dinov2", weights=weights,
+                      arch=os.environ.get("CUSGS_DINOV2_ARCH", "vit_small_patch14_dinov2"), input_size=112,
+                      overwrite=True, progress=False)
     fs = load_features(demo, "dinov2", names, image_size=(W, H))
     assert fs.dim == s.dim and fs.valid.mean() > 0.99

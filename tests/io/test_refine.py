@@ -15,8 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from cusgs_jax.config import DataConfig
 from cusgs_jax.data.demo import generate_demo_scene
-from cusgs_jax.data.layouts import load_any_scene
+from cusgs_jax.data.loader import load_scene
 from cusgs_jax.io import SplatModel, heldout_psnr, make_refine_step, recentre_splats, refine_splats, scene_camera
 from cusgs_jax.io import refine as refine_module
 from cusgs_jax.io.refine import RefineSettings, init_refine, join_params, refine_loss, split_params
@@ -29,7 +30,7 @@ def scene(tmp_path_factory):
     """A 40×30 demo scene with 8 views, every 4th held out (views 0 and 4)."""
     path = generate_demo_scene(tmp_path_factory.mktemp("refine") / "scene", width=40, height=30, num_views=8,
                                num_points=600)
-    return load_any_scene(path, holdout_every=4)
+    return load_scene(path, DataConfig(holdout_every=4))
 
 
 def _points_model(scene, degree: int = 1, opacity: float = 0.1) -> SplatModel:

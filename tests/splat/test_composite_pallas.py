@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.splat import rasterize
+from cusgs_jax.splat import Compositor, rasterize
 from cusgs_jax.splat.composite import composite_tiles
 from cusgs_jax.splat.composite_pallas import composite_tiles_pallas, padded_channels
 from cusgs_jax.splat.render import resolve_backend
@@ -142,7 +142,7 @@ def test_float32_matches_jax_compositor():
 
 def _render(scene, backend, **kw):
     return rasterize(*(jnp.asarray(scene[k]) for k in KEYS), jnp.asarray(scene["viewmat"]),
-                     jnp.asarray(scene["K"]), scene["width"], scene["height"], backend=backend, **kw)
+                     jnp.asarray(scene["K"]), scene["width"], scene["height"], compositor=Compositor(backend), **kw)
 
 
 @pytest.mark.parametrize("tile_size,channels", [(8, 3), pytest.param(16, 5, marks=pytest.mark.slow)])
@@ -160,7 +160,7 @@ def test_rasterize_backends_agree_forward_and_gradients(x64, tile_size, channels
     def loss(backend):
         def f(means, quats, scales, opacities, colors):
             out = rasterize(means, quats, scales, opacities, colors, jnp.asarray(scene["viewmat"]),
-                            jnp.asarray(scene["K"]), scene["width"], scene["height"], backend=backend, **kw)
+                            jnp.asarray(scene["K"]), scene["width"], scene["height"], compositor=Compositor(backend), **kw)
             return jnp.sum(out.image * wi) + jnp.sum(out.alpha * wa) + jnp.sum(out.depth * wd)
         return f
 
@@ -179,7 +179,7 @@ def test_vmap_over_views_equals_single_renders():
     views = jnp.asarray(np.stack([scene["viewmat"], shifted]))
 
     def one(viewmat):
-        return rasterize(*args, viewmat, jnp.asarray(scene["K"]), 24, 16, backend="pallas").image
+        return rasterize(*args, viewmat, jnp.asarray(scene["K"]), 24, 16, compositor=Compositor("pallas")).image
 
     batched = jax.vmap(one)(views)
     for i in range(2):

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.splat import check_inputs, rasterize, rasterize_batch
+from cusgs_jax.splat import Compositor, check_inputs, rasterize, rasterize_batch
 from cusgs_jax.testing.splat_reference import rasterize_reference
 from cusgs_jax.testing.scenes import KEYS, as_dtype, make_scene
 
@@ -210,7 +210,8 @@ def test_zero_opacity_contributes_nothing_and_gets_zero_gradient():
 def test_tile_size_and_chunk_do_not_change_the_image():
     scene = as_dtype(make_scene(8, num=200, width=45, height=37), np.float32)
     base = _render(scene)
-    for kw in (dict(tile_size=8), dict(tile_size=16, chunk_size=8), dict(tile_size=32, chunk_size=64)):
+    for kw in (dict(tile_size=8), dict(tile_size=16, compositor=Compositor("jax", chunk_size=8)),
+               dict(tile_size=32, compositor=Compositor("jax", chunk_size=64, lanes=3))):
         other = _render(scene, **kw)
         np.testing.assert_allclose(other.image, base.image, atol=1e-6, err_msg=str(kw))
         np.testing.assert_array_equal(other.n_contrib, base.n_contrib)

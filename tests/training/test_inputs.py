@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config, DataConfig, compose_config
+from cusgs_jax.config import Config, DataConfig
+from cusgs_jax.compose import compose_config
 from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.training.inputs import (FLOAT16_MAX, feature_targets, load_data, load_feature_targets,
@@ -51,11 +52,12 @@ def test_feature_targets_far_larger_than_the_extractors_give_are_warned_about_at
     import shutil
 
     from cusgs_jax.data.features import feature_dir
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.extract import ensure_extracted
 
     scene_dir = tmp_path / "scene"
     shutil.copytree(demo, scene_dir)
-    ensure_extracted(scene_dir, "semantic", progress=False)
+    ensure_extracted(load_scene(scene_dir, DataConfig(holdout_every=0)), "semantic", progress=False)
     cfg = compose_config([f"data.path={scene_dir}", "features.models=[{name: semantic}]"])
     scene, _ = load_data(cfg)
     with caplog.at_level("WARNING", logger="cusgs_jax"):
@@ -158,14 +160,16 @@ def test_a_masked_scene_zeroes_its_invalid_feature_targets_and_refuses_features_
 
 
 def test_a_lens_scene_takes_features_of_its_images_as_captured_and_refuses_the_others(tmp_path, monkeypatch):
-    from cusgs_jax.extract import extract
+    from cusgs_jax.data.loader import load_scene
+    from cusgs_jax.extract import extract_scene
 
     root, cfg, scene = _distorted_daisy_run(tmp_path, monkeypatch, "OPENCV", "lens")
     assert scene.lens is not None and scene.valid is None
     maps, _ = load_feature_targets(cfg.features, scene, 0)  # auto-extracted from the images as captured
     fs = maps["daisy"]
     assert fs.meta["undistort"] == "lens" and fs.maps.shape[1:3] == (scene.height, scene.width)
-    direct = extract(root, "daisy", undistort="crop", overwrite=True, progress=False)  # crop-frame features
+    cropped = load_scene(root, DataConfig(holdout_every=0, random_points=2, carve="none", undistort="crop"))
+    direct = extract_scene(cropped, "daisy", overwrite=True, progress=False)  # crop-frame features
     assert direct.num_views == scene.num_images
     with pytest.raises(SceneError, match=r"daisy features .* data\.undistort=crop, but this run uses "
                                          r"data\.undistort=lens: re-extract them \(cusgs-extract .* --undistort lens"):

@@ -75,7 +75,7 @@ def test_nothing_is_rendered_without_a_browser(monkeypatch):
 def test_a_training_run_shows_view_models_of_its_steps_and_stops_its_server(tmp_path, caplog, monkeypatch):
     pytest.importorskip("viser", reason="the viewer extra is not installed")
     from cusgs_jax.app.run import run
-    from cusgs_jax.config import compose_config
+    from cusgs_jax.compose import compose_config
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.errors import ConfigError
     from cusgs_jax.view.render import ViewModel

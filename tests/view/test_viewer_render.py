@@ -72,10 +72,12 @@ def test_view_model_centres_on_the_alive_anchors_and_averages_the_appearance(tra
 
 
 def test_scene_cameras_list_the_training_views_then_the_held_out_ones(demo):
-    from cusgs_jax.data.colmap import load_scene
+    from cusgs_jax.config import DataConfig
+    from cusgs_jax.data.loader import load_scene
     from cusgs_jax.view.render import scene_cameras
 
-    scene = load_scene(demo, holdout_every=2)  # views 0 and 2 held out: the lists interleave in the scene
+    # views 0 and 2 held out: the lists interleave in the scene
+    scene = load_scene(demo, DataConfig(format="colmap", holdout_every=2))
     train, held_out = scene.train_indices, scene.test_indices
     assert len(train) and len(held_out)
     cameras = scene_cameras(scene, train)

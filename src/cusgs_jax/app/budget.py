@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import time
 
+from cusgs_jax.app.clock import Clock
 from cusgs_jax.app.compiles import CompileLog
 
 #: The stages, in the order a run passes them (``eval.json``'s ``time`` keys, with ``compile_wait``, ``other``,
@@ -25,27 +26,40 @@ STAGES = ("startup", "load", "features", "psc", "init", "probe", "train_steps", 
 
 
 class TimeBudget:
-    """Seconds per stage of one process's run.
+    """Seconds per stage of one process's run, and its training clock.
 
     Args:
-      compiles: the run's compile log (its seconds move into ``compile``).
+      compiles: the run's compile log, entered (its seconds move into ``compile``); None: compiles are not
+        told apart (``compile_wait`` holds only waits for background compiles, ``compile`` is None).
       start: ``time.perf_counter()`` at which the budget starts (default now); the time until the
         first stage is ``startup`` when given (e.g. the process's import of the package).
+
+    Attributes:
+      clock: the run's training clock (:class:`~cusgs_jax.app.clock.Clock`: ``metrics.jsonl``'s and the curve's
+        ``wall_s``, ``eval.json``'s ``train_wall_s``); a resumed run sets it to the checkpoint's (:meth:`resume_clock`).
     """
 
-    def __init__(self, compiles: CompileLog, start: float | None = None):
+    def __init__(self, compiles: CompileLog | None = None, start: float | None = None):
         self.compiles = compiles
+        self.clock = Clock()
         self.seconds = {name: 0.0 for name in STAGES}
         self.seconds.update(compile_wait=0.0, other=0.0)
         now = time.perf_counter()
         self._since = now if start is None else start
-        self._compiled = compiles.foreground_seconds
+        self._compiled = self._foreground()
         self._waited = 0.0  # waits for background compiles not yet charged
         self._current = "other" if start is None else "startup"
         self._start = self._since
 
+    def _foreground(self) -> float:
+        return 0.0 if self.compiles is None else self.compiles.foreground_seconds
+
+    def resume_clock(self, seconds: float) -> None:
+        """Continue the training clock from ``seconds`` (a resumed run: the checkpoint's ``wall_s``)."""
+        self.clock = Clock(float(seconds))
+
     def _charge(self) -> None:
-        now, compiled = time.perf_counter(), self.compiles.foreground_seconds
+        now, compiled = time.perf_counter(), self._foreground()
         wait_part = compiled - self._compiled + self._waited
         self.seconds[self._current] += (now - self._since) - wait_part
         self.seconds["compile_wait"] += wait_part
@@ -79,7 +93,7 @@ class TimeBudget:
         self._charge()
         out = {name: round(value, 3) for name, value in self.seconds.items()}
         out["total"] = round(time.perf_counter() - self._start, 3)
-        out["compile"] = round(self.compiles.seconds, 3)
+        out["compile"] = None if self.compiles is None else round(self.compiles.seconds, 3)
         return out
 
     def line(self) -> str:
@@ -87,4 +101,5 @@ class TimeBudget:
         table = self.as_dict()
         total, compiled = table.pop("total"), table.pop("compile")
         parts = [f"{name} {value:.1f}" for name, value in sorted(table.items(), key=lambda kv: -kv[1]) if value >= 0.05]
-        return f"time {total:.1f} s: " + ", ".join(parts) + f" (compiling {compiled:.1f} s in all)"
+        return (f"time {total:.1f} s: " + ", ".join(parts)
+                + ("" if compiled is None else f" (compiling {compiled:.1f} s in all)"))

@@ -27,6 +27,14 @@ BACKEND_EVENT = "/jax/core/compile/backend_compile_duration"
 CACHE_HIT_EVENT = "/jax/compilation_cache/cache_hits"
 
 
+def compiled_name(function) -> str:
+    """The name JAX's compile events give a jitted ``function`` (``jit(<its Python name>)``); a wrapper that
+    holds one as ``jitted`` (:class:`~cusgs_jax.app.ahead.Program`, the batched step) names its function."""
+    while "jitted" in getattr(function, "__dict__", {}):
+        function = function.jitted
+    return f"jit({function.__name__})"
+
+
 class CompileLog:
     """``with CompileLog() as log:`` records every compilation of this process while inside.
 
@@ -83,9 +91,12 @@ class CompileLog:
         jax.monitoring.unregister_event_duration_listener(self._on_duration)
         jax.monitoring.unregister_event_listener(self._on_event)
 
-    def count(self, function: str | None = None) -> int:
-        """Backend compilations (cache loads included) of ``function`` (a name such as ``jit(step)``), or of all."""
-        return sum(1 for r in self.records if function is None or r["function"] == function)
+    def count(self, function=None) -> int:
+        """Backend compilations (cache loads included) of ``function`` — the jitted function itself (or a
+        :class:`~cusgs_jax.app.ahead.Program` of it: :func:`compiled_name`), or its name such as ``jit(step)`` —
+        or of all."""
+        name = function if function is None or isinstance(function, str) else compiled_name(function)
+        return sum(1 for r in self.records if name is None or r["function"] == name)
 
     def summary(self, top: int = 8) -> dict:
         """``eval.json``'s ``compilations``: {"count", "compiled", "from_cache", "ahead" (on the compile-ahead

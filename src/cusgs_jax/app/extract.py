@@ -1,6 +1,7 @@
-"""``cusgs-extract``: the command-line front end of :func:`cusgs_jax.extract.extract`.
+"""``cusgs-extract``: the command-line front end of :func:`cusgs_jax.extract.extract_scene`: loads SCENE as
+:func:`cusgs_jax.data.loader.load_scene` does with these flags, then describes its images.
 
-Imports only the (JAX-free) extraction package, so ``cusgs-extract --help`` is fast.
+Imports only the (JAX-free) extraction package and the scene loader, so ``cusgs-extract --help`` is fast.
 """
 
 from __future__ import annotations
@@ -12,7 +13,8 @@ from typing import Any
 from cusgs_jax.app.argtypes import in_cli_terms, int_at_least
 from cusgs_jax.config import CAMERA_FRAMES, DataConfig
 from cusgs_jax.errors import UserError
-from cusgs_jax.extract import MODELS, extract
+from cusgs_jax.data.loader import load_scene
+from cusgs_jax.extract import MODELS, extract_scene
 
 __all__ = ["main"]
 
@@ -72,9 +74,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if getattr(args, key) is not None:
             options[key] = getattr(args, key)
     try:
-        s = extract(args.scene, args.model, resolution=args.resolution, downscale=args.downscale,
-                    dtype=args.dtype, overwrite=args.overwrite, progress=not args.quiet, format=args.format,
-                    undistort=args.undistort, **options)
+        # every view as a run loads it; its initial points are not needed (2 random ones, never carved)
+        data = DataConfig(path=args.scene, format=args.format, downscale=args.downscale, holdout_every=0,
+                          random_points=2, carve="none", undistort=args.undistort)
+        s = extract_scene(load_scene(args.scene, data, downscale_option="--downscale"), args.model,
+                          resolution=args.resolution, dtype=args.dtype, overwrite=args.overwrite,
+                          progress=not args.quiet, **options)
     except UserError as e:  # bad scene, features or options: one line, exit 2 (as cusgs-train)
         ap.exit(2, f"{PROG}: error: {in_cli_terms(str(e), FLAGS)}\n")
     print(f"{s.model} features -> {s.folder}\n"

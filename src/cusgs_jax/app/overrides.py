@@ -14,7 +14,7 @@ import importlib
 import os
 import pathlib
 
-from cusgs_jax.config import compose_config, compose_node
+from cusgs_jax.compose import compose_config, compose_node
 from cusgs_jax.errors import UserError
 from cusgs_jax.sweep.pareto import check_sweeper_settings
 

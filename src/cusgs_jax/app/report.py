@@ -53,7 +53,7 @@ from pathlib import Path
 import yaml
 
 from cusgs_jax.errors import UserError
-from cusgs_jax.run_folder import CURVE_FILE, EVAL_FILE, FAILED_FILE, METRICS_FILE, EvalRecord
+from cusgs_jax.run_folder import CURVE_FILE, EVAL_FILE, FAILED_FILE, HYDRA_DIR, METRICS_FILE, read_eval
 from cusgs_jax.app.paper_tables import CSV_COLUMNS, paper_fields, table1_markdown, table2_markdown
 from cusgs_jax.eval.sweep_plots import finite_or_none, pareto_front, write_plots
 
@@ -134,7 +134,7 @@ def _read_jsonl(path: Path) -> list[dict]:
 def _read_overrides(job: Path) -> dict[str, str | None]:
     """``{"prune.ratio": "0.01", ...}`` from ``.hydra/overrides.yaml`` (leading ``+`` dropped)."""
     try:
-        items = yaml.safe_load((job / ".hydra" / "overrides.yaml").read_text())
+        items = yaml.safe_load((job / HYDRA_DIR / "overrides.yaml").read_text())
     except (OSError, yaml.YAMLError):
         return {}
     overrides = {}
@@ -211,13 +211,11 @@ def load_job(path, root=None) -> dict:
         record["status"] = "failed: " + _first_line(error)
     elif (path / EVAL_FILE).is_file():
         try:
-            text = (path / EVAL_FILE).read_text()
-            parsed = json.loads(text)
-            if not isinstance(parsed, dict):
-                raise TypeError(f"expected a JSON object, got {type(parsed).__name__}")
-            result = EvalRecord.from_json(parsed, str(path / EVAL_FILE)).to_json()  # run_folder.py
-        except (OSError, ValueError, TypeError, UserError) as exc:
-            record["status"] = f"failed: unreadable {EVAL_FILE} ({type(exc).__name__}: {_first_line(exc)})"
+            result = read_eval(path)  # the run-folder contract (run_folder.py)
+        except UserError as exc:  # damaged (the JSON error is its cause), newer, or holding a key it may not
+            cause = exc.__cause__
+            why = f"{type(cause).__name__}: {_first_line(cause)}" if cause is not None else _first_line(exc)
+            record["status"] = f"failed: unreadable {EVAL_FILE} ({why})"
         else:
             record.update(_eval_metrics(result), **paper_fields(result, path), status="ok")
             curve = [p for p in result.get("curve") or [] if isinstance(p, dict)]

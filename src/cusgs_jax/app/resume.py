@@ -13,7 +13,6 @@ import pathlib
 
 import numpy as np
 
-from cusgs_jax.app.clock import Clock
 from cusgs_jax.config import Config, require
 from cusgs_jax.data.identity import same_cameras
 from cusgs_jax.densify import ops
@@ -40,7 +39,7 @@ def resume(session) -> None:
     require_same_scene(session, meta, step)
     require_not_past(session.cfg, step, session.ckpt.directory)
     session.capacities = session.capacities.restored(meta.capacities)
-    session.clock = Clock(float(meta.wall_s))
+    session.budget.resume_clock(meta.wall_s)
     session.curve = list(meta.curve)
     session.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
     if meta.densify is None and "prune" in meta.extra:  # written before the strategies kept tallies

@@ -44,8 +44,8 @@ from cusgs_jax.app.ahead import Ahead, Program
 from cusgs_jax.app.foresight import Foresight
 from cusgs_jax.app.alarms import loss_alarms, require_trained
 from cusgs_jax.app.budget import TimeBudget
-from cusgs_jax.app.clock import Clock
-from cusgs_jax.app.compiles import CompileLog
+from cusgs_jax.app.compiles import CompileLog, compiled_name
+from cusgs_jax.app.resolve import resolve_for_scene
 from cusgs_jax.app.resume import require_not_past, resume
 from cusgs_jax.app.xla_cache import use_compilation_cache
 from cusgs_jax.config import Config, require, require_config
@@ -55,8 +55,7 @@ from cusgs_jax.data.errors import SceneError
 from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.data.identity import scene_digest
 from cusgs_jax.data.normalize import WorldTransform
-from cusgs_jax.training.inputs import (feature_targets, load_data, load_feature_targets, make_batches,
-                                       resolve_background)
+from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, make_batches
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Probe, Strategy, Tally, strategy_results, strategy_row
 from cusgs_jax.densify.factory import make_strategies
@@ -64,9 +63,8 @@ from cusgs_jax.eval.features import evaluate_features
 from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, evaluate_views, model_bytes, nearest_train_view
-from cusgs_jax.extract.optional import run_features
 from cusgs_jax.run_folder import (BANKS_FILE, CHECKPOINTS_DIR, CURVE_FILE, EVAL_FILE, FEATURES_DIR, FEATURES_MD,
-                                  METRICS_FILE, PLOT_FILE, RENDERS_DIR, VERSION as RUN_FOLDER_VERSION, CheckpointMeta,
+                                  METRICS_FILE, PLOT_FILE, RENDERS_DIR, CheckpointMeta,
                                   EvalRecord, accept_hydra_record, read_eval, restore_hydra_record, write_eval)
 from cusgs_jax.model.anchors import compact
 from cusgs_jax.training.checkpoint import Checkpointer, quiet_orbax
@@ -74,15 +72,13 @@ from cusgs_jax.training import capacity
 from cusgs_jax.training.distributed import require_single_process
 from cusgs_jax.training.parallel import resolve_devices
 from cusgs_jax.training.render import RgbOfFeatureRender, make_feature_render_fn, make_render_fn, most_work
-from cusgs_jax.training.state import TrainState, init_train_state, resolve_voxel_size
+from cusgs_jax.training.state import TrainState, init_train_state
 from cusgs_jax.training.step import make_train_step
 from cusgs_jax.types import Camera
 from cusgs_jax.view.live import live_view
 from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_model
 
 log = logging.getLogger("cusgs_jax")
-STEP_FUNCTION = "jit(train_step)"  # the jitted step's name in the compile log (training/step.py)
-EVAL_RENDER_FUNCTIONS = ("jit(render_rgb)", "jit(render_rgb_features)")  # training/render.py
 
 
 @dataclasses.dataclass
@@ -102,7 +98,6 @@ class Session:
     tx: optax.GradientTransformation
     state: TrainState
     ckpt: Checkpointer
-    clock: Clock
     curve: list[dict]  # the learning curve's points (eval_curve.jsonl rows)
     tallies: dict[str, Tally]  # {strategy name: what its updates did} (checkpointed)
     capacities: capacity.Capacities  # the step's work capacities: owned, grown and checkpointed here
@@ -112,7 +107,7 @@ class Session:
     step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
     render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render (set by setup)
     feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
-    budget: TimeBudget | None = None  # seconds per stage (eval.json's time)
+    budget: TimeBudget | None = None  # seconds per stage (eval.json's time) and the training clock
     ahead: Ahead | None = None  # the background compiles (app/ahead.py); None: every program compiles on its call
     programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
     batches: Callable[[int], dict] | None = None  # batch(step): the training views of a step (make_batches)
@@ -136,7 +131,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     ``ahead``: the run's background compiles (:mod:`cusgs_jax.app.ahead`): the first step and the
     evaluation render are compiled there while setup ends (default: none, each compiles on its first call).
     """
-    budget = budget or TimeBudget(CompileLog())
+    budget = budget or TimeBudget()
     require_single_process()
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
@@ -164,12 +159,9 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
     if cfg.train.resume:
         read_eval(out)  # a record this version cannot read (newer, damaged) is refused here, not overwritten
     with budget.stage("load"):
-        cfg = dataclasses.replace(cfg, features=run_features(cfg))
         scene, world = load_data(cfg)
-        cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
+        cfg = resolve_for_scene(cfg, scene).cfg  # every auto setting, once (app/resolve.py)
         train_idx = scene.train_indices
-        cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train_idx], scene.Ks[train_idx], scene.width,
-                                                     scene.height) if scene.random_points else None)
     test_idx = scene.test_indices if len(scene.test_indices) else _spread(train_idx, 8)
     log.info("scene %s (%s): %d train / %d held-out views at %dx%d, %d points; extent %.4g in the scene's frame "
              "(trained in units of it), voxel size %.4g", scene.path, scene.dataset_format, len(train_idx),
@@ -192,7 +184,7 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
         state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
     session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
-                      state=state, ckpt=ckpt, clock=Clock(), curve=[],
+                      state=state, ckpt=ckpt, curve=[],
                       tallies={name: Tally() for name in names},
                       capacities=capacity.Capacities.from_config(cfg), budget=budget, ahead=ahead)
     with budget.stage("probe"):
@@ -298,7 +290,7 @@ def train(session: Session, progress_label: str = "train") -> None:
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
-            with session.clock:
+            with session.budget.clock:
                 with session.budget.stage("train_steps"):
                     started = time.perf_counter()
                     metrics = _exact_step(session, batches(step))
@@ -399,7 +391,7 @@ def _shrink_if_empty(session: Session, step: int) -> None:
 def _probe(session: Session, step: int) -> Probe:
     """What a strategy's ``before_first_update`` hook may measure of the run after ``step`` steps."""
     def render_ms_per_view() -> float:
-        with session.clock.paused(), session.budget.stage("evaluation"):
+        with session.budget.clock.paused(), session.budget.stage("evaluation"):
             return _evaluate(session, session.state.anchors, time_renders=True)["render_ms_per_view"]
 
     return Probe(step=step, render_ms_per_view=render_ms_per_view)
@@ -412,7 +404,7 @@ def _devices(session: Session) -> int:
 
 def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
     state = session.state
-    row = dict(step=step, wall_s=round(session.clock.total, 3), loss=float(metrics["loss"]),
+    row = dict(step=step, wall_s=round(session.budget.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(np.asarray(state.anchors.alive))),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
@@ -439,7 +431,7 @@ def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
 def _curve_point(session: Session, step: int) -> dict:
     anchors = session.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
     result = _evaluate(session, anchors)
-    point = dict(step=step, wall_s=session.clock.total, psnr=result["psnr"], ssim=result["ssim"],
+    point = dict(step=step, wall_s=session.budget.clock.total, psnr=result["psnr"], ssim=result["ssim"],
                  alive_anchors=int(np.sum(np.asarray(session.state.anchors.alive))))
     if session.banks is not None:
         feats = _evaluate_features(session, anchors, retrieval=False)["models"]
@@ -455,7 +447,7 @@ def _psnr_label(session: Session) -> str:
 
 def _save(session: Session, step: int) -> None:
     meta = CheckpointMeta(
-        step=step, capacity=session.state.anchors.capacity, wall_s=session.clock.total, curve=session.curve,
+        step=step, capacity=session.state.anchors.capacity, wall_s=session.budget.clock.total, curve=session.curve,
         densify={name: tally.as_dict() for name, tally in session.tallies.items()},
         recompilations=session.recompilations, replays=session.replays,
         capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
@@ -488,8 +480,8 @@ def _cameras(session: Session, idx) -> dict:
 # --- finalise -------------------------------------------------------------------------------
 
 
-def finalise(session: Session) -> dict:
-    """Final held-out evaluation, ``eval.json``, plots; returns the ``eval.json`` dict."""
+def finalise(session: Session) -> EvalRecord:
+    """Final held-out evaluation, ``eval.json``, plots; returns the run's record."""
     cfg, out, state = session.cfg, session.out, session.state
     save = cfg.eval.save_renders
     budget = session.budget
@@ -498,13 +490,22 @@ def finalise(session: Session) -> dict:
         anchors = state.anchors
         final = _evaluate(session, anchors, out_dir=out / RENDERS_DIR if save else None, time_renders=True,
                           lpips=lpips)
-    result = dict(
+        features = (None if session.banks is None else
+                    _evaluate_features(session, anchors, out_dir=out / FEATURES_DIR if save else None))
+    with budget.stage("report"):
+        if features is not None:
+            (out / FEATURES_MD).write_text(features["markdown"])
+        plot_error_vs_time(session.curve, out / PLOT_FILE,
+                           title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
+    with budget.stage("checkpoints"):
+        session.ckpt.close()
+    record = EvalRecord(
         psnr=final["psnr"], ssim=final["ssim"], **{key: final[key] for key in lpips}, per_view=final["per_view"],
         params=count_parameters(state.anchors, state.nets, session.banks),
         alive_anchors=int(np.sum(np.asarray(state.anchors.alive))), capacity=state.anchors.capacity,
         # the model alone (parameters and PSC banks) beside the checkpoint (which adds the Adam moments)
         model_bytes=model_bytes(state.anchors, state.nets, session.banks),
-        checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.clock.total,
+        checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.budget.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
         **strategy_results(session.strategies, session.tallies, session.cfg),  # render_ms_before_prune, prune, densify
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
@@ -524,44 +525,37 @@ def finalise(session: Session) -> dict:
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,
-    )
-    if session.banks is not None:
-        with budget.stage("evaluation"):
-            result["features"] = _evaluate_features(session, anchors, out_dir=out / FEATURES_DIR if save else None)
-    with budget.stage("report"):
-        if session.banks is not None:
-            (out / FEATURES_MD).write_text(result["features"]["markdown"])
-        plot_error_vs_time(session.curve, out / PLOT_FILE,
-                           title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
-    with budget.stage("checkpoints"):
-        session.ckpt.close()
-    result["accelerator"] = accelerator_record()
-    result["compilations"] = _compilations(budget.compiles)
-    result["time"] = budget.as_dict()
-    record = EvalRecord.from_json({**result, "version": RUN_FOLDER_VERSION})  # typed and versioned (run_folder.py)
+        features=features, accelerator=accelerator_record(), compilations=_compilations(session),
+        time=budget.as_dict())
     write_eval(out, record)
-    result = record.to_json()
-    log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), result["psnr"],
-             result["ssim"], result["alive_anchors"], result["train_wall_s"])
-    compiles = result["compilations"]
-    log.info("%d XLA compilations, %.1f s (%d loaded from the persistent cache; train step %d, evaluation "
-             "renders %d)", compiles["count"], compiles["seconds"], compiles["from_cache"], compiles["train_step"],
-             compiles["evaluation_renders"])
+    log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), record.psnr,
+             record.ssim, record.alive_anchors, record.train_wall_s)
+    compiles = record.compilations
+    if compiles is not None:
+        log.info("%d XLA compilations, %.1f s (%d loaded from the persistent cache; train step %d, evaluation "
+                 "renders %d)", compiles["count"], compiles["seconds"], compiles["from_cache"],
+                 compiles["train_step"], compiles["evaluation_renders"])
     log.info("%s", budget.line())
-    require_trained(result["skipped_updates"], int(state.step), str(out / EVAL_FILE))
-    return result
+    require_trained(record.skipped_updates, int(state.step), str(out / EVAL_FILE))
+    return record
 
 
-def _compilations(compiles: CompileLog) -> dict:
+def _compilations(session: Session) -> dict | None:
     """``eval.json``'s ``compilations``: :meth:`CompileLog.summary` with the train step's and the
-    evaluation renders' counts (their jitted functions' names, :mod:`cusgs_jax.training`)."""
-    return dict(compiles.summary(), train_step=compiles.count(STEP_FUNCTION),
-                evaluation_renders=sum(compiles.count(name) for name in EVAL_RENDER_FUNCTIONS))
+    evaluation render's counts (attributed by their jitted functions, :func:`compiled_name`); None when the
+    run's budget keeps no compile log."""
+    compiles = session.budget.compiles
+    if compiles is None:
+        return None
+    steps = {compiled_name(program) for program in session.programs.values()}
+    render = (session.feature_render or session.render).program()
+    return dict(compiles.summary(), train_step=sum(compiles.count(name) for name in steps),
+                evaluation_renders=compiles.count(render))
 
 
 def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = (),
-        started: float | None = None) -> dict:
-    """Train, checkpoint and evaluate; returns the final ``eval.json`` dict.
+        started: float | None = None) -> EvalRecord:
+    """Train, checkpoint and evaluate; returns the run's record (``eval.json``: :class:`~cusgs_jax.run_folder.EvalRecord`).
 
     ``progress_label`` names the progress bar (a sweep labels each job's bar); ``extra_strategies``
     are research code's own densification strategies (see :func:`setup`); ``started``: the

@@ -38,7 +38,7 @@ from omegaconf import DictConfig
 
 from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
-from cusgs_jax.config import from_omegaconf, register_configs
+from cusgs_jax.compose import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
 from cusgs_jax.run_folder import FAILED_FILE
 from cusgs_jax.sweep.pareto import result_objectives
@@ -120,7 +120,7 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     objectives = _objectives(hydra_cfg)
     if objectives:  # hydra/sweeper=pareto (cusgs_jax/sweep/pareto.py)
         return result_objectives(result, objectives)
-    return float(result["psnr"])
+    return float(result.psnr)
 
 
 def main(argv: list[str] | None = None) -> None:

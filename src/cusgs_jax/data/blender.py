@@ -36,21 +36,18 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import os
 import pathlib
 
 import numpy as np
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import data_settings, existing_folder, finish_scene
 from cusgs_jax.data.frames import (FrameImage, fov_focal, frame_list, frame_name, frame_path, load_frame_images,
                                    opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.images import read_image_file
 from cusgs_jax.data.raw import RawScene, Split, ViewCamera
-from cusgs_jax.data.scene_data import SceneData
 
-__all__ = ["read_blender", "load_blender_scene", "WHITE", "TRAIN_FILE", "TEST_FILE"]
+__all__ = ["read_blender", "WHITE", "TRAIN_FILE", "TEST_FILE"]
 
 log = logging.getLogger("cusgs_jax")
 
@@ -132,28 +129,3 @@ def read_blender(folder: pathlib.Path, data: DataConfig) -> RawScene:
                     read_images=read_images, split=split, read_coverage=lambda: loaded.get("coverage"))
 
 
-def load_blender_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
-                       background: tuple[float, float, float] | None = None,
-                       num_random_points: int = DataConfig.random_points, seed: int = 0,
-                       random_init: str = DataConfig.random_init) -> SceneData:
-    """Load a Blender / NeRF-synthetic scene folder: :func:`read_blender` and the shared pass
-    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
-
-    Args:
-      path: the folder holding ``transforms_train.json`` (``data.path``).
-      downscale: integer factor d (``data.downscale``): images at round(W/d) × round(H/d), K / d.
-      background: RGB in [0, 1] under the RGBA images (``splat.background``); None = white.
-      num_random_points: the initial points (``data.random_points``), drawn for the training cameras by
-        the rule ``random_init`` (``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`;
-        ``"auto"`` is ``"cube"`` here).
-      seed: of the random points.
-
-    Returns:
-      SceneData with ``dataset_format="blender"``, ``split="transforms_test"`` (``"none"`` without a
-      test file), float64 ``viewmats`` [V, 4, 4], float32 ``Ks`` [V, 3, 3], uint8 ``images``
-      [V, H, W, 3], grey random ``points`` [num_random_points, 3].
-    Raises:
-      SceneError: a missing/malformed JSON, key, image or matrix — naming the file and the fix.
-    """
-    data = data_settings(downscale=downscale, random_points=num_random_points, random_init=random_init)
-    return finish_scene(read_blender(existing_folder(path), data), data, background=background, seed=seed)

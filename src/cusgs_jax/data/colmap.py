@@ -32,7 +32,6 @@ are read by :mod:`.images`.
 
 from __future__ import annotations
 
-import os
 import pathlib
 from typing import Any
 
@@ -42,7 +41,6 @@ from cusgs_jax.config import DataConfig
 from cusgs_jax.data.camera_frame import frame_cameras
 from cusgs_jax.data.colmap_binary import check_binary_files
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import data_settings, existing_folder, finish_cameras, finish_scene
 from cusgs_jax.data.images import image_dir, load_images
 from cusgs_jax.data.raw import RawScene, ViewCamera
 from cusgs_jax.data.scene_data import SceneData
@@ -55,7 +53,7 @@ from cusgs_jax.data.undistort import (
     undistorted_masks,
 )
 
-__all__ = ["SceneError", "SceneData", "read_colmap", "load_scene", "load_cameras", "SUPPORTED_CAMERA_MODELS"]
+__all__ = ["SceneError", "SceneData", "read_colmap", "SUPPORTED_CAMERA_MODELS"]
 
 SUPPORTED_CAMERA_MODELS = PINHOLE_MODELS + DISTORTED_MODELS  # the distorted ones are undistorted
 _MODEL_PARTS = ("cameras", "images", "points3D")
@@ -119,52 +117,6 @@ def read_colmap(folder: pathlib.Path, data: DataConfig) -> RawScene:
                     views_source=files["images"], cameras_source=files["cameras"], size_fix=_SIZE_FIX,
                     read_images=read_images, points=points, point_colors=point_colors,
                     read_valid=None if framed.undistorted is None else read_valid, lens=framed.lens)
-
-
-def load_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
-               holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] | None = None,
-               undistort: str = DataConfig.undistort) -> SceneData:
-    """Load a COLMAP scene folder: :func:`read_colmap` and the shared pass
-    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
-
-    Args:
-      path: folder with ``images/`` and ``sparse/0/`` (or ``sparse/``) — ``data.path``.
-      downscale: integer factor ``d`` (``data.downscale``). For ``d > 1`` images come from
-        ``images_{d}/`` when that folder exists, else from ``images/`` downscaled with
-        anti-aliasing; intrinsics are divided by ``d``.
-      holdout_every: every ``holdout_every``-th image (index ``i % holdout_every == 0``) is a
-        test view (``data.holdout_every``); 0 holds out none.
-      background: RGB in [0, 1] that images with an alpha channel are composited onto
-        (``splat.background``; None: black); a warning says how many images had one.
-      undistort: ``data.undistort`` for distorted cameras (:mod:`.camera_frame`).
-
-    Raises:
-      SceneError: for any problem with the data or these settings.
-    """
-    data = data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort)
-    return finish_scene(read_colmap(existing_folder(path), data), data, background=background)
-
-
-def load_cameras(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
-                 undistort: str = DataConfig.undistort,
-                 holdout_every: int = DataConfig.holdout_every) -> tuple[np.ndarray, np.ndarray, int, int, np.ndarray]:
-    """The cameras of a COLMAP scene as :func:`load_scene` gives them, without reading any image.
-
-    For tools that have a trained model and need its views (an exporter, a viewer):
-    the same registered images in the same order, intrinsics scaled by
-    ``downscale``, the same held-out split. Distorted cameras come as the same undistorted
-    PINHOLE cameras (computed, no image is undistorted).
-
-    Returns:
-      (viewmats [V, 4, 4] float64 world→camera in the COLMAP frame, Ks [V, 3, 3] float32,
-      width, height (the size :func:`load_scene` would load at), train_indices int32).
-    Raises:
-      SceneError: as :func:`load_scene` for the model and these settings.
-    """
-    data = data_settings(downscale=downscale, holdout_every=holdout_every, undistort=undistort)
-    raw = read_colmap(existing_folder(path), data)
-    cameras = finish_cameras(raw, data)
-    return raw.viewmats.astype(np.float64), cameras.Ks.astype(np.float32), cameras.width, cameras.height, cameras.train
 
 
 # --------------------------------------------------------------------------------------------

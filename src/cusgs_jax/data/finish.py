@@ -29,14 +29,13 @@ import numpy as np
 
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.errors import ConfigError
 from cusgs_jax.data.images import check_background, require_loadable_size, scaled_size
 from cusgs_jax.data.carve import carve
 from cusgs_jax.data.random_points import random_points, resolve_random_init
 from cusgs_jax.data.raw import RawScene, ViewCamera
 from cusgs_jax.data.scene_data import SceneData, check_int_setting, holdout_split, make_scene, split_name
 
-__all__ = ["FinishedCameras", "LAYOUTS", "check_settings", "data_settings", "default_background", "existing_folder",
+__all__ = ["FinishedCameras", "LAYOUTS", "check_settings", "default_background", "existing_folder",
            "finish_cameras", "finish_scene"]
 
 log = logging.getLogger("cusgs_jax")
@@ -74,18 +73,6 @@ def check_settings(data: DataConfig) -> DataConfig:
         raise TypeError(f"data must be a cusgs_jax.config.DataConfig, got {type(data).__name__}: {hint}")
     return dataclasses.replace(data, **{name: check_int_setting(f"data.{name}", getattr(data, name), minimum=minimum)
                                         for name, minimum in _INT_SETTINGS})
-
-
-def data_settings(**fields) -> DataConfig:
-    """The :class:`~cusgs_jax.config.DataConfig` of a layout function's keyword settings (the rest at their
-    defaults), checked: SceneError naming the option, the integer ones first (:func:`check_settings`)."""
-    for name, minimum in _INT_SETTINGS:
-        if name in fields:
-            fields[name] = check_int_setting(f"data.{name}", fields[name], minimum=minimum)
-    try:
-        return DataConfig(**fields)
-    except ConfigError as error:
-        raise SceneError(str(error)) from None
 
 
 class FinishedCameras(NamedTuple):

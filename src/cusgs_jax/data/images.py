@@ -1,6 +1,6 @@
 """Image files of a COLMAP scene: finding, reading, validating and downscaling them.
 
-Used by :func:`cusgs_jax.data.colmap.load_scene`. Images are read with imageio and returned as
+Used by :func:`cusgs_jax.data.loader.load_scene`. Images are read with imageio and returned as
 [H, W, 3] uint8 RGB; ``downscale`` d means the loaded size is the camera size / d rounded half
 up, taken from ``images_{d}/`` when that folder exists, else from ``images/`` downscaled with
 anti-aliasing. Images with an alpha channel (RGBA, grey+alpha) are composited onto the

@@ -31,12 +31,11 @@ from cusgs_jax.config import DATASET_FORMATS, DataConfig
 from cusgs_jax.data.blender import read_blender
 from cusgs_jax.data.colmap import read_colmap
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import LAYOUTS, data_settings, default_background, existing_folder, finish_scene
+from cusgs_jax.data.finish import LAYOUTS, default_background, existing_folder
 from cusgs_jax.data.nerfstudio import read_nerfstudio
 from cusgs_jax.data.raw import RawScene
-from cusgs_jax.data.scene_data import SceneData
 
-__all__ = ["DATASET_FORMATS", "READERS", "detect_format", "load_any_scene", "default_background", "read_scene"]
+__all__ = ["DATASET_FORMATS", "READERS", "detect_format", "default_background", "read_scene"]
 
 log = logging.getLogger("cusgs_jax")
 
@@ -79,28 +78,3 @@ def read_scene(path: str | os.PathLike, data: DataConfig) -> RawScene:
     return READERS[fmt](existing_folder(path), data)
 
 
-def load_any_scene(path: str | os.PathLike, *, format: str = DataConfig.format, downscale: int = DataConfig.downscale,
-                   holdout_every: int = DataConfig.holdout_every, background: tuple[float, float, float] | None = None,
-                   num_random_points: int = DataConfig.random_points, seed: int = 0,
-                   undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
-    """Load the scene folder ``path`` in its layout: :func:`read_scene`, then the shared pass
-    (:func:`cusgs_jax.data.finish.finish_scene`). Keyword twin of :func:`cusgs_jax.data.loader.load_scene`.
-
-    Args:
-      format: ``"auto"``, ``"colmap"``, ``"blender"`` or ``"nerfstudio"``.
-      downscale, holdout_every: ``data.downscale``, ``data.holdout_every`` (Blender scenes hold out
-        their test frames instead).
-      background: ``splat.background``, or None for the layout's default (:func:`default_background`).
-      num_random_points, seed, random_init: initial points of layouts without any (``data.random_points``,
-        ``data.random_init``: :func:`cusgs_jax.data.random_points.random_points`).
-      undistort: ``data.undistort`` for distorted COLMAP and nerfstudio cameras (:mod:`.camera_frame`).
-    Returns:
-      SceneData with ``dataset_format``, ``split`` and ``background`` filled in.
-    Raises:
-      SceneError: an unknown ``format`` or any problem with the data.
-    """
-    if format not in ("auto",) + DATASET_FORMATS:
-        raise SceneError(f"data.format={format!r} must be auto, colmap, blender or nerfstudio")
-    data = data_settings(format=format, downscale=downscale, holdout_every=holdout_every,
-                         random_points=num_random_points, undistort=undistort, random_init=random_init)
-    return finish_scene(read_scene(path, data), data, background=background, seed=seed)

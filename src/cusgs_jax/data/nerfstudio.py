@@ -47,7 +47,6 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 import pathlib
 from typing import NamedTuple
 
@@ -56,14 +55,12 @@ import numpy as np
 from cusgs_jax.config import DataConfig
 from cusgs_jax.data.camera_frame import frame_cameras
 from cusgs_jax.data.errors import SceneError
-from cusgs_jax.data.finish import data_settings, existing_folder, finish_scene
 from cusgs_jax.data.frames import (FrameImage, frame_list, frame_name, frame_path, load_frame_images,
                                    opengl_c2w_to_viewmat, read_json, require_key)
 from cusgs_jax.data.raw import RawScene, ViewCamera
-from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.undistort import undistorted_images, undistorted_masks
 
-__all__ = ["read_nerfstudio", "load_nerfstudio_scene", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
+__all__ = ["read_nerfstudio", "TRANSFORMS_FILE", "PINHOLE_MODELS", "FISHEYE_MODEL",
            "UNSUPPORTED_MODELS"]
 
 log = logging.getLogger("cusgs_jax")
@@ -312,30 +309,3 @@ def read_nerfstudio(folder: pathlib.Path, data: DataConfig) -> RawScene:
                     read_coverage=lambda: coverage.get("views"))
 
 
-def load_nerfstudio_scene(path: str | os.PathLike, *, downscale: int = DataConfig.downscale,
-                          holdout_every: int = DataConfig.holdout_every,
-                          background: tuple[float, float, float] | None = None,
-                          num_random_points: int = DataConfig.random_points, seed: int = 0,
-                          undistort: str = DataConfig.undistort, random_init: str = DataConfig.random_init) -> SceneData:
-    """Load a nerfstudio scene folder: :func:`read_nerfstudio` and the shared pass
-    (:func:`cusgs_jax.data.finish.finish_scene`); ``cusgs_jax.load_scene`` reads any layout.
-
-    Args:
-      path: the folder holding ``transforms.json`` (``data.path``).
-      downscale: integer factor d (``data.downscale``).
-      holdout_every: every n-th view (sorted by ``file_path``, ``i % n == 0``) is held out; 0: none.
-      background: RGB in [0, 1] under images with alpha (``splat.background``); None = black.
-      num_random_points, seed, random_init: the initial points when the scene has no ``ply_file_path``
-        (:func:`cusgs_jax.data.random_points.random_points` of the training cameras; ``"auto"`` is
-        ``"cube_and_rays"`` here).
-      undistort: ``data.undistort`` for distorted frames: "crop", "mask" (:mod:`cusgs_jax.data.undistort`) or
-        "lens" (kept as captured, rendered through their lens: :mod:`cusgs_jax.data.lenses`).
-
-    Returns:
-      SceneData with ``dataset_format="nerfstudio"``, ``split=split_name(holdout_every)``.
-    Raises:
-      SceneError: as :func:`read_nerfstudio`, differing image sizes, or bad settings.
-    """
-    data = data_settings(downscale=downscale, holdout_every=holdout_every, random_points=num_random_points,
-                         undistort=undistort, random_init=random_init)
-    return finish_scene(read_nerfstudio(existing_folder(path), data), data, background=background, seed=seed)

@@ -1,15 +1,15 @@
 """Undistorting COLMAP scenes whose cameras have lens distortion, once per scene, into the cache.
 
-:func:`cusgs_jax.data.colmap.load_scene` with ``data.undistort=crop`` or ``mask`` trains on pinhole cameras
+:func:`cusgs_jax.data.loader.load_scene` with ``data.undistort=crop`` or ``mask`` trains on pinhole cameras
 (``lens`` renders through the lens instead: :mod:`.lenses`). A scene whose registered images use a
 distorted camera model (:data:`DISTORTED_MODELS`: SIMPLE_RADIAL, RADIAL, OPENCV, OPENCV_FISHEYE — the
 models gsplat's COLMAP parser accepts besides the two pinholes — and FULL_OPENCV, which nerfstudio's
 OPENCV frames with a k3 map to) is turned into a PINHOLE scene here:
 
 * :func:`undistorted_cameras` — the PINHOLE cameras the images are undistorted to (no I/O; what
-  :func:`~cusgs_jax.data.colmap.load_cameras` uses, so it still reads no image);
+  :func:`~cusgs_jax.data.loader.load_cameras` uses, so it still reads no image);
 * :func:`undistorted_images` — the folder holding ``images/`` undistorted to exactly those
-  cameras, made once and cached (what :func:`~cusgs_jax.data.colmap.load_scene` reads).
+  cameras, made once and cached (what :func:`~cusgs_jax.data.loader.load_scene` reads).
 
 **Why pycolmap** (``pycolmap.undistort_images``, COLMAP's own ``image_undistorter``) rather than
 OpenCV's ``getOptimalNewCameraMatrix`` + ``remap`` as gsplat and nerfstudio do: it implements
@@ -45,7 +45,7 @@ border). Source cameras of different sizes are refused by the caller, as for pin
 
 **data.downscale.** Pre-downscaled ``images_2/``, ``images_4/`` ... of a distorted scene hold
 distorted pixels and are not used: the full-resolution ``images/`` are undistorted (once) and
-:func:`~cusgs_jax.data.colmap.load_scene` downscales the undistorted images on load with the
+:func:`~cusgs_jax.data.loader.load_scene` downscales the undistorted images on load with the
 anti-aliased resize of :mod:`.images`, intrinsics divided by ``d`` as usual. Nothing is refused.
 
 **Cache.** ``$CUSGS_CACHE_DIR/undistorted/<scene name>-<key>/`` (``~/.cache/cusgs_jax`` when the

@@ -16,6 +16,7 @@ from typing import Any, Callable, Mapping, Protocol
 import jax
 
 from cusgs_jax.config import Config
+from cusgs_jax.run_folder import EvalRecord
 from cusgs_jax.model.decode import to_slots
 
 
@@ -176,8 +177,9 @@ class Strategy(Protocol):
         return {}
 
     def results(self, tally: Tally) -> Mapping[str, Any]:
-        """Top-level keys this strategy adds to ``eval.json``; a dict value is merged into the
-        run's dict of that key (default: none)."""
+        """Keys this strategy adds to ``eval.json``: one that is a field of
+        :class:`~cusgs_jax.run_folder.EvalRecord` is set (a dict value merged into the run's dict of that key),
+        any other goes under ``strategies`` (default: none)."""
         del tally
         return {}
 
@@ -206,11 +208,16 @@ def strategy_row(strategies, tallies: Mapping[str, Tally], cfg: Config) -> dict:
 
 def strategy_results(strategies, tallies: Mapping[str, Tally], cfg: Config) -> dict:
     """The densification keys of ``eval.json``: :func:`run_defaults`, each strategy's ``results``
-    (a dict value merged into the dict already there) and ``densify`` ({strategy name: tally})."""
-    result = run_defaults(cfg)[1]
+    (a dict value merged into the dict already there), ``densify`` ({strategy name: tally}) and
+    ``strategies``: the keys a strategy adds that are no field of :class:`~cusgs_jax.run_folder.EvalRecord`
+    ({key: value}; None when there are none)."""
+    result, own = run_defaults(cfg)[1], {}
+    fields = {f.name for f in dataclasses.fields(EvalRecord)}
     for strategy in strategies:
         for key, value in strategy.results(tallies[strategy.name]).items():
-            merge = isinstance(value, dict) and isinstance(result.get(key), dict)
-            result[key] = {**result[key], **value} if merge else value
+            into = result if key in fields else own
+            merge = isinstance(value, dict) and isinstance(into.get(key), dict)
+            into[key] = {**into[key], **value} if merge else value
     result["densify"] = {name: tally.as_dict() for name, tally in tallies.items()}
+    result["strategies"] = own or None
     return result

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from cusgs_jax.config import Config
 from cusgs_jax.densify.base import Strategy
+from cusgs_jax.densify.early_cull import EarlyCullStrategy
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
 from cusgs_jax.densify.scaffold import ScaffoldStrategy
 
@@ -14,9 +15,11 @@ __all__ = ["make_strategies"]
 
 
 def make_strategies(cfg: Config) -> tuple[Strategy, ...]:
-    """Scaffold growing always; feature-aware pruning when ``prune.strategy == "feature_aware"``."""
-    strategies: list[Strategy] = [ScaffoldStrategy(cfg.grow, cfg.model.voxel_size, cfg.model.n_offsets,
-                                                   cfg.train.seed)]
+    """Early culling when ``grow.early_cull == "on"`` (``auto`` is resolved by the run for its scene,
+    :func:`~cusgs_jax.densify.early_cull.resolve_early_cull`; unresolved it is off), Scaffold growing always,
+    feature-aware pruning when ``prune.strategy == "feature_aware"``."""
+    strategies: list[Strategy] = [EarlyCullStrategy(cfg.grow)] if cfg.grow.early_cull == "on" else []
+    strategies.append(ScaffoldStrategy(cfg.grow, cfg.model.voxel_size, cfg.model.n_offsets, cfg.train.seed))
     if cfg.prune.strategy == "feature_aware":
         strategies.append(FeaturePruneStrategy(cfg.prune))
     return tuple(strategies)

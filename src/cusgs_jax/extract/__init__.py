@@ -6,7 +6,7 @@
   ``lpips`` extra's weights (imported only when vgg16 is asked for).
 * :mod:`.pretrained` — optional CLIP (open_clip) / DINOv2 (timm) patch-token extractors (local
   weights; torch is imported only when one is used).
-* :mod:`.scene` — :func:`extract` over every image of a scene into ``<scene>/features/<model>/``
+* :mod:`.scene` — :func:`extract_scene` over every image of a loaded scene into ``<scene>/features/<model>/``
   (format of :mod:`cusgs_jax.data.features`) and the lock-protected :func:`ensure_extracted`.
 
 Importing this package does not import JAX or torch.
@@ -24,7 +24,7 @@ from cusgs_jax.extract.scene import (
     MODELS,
     ExtractSummary,
     ensure_extracted,
-    extract,
+    extract_scene,
 )
 
 __all__ = [
@@ -33,7 +33,7 @@ __all__ = [
     "ExtractSummary",
     "daisy_features",
     "ensure_extracted",
-    "extract",
+    "extract_scene",
     "gabor_features",
     "hog_features",
     "semantic_features",

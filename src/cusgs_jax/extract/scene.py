@@ -23,7 +23,7 @@ weight-free; vgg16 needs the ``lpips`` extra's weight file and imports JAX, only
 and are extracted automatically when a run needs them; clip and dinov2 live in
 :mod:`cusgs_jax.extract.pretrained` (torch is imported only when one is asked for).
 
-Resolution: by default the maps have the loaded image size (``downscale``); with
+Resolution: by default the maps have the loaded image size (the scene's ``data.downscale``); with
 ``resolution=(W, H)`` the image is first resized to W×H (anti-aliased; object ids by nearest
 neighbour) and described there, so the descriptor's pixel-scale parameters refer to output
 pixels. vgg16 maps are 1/4 of the image size, or ``resolution`` (the image is resized to 4×
@@ -50,8 +50,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from cusgs_jax.config import DataConfig
-from cusgs_jax.data.loader import load_scene
+from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.data.demo.lens import LENS_MAPS, MASKED_MAPS  # the lens demo's maps in the masked / lens frame
 from cusgs_jax.data.features import (
     META_FILE,
@@ -73,7 +72,7 @@ __all__ = [
     "MODELS",
     "ExtractSummary",
     "ensure_extracted",
-    "extract",
+    "extract_scene",
 ]
 
 # --------------------------------------------------------------------------------------------
@@ -168,7 +167,7 @@ _EXTRACTORS: dict[str, Callable[[str, dict], Any]] = {
 
 @dataclasses.dataclass(frozen=True)
 class ExtractSummary:
-    """What :func:`extract` wrote.
+    """What :func:`extract_scene` wrote.
 
     Attributes:
       model: model name; folder: ``<scene>/features/<model>``; num_views: N maps written;
@@ -189,11 +188,14 @@ class ExtractSummary:
     valid_fraction: float
 
 
-def _check_request(scene_path: str | os.PathLike, model: str,
+def _check_request(scene: SceneData, model: str,
                    resolution: tuple[int, int] | None, overwrite: bool) -> tuple[int, int] | None:
-    """Validate an :func:`extract` request before any work; returns ``resolution`` as (W, H)
+    """Validate an :func:`extract_scene` request before any work; returns ``resolution`` as (W, H)
     ints (or None). Raises FeatureError on an unknown model, a bad resolution, or existing
-    features without ``overwrite``."""
+    features without ``overwrite``; TypeError when ``scene`` is not a loaded scene."""
+    if not isinstance(scene, SceneData):
+        raise TypeError(f"scene must be a loaded cusgs_jax.data.scene_data.SceneData, got {type(scene).__name__}: "
+                        "load it first (cusgs_jax.load_scene(path, DataConfig(...)))")
     if model not in _EXTRACTORS:
         raise FeatureError(f"unknown feature model {model!r}: choose one of {', '.join(MODELS)}")
     if resolution is not None:
@@ -201,59 +203,52 @@ def _check_request(scene_path: str | os.PathLike, model: str,
                 not all(isinstance(v, (int, np.integer)) and v > 0 for v in resolution)):
             raise FeatureError(f"resolution={resolution!r} must be (W, H) positive integers")
         resolution = (int(resolution[0]), int(resolution[1]))
-    folder = feature_dir(scene_path, model)
+    folder = feature_dir(scene.path, model)
     if folder.is_dir() and any(folder.iterdir()) and not overwrite:  # fail before the work
         raise FeatureError(f"features for model {model!r} already exist in {folder}: pass "
                            "--overwrite (overwrite=True) to replace them, or delete the folder")
     return resolution
 
 
-def extract(scene_path: str | os.PathLike, model: str, *,
-            resolution: tuple[int, int] | None = None, downscale: int = DataConfig.downscale,
-            dtype: str = "float16", overwrite: bool = False, progress: bool = True, format: str = DataConfig.format,
-            undistort: str = DataConfig.undistort, **options) -> ExtractSummary:
-    """Extract dense features of ``model`` for every image of a scene and write them to
-    ``<scene>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
+def extract_scene(scene: SceneData, model: str, *, resolution: tuple[int, int] | None = None,
+                  dtype: str = "float16", overwrite: bool = False, progress: bool = True,
+                  **options) -> ExtractSummary:
+    """Extract dense features of ``model`` for every image of a loaded scene and write them to
+    ``<scene.path>/features/<model>/`` (see :mod:`cusgs_jax.data.features`).
+
+    The maps describe the images as ``scene`` holds them: a run passes the scene it trains on (its
+    ``data.downscale``, ``data.undistort`` and background), ``cusgs-extract`` loads one with its flags
+    (:func:`cusgs_jax.data.loader.load_scene`) and passes it here.
 
     Args:
-      scene_path: scene folder (COLMAP, Blender or nerfstudio), loaded as the trainer loads it
-        (:func:`cusgs_jax.data.loader.load_scene`: its layout detected; images with alpha on the layout's
-        default background).
+      scene: every view of it is described (the hold-out split does not matter).
       model: one of :data:`MODELS`.
       resolution: (W, H) of the maps; default: the loaded image size (descriptors), 1/4 of it
         (vgg16) or the patch grid (clip, dinov2).
-      downscale: ``data.downscale`` of the images described.
-      undistort: ``data.undistort`` ("crop", "mask" or "lens") for a scene with distorted cameras; the
-        features describe the images loaded that way, and the meta of a masked or lens scene records
-        ``"undistort": "mask"`` / ``"lens"`` (``SceneData.camera_frame``) so that a run with another mode refuses them
-        (:func:`cusgs_jax.training.inputs.load_feature_targets`).
       dtype: "float16" or "float32" on disk.
       overwrite: replace existing features of this model.
       progress: show a tqdm bar over the images.
-      format: the scene's layout, ``auto`` (detected), ``colmap``, ``blender`` or ``nerfstudio``.
       **options: per model — daisy: radius, rings, histograms, orientations, lab;
         hog: cell, orientations, lab; gabor: frequencies, orientations, bandwidth, lab;
         semantic: dim, seed; vgg16: layer; clip: weights, arch, device, net; dinov2: weights, arch,
         input_size, device, net.
     Returns:
-      ExtractSummary (the maps themselves are on disk: ``load_features(scene, model, names)``).
+      ExtractSummary (the maps themselves are on disk: ``load_features(scene, model, names)``). The meta of
+      a masked or lens scene records ``"undistort": "mask"`` / ``"lens"`` (``SceneData.camera_frame``), so
+      that a run with another mode refuses them (:func:`cusgs_jax.training.inputs.load_feature_targets`).
     Raises:
-      SceneError / FeatureError: bad scene, unknown model/option, existing features without
-      ``overwrite``, missing optional packages or weights.
+      FeatureError: unknown model/option, existing features without ``overwrite``, missing optional
+      packages or weights.
     """
     from tqdm.auto import tqdm
 
     t_start = time.perf_counter()
-    resolution = _check_request(scene_path, model, resolution, overwrite)
+    resolution = _check_request(scene, model, resolution, overwrite)
     extractor = _EXTRACTORS[model](model, dict(options))
-    # every view (no hold-out) as the trainer loads the scene; its points are not needed (2 random ones suffice)
-    scene = load_scene(scene_path, DataConfig(path=str(scene_path), format=format, downscale=downscale, holdout_every=0,
-                                              random_points=2, undistort=undistort))
-
     # the demo's object ids in the frame of these images: the lens demo keeps the masked frame's apart
     mode = scene.camera_frame
     maps = {"mask": scene.path / MASKED_MAPS, "lens": scene.path / LENS_MAPS}.get(mode)
-    extra = {"extractor": "cusgs_jax.extract", "downscale": downscale,
+    extra = {"extractor": "cusgs_jax.extract",
              **({"undistort": mode} if mode != "crop" else {}),
              "options": {k: v for k, v in getattr(extractor, "opts", {}).items()
                          if k not in ("weights", "device")},
@@ -292,7 +287,7 @@ def _model_lock(scene_path: str | os.PathLike, model: str):
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def ensure_extracted(scene_path: str | os.PathLike, model: str, **kwargs) -> bool:
+def ensure_extracted(scene: SceneData, model: str, **kwargs) -> bool:
     """Extract ``model``'s features unless a complete set (``meta.json``) is already there.
 
     Safe when several processes ask at once (the jobs of a parallel sweep on one
@@ -301,16 +296,18 @@ def ensure_extracted(scene_path: str | os.PathLike, model: str, **kwargs) -> boo
     is an interrupted extraction and is replaced.
 
     Args:
-      scene_path, model, **kwargs: as :func:`extract` (``overwrite`` is decided here).
+      scene, model, **kwargs: as :func:`extract_scene` (``overwrite`` is decided here).
     Returns:
       True when this call extracted, False when the features were already there.
     """
     kwargs.pop("overwrite", None)
-    meta = feature_dir(scene_path, model) / META_FILE
+    if not isinstance(scene, SceneData):
+        raise TypeError(f"scene must be a loaded SceneData, got {type(scene).__name__}")
+    meta = feature_dir(scene.path, model) / META_FILE
     if meta.is_file():
         return False
-    with _model_lock(scene_path, model):
+    with _model_lock(scene.path, model):
         if meta.is_file():  # another process finished while we waited
             return False
-        extract(scene_path, model, overwrite=True, **kwargs)
+        extract_scene(scene, model, overwrite=True, **kwargs)
     return True

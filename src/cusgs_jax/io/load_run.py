@@ -41,11 +41,12 @@ import jax.numpy as jnp
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
-from cusgs_jax.config import Config, from_dict, from_omegaconf
+from cusgs_jax.config import Config
+from cusgs_jax.compose import from_dict, from_omegaconf
 from cusgs_jax.data.loader import load_cameras, scene_folder
 from cusgs_jax.data.normalize import WorldTransform
 from cusgs_jax.errors import CheckpointError, UserError
-from cusgs_jax.run_folder import BANKS_FILE, CheckpointMeta, read_eval
+from cusgs_jax.run_folder import BANKS_FILE, CHECKPOINTS_DIR, HYDRA_DIR, CheckpointMeta, EvalRecord, read_eval
 from cusgs_jax.model.anchors import AnchorParams, AnchorState, compact
 from cusgs_jax.splat.lens import Lens
 from cusgs_jax.training.checkpoint import read_arrays
@@ -75,7 +76,7 @@ class TrainedModel:
       step: the checkpoint's step.
       run_dir: the run folder; checkpoint_dir: the folder of the checkpoints.
       checkpoint_bytes: size on disk of the checkpoint read (optimiser state included).
-      evaluation: the run's ``eval.json`` as a dict, or None (unfinished run).
+      evaluation: the run's record (``eval.json``: :class:`~cusgs_jax.run_folder.EvalRecord`), or None (unfinished run).
       cameras: the V training cameras in the normalised frame as one batched
         :class:`~cusgs_jax.types.Camera` (K [V, 3, 3], world_to_camera [V, 4, 4], static
         width/height, and for a ``data.undistort=lens`` run of distorted cameras their ``lens``), or None when
@@ -95,7 +96,7 @@ class TrainedModel:
     run_dir: pathlib.Path
     checkpoint_dir: pathlib.Path
     checkpoint_bytes: int
-    evaluation: dict | None
+    evaluation: EvalRecord | None
     cameras: Camera | None = None
     cameras_from: str | None = None
     held_out_cameras: Camera | None = None
@@ -137,8 +138,7 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
     if not run.is_dir():
         raise UserError(f"{run} is not a folder: pass the output folder of a cusgs-train run "
                         "(it holds checkpoints/ and eval.json)")
-    record = read_eval(run)  # the run's eval.json through the run-folder contract (run_folder.py)
-    evaluation = None if record is None else record.to_json()
+    evaluation = read_eval(run)  # the run's eval.json through the run-folder contract (run_folder.py)
     cfg_file = _hydra_config(run)
     ckpt_dir = _checkpoint_dir(run, cfg_file)
     step, arrays, meta = read_arrays(ckpt_dir, ("anchors", "nets"), step=step)
@@ -181,7 +181,7 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
 
 def _hydra_config(run: pathlib.Path) -> DictConfig | None:
     """The OmegaConf of ``.hydra/config.yaml``, or None."""
-    path = run / ".hydra" / "config.yaml"
+    path = run / HYDRA_DIR / "config.yaml"
     if not path.is_file():
         return None
     try:
@@ -192,7 +192,7 @@ def _hydra_config(run: pathlib.Path) -> DictConfig | None:
 
 def _checkpoint_dir(run: pathlib.Path, cfg_file: DictConfig | None) -> pathlib.Path:
     """``<run>/checkpoints``, or the run's ``train.checkpoint_dir`` when it named another folder."""
-    default = run / "checkpoints"
+    default = run / CHECKPOINTS_DIR
     if default.is_dir() or cfg_file is None:
         if not default.is_dir():
             raise CheckpointError(f"{run} has no checkpoints/ folder: not the output folder of a cusgs-train run "
@@ -229,7 +229,7 @@ def _config(run: pathlib.Path, cfg_file: DictConfig | None, meta: CheckpointMeta
     source = None
     try:
         if cfg_file is not None:
-            source = run / ".hydra" / "config.yaml"
+            source = run / HYDRA_DIR / "config.yaml"
             cfg = from_omegaconf(cfg_file)
         elif isinstance(meta.get("config"), dict):
             source = f"the checkpoint metadata of {run}"

@@ -48,6 +48,7 @@ from cusgs_jax.data.normalize import camera_centers, camera_extent
 from cusgs_jax.eval import metrics
 from cusgs_jax.io.ply import SplatModel
 from cusgs_jax.io.render import recentre_splats, render_splats, render_splats_exact, scene_camera
+from cusgs_jax.splat import Compositor
 from cusgs_jax.training.capacity import grown_pairs_per_gaussian, max_pairs
 from cusgs_jax.types import Camera
 
@@ -162,8 +163,8 @@ def refine_loss(params: dict, camera: Camera, image: jax.Array, background: jax.
       (loss [], (terms {"l1", "ssim", …}, overflow [] int32, needed pairs [] int32)).
     """
     out = render_splats(join_params(params), camera, background=background, sh_degree=settings.sh_degree,
-                        antialiased=settings.antialiased, tile_size=settings.tile_size,
-                        chunk_size=settings.chunk_size, max_pairs=pair_capacity, backend=settings.backend)
+                        antialiased=settings.antialiased, tile_size=settings.tile_size, max_pairs=pair_capacity,
+                        compositor=Compositor(settings.backend, settings.chunk_size))
     loss, terms = losses.image_loss(out.image[..., :3], image, pixel_mask=valid, l1_weight=settings.l1_weight,
                                     ssim_weight=settings.ssim_weight)
     return loss, (terms, out.overflow, out.num_pairs + out.overflow, out.image)

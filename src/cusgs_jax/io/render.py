@@ -21,7 +21,7 @@ import numpy as np
 from cusgs_jax.config import SplatConfig
 from cusgs_jax.errors import UserError
 from cusgs_jax.io.ply import SplatModel
-from cusgs_jax.splat import RenderOutput, rasterize
+from cusgs_jax.splat import Compositor, RenderOutput, rasterize
 from cusgs_jax.splat.sh import MAX_SH_DEGREE, sh_to_rgb
 from cusgs_jax.training.capacity import grown_pairs_per_gaussian, max_pairs
 from cusgs_jax.types import Camera
@@ -57,7 +57,7 @@ def render_splats(model: SplatModel, camera: Camera, *, background, sh_degree: i
       background: [3] RGB behind the Gaussians.
       sh_degree: evaluate SH up to this degree (None: the model's, at most 3).
       rasterize_kwargs: passed to :func:`cusgs_jax.splat.rasterize`; ``tile_size``
-        and ``chunk_size`` default to :class:`cusgs_jax.config.SplatConfig`'s,
+        and ``compositor`` (splat.backend, splat.chunk_size) default to :class:`cusgs_jax.config.SplatConfig`'s,
         ``max_pairs`` to the training default capacity
         (:func:`cusgs_jax.training.capacity.max_pairs`).
     Returns:
@@ -65,7 +65,7 @@ def render_splats(model: SplatModel, camera: Camera, *, background, sh_degree: i
       ``overflow > 0`` means tile pairs were dropped (see :func:`render_splats_exact`).
     """
     defaults = SplatConfig()
-    kwargs = dict(tile_size=defaults.tile_size, chunk_size=defaults.chunk_size, backend=defaults.backend,
+    kwargs = dict(tile_size=defaults.tile_size, compositor=Compositor(defaults.backend, defaults.chunk_size),
                   max_pairs=max_pairs(defaults.max_pairs_per_gaussian, model.num_gaussians))
     kwargs.update(rasterize_kwargs)
     colors = splat_colors(model, camera.center, sh_degree)

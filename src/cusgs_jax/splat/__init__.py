@@ -8,6 +8,7 @@ Public API: :func:`rasterize`, :func:`rasterize_batch`, :func:`check_inputs`,
 from cusgs_jax.splat.composite import Composite, composite_tiles
 from cusgs_jax.splat.project import Projection, normalize_quats, project_gaussians, quats_to_rotmats
 from cusgs_jax.splat.render import (
+    Compositor,
     RenderOutput,
     check_inputs,
     default_max_pairs,
@@ -18,7 +19,7 @@ from cusgs_jax.splat.sh import sh_basis, sh_to_rgb
 from cusgs_jax.splat.tiles import TileGrid, TileIntersections, intersect_tiles
 
 __all__ = [
-    "Composite", "Projection", "RenderOutput", "TileGrid", "TileIntersections",
+    "Composite", "Compositor", "Projection", "RenderOutput", "TileGrid", "TileIntersections",
     "check_inputs", "composite_tiles", "default_max_pairs", "intersect_tiles",
     "normalize_quats", "project_gaussians", "quats_to_rotmats", "rasterize", "rasterize_batch",
     "sh_basis", "sh_to_rgb",

@@ -60,6 +60,25 @@ class RenderOutput(NamedTuple):
     num_pairs: jax.Array
 
 
+class Compositor(NamedTuple):
+    """How the tiles are composited: tuning that changes the speed, never the image (beyond rounding).
+
+    Attributes:
+      backend: ``"jax"`` (lanes of chunks, any backend), ``"pallas"`` (:mod:`~cusgs_jax.splat.composite_pallas`:
+        Triton kernels on a GPU, Pallas's interpreter elsewhere — exact but slow, for tests) or ``"auto"``
+        (:func:`resolve_backend`); ``splat.backend``.
+      chunk_size: the JAX compositor's Gaussians per tile per compositing step (``splat.chunk_size``).
+      lanes: the JAX compositor's tiles composited side by side (a lane that finishes its tile takes the next
+        one); None: :func:`~cusgs_jax.splat.composite.default_lanes`.
+
+    The Pallas kernels have their own blocks and ignore ``chunk_size`` and ``lanes``.
+    """
+
+    backend: str = "auto"
+    chunk_size: int = 16
+    lanes: int | None = None
+
+
 def default_max_pairs(num_gaussians: int, width: int, height: int, tile_size: int = 16) -> int:
     """Default tile–Gaussian pair capacity.
 
@@ -131,7 +150,7 @@ def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
     jax.jit,
     static_argnames=(
         "width", "height", "near", "far", "antialiased", "eps2d", "tile_size",
-        "max_pairs", "chunk_size", "lanes", "backend",
+        "max_pairs", "compositor",
     ),
 )
 def rasterize(
@@ -152,11 +171,9 @@ def rasterize(
     eps2d: float = 0.3,
     tile_size: int = 16,
     max_pairs: int | None = None,
-    chunk_size: int = 16,
     means2d_delta: jax.Array | None = None,
-    lanes: int | None = None,
     lens: Lens | None = None,
-    backend: str = "auto",
+    compositor: Compositor = Compositor(),
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (docs/rasterizer.md).
 
@@ -179,19 +196,14 @@ def rasterize(
       max_pairs: static tile–Gaussian pair capacity; ``None`` uses
         :func:`default_max_pairs`. Exceeding it drops the farthest pairs and is
         reported in ``overflow``.
-      chunk_size: static number of Gaussians per tile per compositing step.
       means2d_delta: [G, 2] or None, added to the projected centres. Pass
         zeros and differentiate with respect to it to get ∂L/∂μ_2D (the
         screen-space gradient densification statistics use).
-      lanes: static number of tiles composited side by side; a lane that
-        finishes its tile (list exhausted or every pixel terminated) takes the
-        next one. ``None`` uses :func:`~cusgs_jax.splat.composite.default_lanes`.
       lens: the camera's lens distortion (:class:`~cusgs_jax.splat.lens.Lens`, one camera), or
         None for a pinhole camera; the image is then the distorted camera's picture.
-      backend: static; the tile compositor: ``"jax"`` (lanes of chunks, any backend), ``"pallas"``
-        (:mod:`~cusgs_jax.splat.composite_pallas`: Triton kernels on a GPU, Pallas's interpreter
-        elsewhere — exact but slow, for tests) or ``"auto"`` (see :func:`resolve_backend`). Projection,
-        sorting and binning are the same for all; the image agrees to rounding (``splat.backend``).
+      compositor: static; how the tiles are composited (:class:`Compositor`: backend, the JAX compositor's
+        chunk size and lanes). Projection, sorting and binning are the same for all; the image agrees
+        to rounding.
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
@@ -202,8 +214,8 @@ def rasterize(
     if num_gaussians == 0:  # nothing to draw: the background (one invisible Gaussian keeps every shape non-empty)
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
                                   far=far, background=background, antialiased=antialiased, eps2d=eps2d,
-                                  tile_size=tile_size, max_pairs=max_pairs, chunk_size=chunk_size,
-                                  means2d_delta=means2d_delta, lanes=lanes, lens=lens, backend=backend)
+                                  tile_size=tile_size, max_pairs=max_pairs, means2d_delta=means2d_delta, lens=lens,
+                                  compositor=compositor)
     grid = TileGrid(int(width), int(height), int(tile_size))
     if max_pairs is None:
         max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
@@ -219,12 +231,15 @@ def rasterize(
     features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
     sorted_inputs = (means2d[order], proj.conics[order], proj.opacities[order], features[order],
                      isect.pair_gaussians, isect.tile_starts, isect.tile_ends)
-    if resolve_backend(backend) == "pallas":
+    if not isinstance(compositor, Compositor):
+        raise TypeError(f"compositor must be a cusgs_jax.splat.Compositor, got {type(compositor).__name__}: "
+                        "e.g. Compositor(backend='jax', chunk_size=16)")
+    if resolve_backend(compositor.backend) == "pallas":
         interpret = jax.default_backend() != "gpu"  # Triton needs an NVIDIA (or ROCm) GPU
         out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs)
     else:
-        lanes = default_lanes(grid.num_tiles) if lanes is None else int(lanes)
-        out = composite_tiles(grid, int(chunk_size), lanes, *sorted_inputs)
+        lanes = default_lanes(grid.num_tiles) if compositor.lanes is None else int(compositor.lanes)
+        out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs)
     color_fg = _tiles_to_image(out.colors, grid)
     trans = _tiles_to_image(out.transmittance, grid)
     if background is None:

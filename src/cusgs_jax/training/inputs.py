@@ -89,7 +89,7 @@ def load_feature_targets(fcfg: FeatureConfig, scene: SceneData, seed: int, stage
     for index, model in enumerate(fcfg.model_list):
         # locked: the jobs of a parallel sweep share the demo scene's cache
         if fcfg.auto_extract and model.name in BUILT_IN_EXTRACTORS and ensure_extracted(
-                scene.path, model.name, progress=False, undistort=frame):
+                scene, model.name, progress=False):
             log.info("extracted %s features for %s", model.name, scene.path)
         fs = load_features(scene.path, model.name, scene.names, image_size=(scene.width, scene.height))
         have = fs.meta.get("undistort", "crop")

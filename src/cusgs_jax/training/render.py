@@ -19,7 +19,7 @@ from cusgs_jax.model.decode import (Gaussians, ViewInputs, VisibleSlots, decode_
                                     gather_visible, view_inputs, visible_slots)
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
-from cusgs_jax.splat import RenderOutput, rasterize
+from cusgs_jax.splat import Compositor, RenderOutput, rasterize
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, tile_bounds
 from cusgs_jax.training.capacity import Capacities, ExactRender, max_pairs
@@ -59,8 +59,8 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
         background = jnp.concatenate([background, jnp.zeros(extra_channels.shape[-1], jnp.float32)])
     out = rasterize(compact.means, compact.quats, compact.scales, compact.opacities, colors,
                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
-                    antialiased=cfg.antialiased, tile_size=cfg.tile_size, chunk_size=cfg.chunk_size,
-                    max_pairs=int(pair_capacity), means2d_delta=means2d_delta, lens=camera.lens, backend=cfg.backend)
+                    antialiased=cfg.antialiased, tile_size=cfg.tile_size, max_pairs=int(pair_capacity),
+                    means2d_delta=means2d_delta, lens=camera.lens, compositor=Compositor(cfg.backend, cfg.chunk_size))
     return out, chosen
 
 

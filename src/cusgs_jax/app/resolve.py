@@ -1,0 +1,62 @@
+"""A run's configuration resolved once, for its scene: every ``auto`` (or unset) setting replaced.
+
+:func:`resolve_for_scene` is the one place a run turns the user's :class:`~cusgs_jax.config.Config` into
+the one it trains with; it returns that configuration with the facts of the scene it was resolved from
+(:class:`Resolved`). The rules themselves live beside what they decide: the feature models
+(:func:`cusgs_jax.extract.optional.run_features`), the background (:func:`cusgs_jax.training.inputs.resolve_background`),
+the voxel size (:func:`cusgs_jax.training.state.resolve_voxel_size`) and early culling
+(:func:`cusgs_jax.densify.early_cull.resolve_early_cull`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import NamedTuple
+
+from cusgs_jax.config import Config
+from cusgs_jax.data.scene_data import SceneData
+from cusgs_jax.densify.early_cull import resolve_early_cull
+from cusgs_jax.extract.optional import run_features
+from cusgs_jax.training.inputs import resolve_background
+from cusgs_jax.training.state import resolve_voxel_size
+
+__all__ = ["Resolved", "SceneFacts", "resolve_for_scene"]
+
+
+class SceneFacts(NamedTuple):
+    """What the resolution read of the scene.
+
+    Attributes:
+      demo: the built-in demo scene (``data.path`` not set): ``features.models=auto`` trains the demo's models.
+      layout: ``SceneData.dataset_format``; background: the colour its images were composited on.
+      random_start: the initial points are random (a layout without points): the voxel size comes from the
+        cameras, and ``grow.early_cull=auto`` is on.
+      points: the initial points' count.
+    """
+
+    demo: bool
+    layout: str
+    background: tuple[float, float, float]
+    random_start: bool
+    points: int
+
+
+class Resolved(NamedTuple):
+    """The configuration a run trains with (no ``auto`` left) and the facts it was resolved from."""
+
+    cfg: Config
+    facts: SceneFacts
+
+
+def resolve_for_scene(cfg: Config, scene: SceneData) -> Resolved:
+    """``cfg`` with ``features.models``, ``splat.background``, ``model.voxel_size`` and ``grow.early_cull``
+    resolved for ``scene`` (in the training frame); settings the user gave are kept."""
+    facts = SceneFacts(demo=not cfg.data.path, layout=scene.dataset_format,
+                       background=tuple(float(c) for c in scene.background),
+                       random_start=scene.random_points is not None, points=len(scene.points))
+    cfg = dataclasses.replace(cfg, features=run_features(cfg))
+    cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
+    train = scene.train_indices
+    cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train], scene.Ks[train], scene.width, scene.height)
+                             if facts.random_start else None)
+    return Resolved(resolve_early_cull(cfg, facts.random_start), facts)
