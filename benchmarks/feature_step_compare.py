@@ -25,14 +25,14 @@ def child(src: str) -> dict:
     from cusgs_jax.app import run as run_loop
     from cusgs_jax.compose import compose_config
 
-    session = run_loop.setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
-    batch = run_loop._batches(session)
+    session, loop = run_loop.setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
+    batch = session.batches
     for step in range(5):
-        run_loop._exact_step(session, batch(step))
+        run_loop._exact_step(session, loop, batch(step))
     times = []
     for step in range(5, 45):
         start = time.perf_counter()
-        run_loop._exact_step(session, batch(step))
+        run_loop._exact_step(session, loop, batch(step))
         times.append(time.perf_counter() - start)
     return dict(src=src, median_step_s=statistics.median(times))
 

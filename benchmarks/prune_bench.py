@@ -60,13 +60,13 @@ def _restore(run: pathlib.Path, scratch: str):
     return setup(cfg, scratch)
 
 
-def _prune_statistics(session) -> tuple[object, float]:
+def _prune_statistics(session, loop) -> tuple[object, float]:
     """PruneStats over every training view once, from the trained parameters (which stay untouched)."""
     cfg, scene, idx = session.cfg, session.scene, session.train_idx
-    step = make_train_step(cfg, session.tx, session.strategies, session.capacities)
+    step = make_train_step(cfg, session.tx, session.strategies, loop.capacities)
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     start = time.perf_counter()
-    stats_state = session.state.replace(step=jnp.int32(cfg.prune.start))  # inside the statistics window
+    stats_state = loop.state.replace(step=jnp.int32(cfg.prune.start))  # inside the statistics window
     for position in range(len(idx)):
         view = view_order(cfg.train.seed, len(idx), position)
         batch = {"image": images[view], "camera": Camera.of_scene(scene, int(idx[view])),
@@ -90,10 +90,10 @@ def main(argv=None) -> None:
     if not (args.run / HYDRA_DIR / "overrides.yaml").is_file() or not (args.run / CHECKPOINTS_DIR).is_dir():
         sys.exit(f"{args.run}: expected a cusgs-train run folder with .hydra/overrides.yaml and checkpoints/")
     with tempfile.TemporaryDirectory() as scratch:
-        session = _restore(args.run, scratch)
-        stats, stats_seconds = _prune_statistics(session)
+        session, loop = _restore(args.run, scratch)
+        stats, stats_seconds = _prune_statistics(session, loop)
         session.ckpt.close()
-    state, scene, prune_cfg = session.state, session.scene, session.cfg.prune
+    state, scene, prune_cfg = loop.state, session.scene, session.cfg.prune
     test_idx = session.test_idx
     alive = np.asarray(state.anchors.alive)
     rng = np.random.default_rng(args.seed)

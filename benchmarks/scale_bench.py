@@ -335,8 +335,8 @@ def _rss() -> dict:
 def short_run(spec: dict, workdir: str):
     """The glue to the app (kept in one place): a short real run, then a fresh step on its final state.
 
-    Returns ``(session, eval_result, info, step_fn, batches)``; the step is built with the
-    session's grown capacities (``session.capacities``).
+    Returns ``((session, loop), eval_result, info, step_fn, batches)``; the step is built with the
+    loop's grown capacities (``loop.capacities``).
     """
     from cusgs_jax.app import run as app_run
     from cusgs_jax.config import Config
@@ -351,15 +351,14 @@ def short_run(spec: dict, workdir: str):
         **({"model": dict(voxel_size=float(spec["voxel_size"]))} if spec.get("voxel_size") else {}),
         grow=dict(stats_start=0, start=2 * every, interval=every, stop=n),
         prune=dict(start=3 * every, interval=every, stop=n))
-    session = app_run.setup(cfg, workdir)
-    info = dict(initial_anchors=int(np.sum(session.state.anchors.alive)),
-                initial_capacity=int(session.state.anchors.capacity), kept_points=int(len(session.scene.points)),
+    session, loop = app_run.setup(cfg, workdir)
+    info = dict(initial_anchors=int(np.sum(loop.state.anchors.alive)),
+                initial_capacity=int(loop.state.anchors.capacity), kept_points=int(len(session.scene.points)),
                 train_views=int(len(session.train_idx)), held_out_views=int(len(session.test_idx)))
-    app_run.train(session)
-    result = app_run.finalise(session)
-    step_fn = train_step.make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
-    batches = app_run._batches(session)
-    return session, result, info, step_fn, batches
+    app_run.train(session, loop)
+    result = app_run.finalise(session, loop).to_json()
+    step_fn = train_step.make_train_step(session.cfg, session.tx, session.strategies, loop.capacities)
+    return (session, loop), result, info, step_fn, session.batches
 
 
 def _timed(fn, *args, repeats: int):
@@ -462,12 +461,12 @@ def measure_point(spec: dict) -> dict:
     baseline = _rss()
     start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="scale_bench_") as workdir:
-        session, result, info, step_fn, batches = short_run(spec, workdir)
+        (session, loop), result, info, step_fn, batches = short_run(spec, workdir)
     run_s = time.perf_counter() - start
     after_run = _rss()
 
-    state = session.state
-    session.state = None  # the step donates it
+    state = loop.state
+    loop.state = None  # the step donates it
     start = time.perf_counter()
     state, metrics = step_fn(state, batches(0))
     jax.block_until_ready(metrics)
@@ -496,7 +495,7 @@ def measure_point(spec: dict) -> dict:
 
     start = time.perf_counter()
     try:
-        stages, stage_info = stage_breakdown(session.cfg, session.capacities, state, batches(0),
+        stages, stage_info = stage_breakdown(session.cfg, loop.capacities, state, batches(0),
                                              int(spec["stage_repeats"]))
         stages["update_rest"] = max(0.0, step_s - stage_info["value_and_grad_s"])
     except Exception as exc:  # keep the step numbers of this point
@@ -524,7 +523,7 @@ def measure_point(spec: dict) -> dict:
         stages_s=stages, stage_sum_s=sum(stages[s] for s in STAGES) if stages else None,
         stages_wall_s=stages_wall_s, **stage_info,
         voxel_size=float(session.cfg.model.voxel_size), replayed_steps=result.get("replayed_steps"),
-        capacities=session.capacities.as_dict(), dropped_in_timed_steps=dropped)
+        capacities=loop.capacities.as_dict(), dropped_in_timed_steps=dropped)
 
 
 # names of the step metrics that count work a step dropped (old and new spellings)

@@ -21,11 +21,11 @@ from cusgs_jax.training.step import make_train_step
 
 
 def main(overrides: list[str]) -> dict:
-    session = run_loop.setup(compose_config(["train.progress=false", *overrides]), tempfile.mkdtemp())
-    batch = run_loop._batches(session)(0)
-    step = make_train_step(session.cfg, session.tx, session.strategies, session.capacities)
+    session, loop = run_loop.setup(compose_config(["train.progress=false", *overrides]), tempfile.mkdtemp())
+    batch = session.batches(0)
+    step = make_train_step(session.cfg, session.tx, session.strategies, loop.capacities)
     t0 = time.perf_counter()
-    lowered = step.lower(session.state, batch)
+    lowered = step.lower(loop.state, batch)
     t1 = time.perf_counter()
     compiled = lowered.compile()
     t2 = time.perf_counter()

@@ -31,11 +31,12 @@ def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that():
     assert foresight.lead_steps([12.0, 15.0]) == int(np.ceil(LEAD * 15.0 / 0.2))  # the slowest compile, 1.5x
     assert foresight.lead_steps([0.1]) == MIN_LEAD_STEPS
     seen = []
-    foresight._preview = lambda session, done, due: seen.append((done, due))
-    session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]), state=None)
-    foresight._next_capacities = lambda session, done: None
+    foresight._preview = lambda session, loop, done, due: seen.append((done, due))
+    session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]))
+    loop = types.SimpleNamespace(state=None)
+    foresight._next_capacities = lambda session, loop, done: None
     for done in range(1, 520):
-        foresight.after(session, done)
+        foresight.after(session, loop, done)
     lead = foresight.lead_steps([4.0])  # 30 steps
     assert seen == [(400 - lead, 400), (400 - lead // 2, 400), (500 - lead, 500), (500 - lead // 2, 500)]
     assert PREVIEWS == 2

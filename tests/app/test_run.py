@@ -196,13 +196,13 @@ def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp
     shutil.rmtree(out / "checkpoints" / "30")  # killed after step 30's rows, before its checkpoint
     assert _latest_checkpoint(out) == 20
 
-    session = setup(_cfg(tiny_scene, "train.iterations=45", "train.resume=true"), out)
-    assert int(session.state.step) == 20
+    session, loop = setup(_cfg(tiny_scene, "train.iterations=45", "train.resume=true"), out)
+    assert int(loop.state.step) == 20
     assert [r["step"] for r in _jsonl(out / "metrics.jsonl")] == [10, 20]
     assert [c["step"] for c in _jsonl(out / "eval_curve.jsonl")] == [15]
-    assert [c["step"] for c in session.curve] == [15]
-    train(session)
-    result = finalise(session)
+    assert [c["step"] for c in loop.curve] == [15]
+    train(session, loop)
+    result = finalise(session, loop)
 
     rows, curve = _jsonl(out / "metrics.jsonl"), _jsonl(out / "eval_curve.jsonl")
     steps, curve_steps = [r["step"] for r in rows], [c["step"] for c in curve]
@@ -289,9 +289,9 @@ def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_
     cfg = _cfg(tiny_scene, "model.visible_fraction=0.05", "splat.active_fraction=0.05",
                "splat.max_pairs_per_gaussian=0.05")
     with caplog.at_level("INFO", logger="cusgs_jax"):
-        session = setup(cfg, tmp_path / "fitted")
+        session, loop = setup(cfg, tmp_path / "fitted")
     assert "work capacities from" in caplog.text
-    caps, state = session.capacities, session.state
+    caps, state = loop.capacities, loop.state
     assert caps != Capacities.from_config(session.cfg)
     n = session.cfg.model.n_offsets
     assert len(session.train_idx) <= 8  # so every training view was probed
@@ -315,7 +315,7 @@ def test_a_scene_whose_points_no_training_view_sees_is_refused_at_setup(tmp_path
     assert not (tmp_path / "run" / "metrics.jsonl").exists()
     # the same cameras turned towards the points set up as usual
     facing = object_scene(tmp_path / "facing", views=6, width=32, height=24, num_points=300)
-    assert setup(_cfg(facing, "model.voxel_size=auto"), tmp_path / "run2").capacities is not None
+    assert setup(_cfg(facing, "model.voxel_size=auto"), tmp_path / "run2")[1].capacities is not None
 
 
 def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
@@ -341,9 +341,9 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, ti
                   key=lambda p: p.stat().st_size)  # the array data
     damaged.write_bytes(damaged.read_bytes()[:16])  # truncated, as a crash during a copy would leave it
     with caplog.at_level("WARNING", logger="cusgs_jax"):
-        session = setup(_cfg(tiny_scene, "train.resume=true"), out)
-    assert int(session.state.step) == 20 and "trying checkpoint 20" in caplog.text
-    train(session)
+        session, loop = setup(_cfg(tiny_scene, "train.resume=true"), out)
+    assert int(loop.state.step) == 20 and "trying checkpoint 20" in caplog.text
+    train(session, loop)
     step, leaves = _final_state_leaves(out)
     step_ref, leaves_ref = _final_state_leaves(straight[0])
     assert step == step_ref == 30
@@ -413,21 +413,22 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
 
     cfg = Config()
     state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
-    session = SimpleNamespace(cfg=cfg, state=state, banks=None, budget=SimpleNamespace(clock=SimpleNamespace(total=1.0)),
-                              strategies=(), tallies={}, replays=0, recompilations=0, alarmed=set())
+    session = SimpleNamespace(cfg=cfg, banks=None, budget=SimpleNamespace(clock=SimpleNamespace(total=1.0)),
+                              strategies=())
+    loop = SimpleNamespace(state=state, tallies={}, replays=0, recompilations=0, alarmed=set())
     normal = dict(loss=0.5, loss_image=0.3, loss_l1=0.2, loss_feature=0.4, loss_feat_semantic_l2=0.05,
                   loss_feat_semantic_cos=0.35, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
                   dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)
     with caplog.at_level("WARNING", logger="cusgs_jax"):
-        row = _log_row(session, cfg.train.log_every, normal, 0.1)
+        row = _log_row(session, loop, cfg.train.log_every, normal, 0.1)
         assert caplog.text == ""
         # a later logged step: the image loss alone is far too large
-        _log_row(session, 7 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)
-        _log_row(session, 8 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)  # said once
+        _log_row(session, loop, 7 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)
+        _log_row(session, loop, 8 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)  # said once
         # the image loss is normal, a feature model's L2 term explodes (a stray target value of 1e6)
-        _log_row(session, 9 * cfg.train.log_every, dict(normal, loss=3e8, loss_feature=3e8,
+        _log_row(session, loop, 9 * cfg.train.log_every, dict(normal, loss=3e8, loss_feature=3e8,
                                                          loss_feat_semantic_l2=3e8), 0.1)
-        _log_row(session, 10 * cfg.train.log_every, dict(normal, loss=float("nan"), loss_l1=float("nan")), 0.1)
+        _log_row(session, loop, 10 * cfg.train.log_every, dict(normal, loss=float("nan"), loss_l1=float("nan")), 0.1)
     assert row["dropped_anchors"] == row["dropped_pairs"] == 0
     assert caplog.text.count("far above the normal range") == 2 and "model.voxel_size" in caplog.text
     assert f"step {7 * cfg.train.log_every}: image loss 720" in caplog.text
@@ -483,7 +484,7 @@ def test_setup_resolves_auto_once_and_leaves_out_vgg16_without_lpips(tiny_scene,
     cfg = _cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "model.voxel_size=auto")
     assert cfg.model.voxel_size is None and [m.name for m in cfg.features.models] == ["daisy", "semantic", "vgg16"]
     with caplog.at_level("WARNING", logger="cusgs_jax"):
-        session = setup(cfg, tmp_path / "run")
+        session, _ = setup(cfg, tmp_path / "run")
     assert [m.name for m in session.cfg.features.models] == ["daisy", "semantic"] == sorted(session.banks)
     assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
     assert isinstance(session.cfg.model.voxel_size, float) and 0 < session.cfg.model.voxel_size < 0.2
@@ -541,7 +542,7 @@ def test_a_run_reads_its_scene_once_and_extracts_features_from_the_images_it_tra
     reads = []
     reader = layouts.READERS["colmap"]
     monkeypatch.setitem(layouts.READERS, "colmap", lambda folder, data: reads.append(folder) or reader(folder, data))
-    session = setup(_cfg(scene, "features.models=[{name: daisy}]", "features.sample_pixels=200"),
+    session, _ = setup(_cfg(scene, "features.models=[{name: daisy}]", "features.sample_pixels=200"),
                     tmp_path / "run")
     assert reads == [scene] and sorted(session.banks) == ["daisy"]
     meta = json.loads((scene / "features" / "daisy" / "meta.json").read_text())

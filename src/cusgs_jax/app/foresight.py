@@ -79,13 +79,14 @@ class Foresight:
         step = max(statistics.median(self._recent), 1e-6)
         return max(MIN_LEAD_STEPS, math.ceil(LEAD * max(compile_seconds) / step))
 
-    def after(self, session, done: int) -> None:
-        """After ``done`` completed steps (and their strategy updates)."""
+    def after(self, session, loop, done: int) -> None:
+        """After ``done`` completed steps (and their strategy updates) of ``session``'s ``loop``
+        (:class:`cusgs_jax.app.run.Session`, :class:`~cusgs_jax.app.run.Loop`)."""
         ahead = session.ahead
         if ahead is None or not ahead.enabled:
             return
         if done % CAPACITY_CHECK_EVERY == 0:
-            self._next_capacities(session, done)
+            self._next_capacities(session, loop, done)
         due = self._due_after(done)
         if due is None:
             return
@@ -93,24 +94,24 @@ class Foresight:
         for look in range(PREVIEWS):  # at the lead, then at half of it: a later preview sees more of the statistics
             if (due, look) not in self._previewed and due - done <= max(lead >> look, MIN_LEAD_STEPS):
                 self._previewed.update((due, earlier) for earlier in range(look + 1))
-                self._preview(session, done, due)
+                self._preview(session, loop, done, due)
                 return
 
-    def _next_capacities(self, session, done: int) -> None:
-        state = session.state
+    def _next_capacities(self, session, loop, done: int) -> None:
+        state = loop.state
         for strategy in self.strategies:
             capacity = strategy.next_capacity(state, done) if hasattr(strategy, "next_capacity") else None
             if capacity is None or capacity == state.anchors.capacity or capacity in self._asked:
                 continue
             self._asked.add(capacity)
-            grown = jax.eval_shape(lambda s, c=capacity: _grown(s, session.tx, c), state)
+            grown = jax.eval_shape(lambda s, c=capacity: ops.grow_capacity(s, session.tx, c), state)
             log.debug("compiling ahead the step for %d anchor slots (%s's next capacity)", capacity, strategy.name)
-            self.step_program(session.capacities).prepare(grown, session.batches(int(state.step)))
+            self.step_program(loop.capacities).prepare(grown, session.batches(int(state.step)))
             self.prepare_render(grown.anchors)
 
-    def _preview(self, session, done: int, due: int) -> None:
+    def _preview(self, session, loop, done: int, due: int) -> None:
         cfg = session.cfg
-        preview = _copy(session.state)  # an update may donate the arrays it is given
+        preview = _copy(loop.state)  # an update may donate the arrays it is given
         with _quiet():
             for strategy in self.strategies:
                 if strategy.due(due):
@@ -125,11 +126,11 @@ class Foresight:
             for v in range(size)]
         needs = view_needs(preview.anchors, preview.nets, views, cfg)
         capacity = preview.anchors.capacity
-        for caps in (session.capacities, *session.capacities.replayed(needs, capacity, cfg.model.n_offsets)):
+        for caps in (loop.capacities, *loop.capacities.replayed(needs, capacity, cfg.model.n_offsets)):
             if self.step_program(caps).prepare(preview, batches[0]):
                 log.debug("step %d: compiling ahead the step after the update at %d: %d anchor slots, %s",
                           done, due, capacity, caps)
-        if capacity != session.state.anchors.capacity:
+        if capacity != loop.state.anchors.capacity:
             self.prepare_render(preview.anchors)
 
 
@@ -137,10 +138,6 @@ class Foresight:
 def _copy(state):
     """A copy of ``state`` (one program, not one per array)."""
     return jax.tree_util.tree_map(jnp.copy, state)
-
-
-def _grown(state, tx, capacity: int):
-    return ops.grow_capacity(state, tx, capacity)
 
 
 @contextlib.contextmanager

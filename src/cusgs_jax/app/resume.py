@@ -22,34 +22,35 @@ from cusgs_jax.run_folder import CURVE_FILE, METRICS_FILE, CheckpointMeta
 log = logging.getLogger("cusgs_jax")
 
 
-def resume(session) -> None:
+def resume(session, loop) -> None:
     """Restore the newest checkpoint of ``session`` (:class:`cusgs_jax.app.run.Session`) that restores cleanly
-    into its state, capacities, clock, curve and tallies, and trim the logs to its step."""
+    into its ``loop`` (:class:`~cusgs_jax.app.run.Loop`: state, capacities, curve, tallies, counts) and its
+    budget's clock, and trim the logs to its step."""
     def template(meta: dict):
-        fresh, saved = session.state, int(meta["capacity"])
+        fresh, saved = loop.state, int(meta["capacity"])
         if saved == fresh.anchors.capacity:
             return fresh
         if saved > fresh.anchors.capacity:
             return ops.grow_capacity(fresh, session.tx, saved)
         return ops.resize_capacity(fresh, session.tx, saved, keep=np.arange(saved))  # shapes only: restored over
 
-    session.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
-    step = int(session.state.step)
+    loop.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
+    step = int(loop.state.step)
     meta = CheckpointMeta.from_json(meta, f"checkpoint {session.ckpt.directory / str(step)}")  # run_folder.py
     require_same_scene(session, meta, step)
     require_not_past(session.cfg, step, session.ckpt.directory)
-    session.capacities = session.capacities.restored(meta.capacities)
+    loop.capacities = loop.capacities.restored(meta.capacities)
     session.budget.resume_clock(meta.wall_s)
-    session.curve = list(meta.curve)
-    session.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
+    loop.curve = list(meta.curve)
+    loop.tallies.update({name: Tally.from_dict(record) for name, record in (meta.densify or {}).items()})
     if meta.densify is None and "prune" in meta.extra:  # written before the strategies kept tallies
         log.warning("the checkpoint of step %d predates per-strategy tallies: the densification counts (prune "
                     "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
-    session.recompilations = int(meta.recompilations or 0)
-    session.replays = int(meta.replays or 0)
+    loop.recompilations = int(meta.recompilations or 0)
+    loop.replays = int(meta.replays or 0)
     trim_jsonl(session.out / METRICS_FILE, step)
     trim_jsonl(session.out / CURVE_FILE, step)
-    log.info("resumed from step %d (capacity %d)", step, session.state.anchors.capacity)
+    log.info("resumed from step %d (capacity %d)", step, loop.state.anchors.capacity)
 
 
 def require_same_scene(session, meta: CheckpointMeta, step: int) -> None:

@@ -81,11 +81,15 @@ from cusgs_jax.view.render import ViewCamera, ViewModel, scene_cameras, view_mod
 log = logging.getLogger("cusgs_jax")
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
 class Session:
-    """Host-side context of one run (mutable; the numeric state is ``state``)."""
+    """What a run starts from, as setup leaves it (immutable; the loop's state is a :class:`Loop`).
 
-    cfg: Config  # the user's settings; the grown work capacities live in ``capacities``
+    The renderers, the budget and the compile pool are objects with their own bookkeeping (a render grows its
+    capacities, the budget charges time, the pool compiles); the session's fields never change.
+    """
+
+    cfg: Config  # resolved for the scene (app/resolve.py); the grown work capacities live in ``Loop.capacities``
     out: pathlib.Path
     scene: SceneData  # in the normalised training frame (extent 1)
     world: WorldTransform  # the scene's frame (COLMAP's) → the normalised training frame
@@ -96,20 +100,11 @@ class Session:
     targets: dict[str, jax.Array]  # {feature model: [V, h, w, D] training targets (float16 unless too large)}
     strategies: tuple[Strategy, ...]  # the densification strategies, run in this order
     tx: optax.GradientTransformation
-    state: TrainState
     ckpt: Checkpointer
-    curve: list[dict]  # the learning curve's points (eval_curve.jsonl rows)
-    tallies: dict[str, Tally]  # {strategy name: what its updates did} (checkpointed)
-    capacities: capacity.Capacities  # the step's work capacities: owned, grown and checkpointed here
-    recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
-    replays: int = 0  # steps replayed because a capacity was too small
-    alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (_loss_alarms)
-    step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
-    render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render (set by setup)
-    feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
-    budget: TimeBudget | None = None  # seconds per stage (eval.json's time) and the training clock
+    budget: TimeBudget  # seconds per stage (eval.json's time) and the training clock
     ahead: Ahead | None = None  # the background compiles (app/ahead.py); None: every program compiles on its call
-    programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
+    render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render
+    feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
     batches: Callable[[int], dict] | None = None  # batch(step): the training views of a step (make_batches)
 
     @property
@@ -117,12 +112,27 @@ class Session:
         return "held_out" if len(self.scene.test_indices) else "train"
 
 
+@dataclasses.dataclass
+class Loop:
+    """The training loop's mutable state, in one place: the numeric state and what the shell counts beside it."""
+
+    state: TrainState
+    capacities: capacity.Capacities  # the step's work capacities: owned, grown and checkpointed here
+    tallies: dict[str, Tally]  # {strategy name: what its updates did} (checkpointed)
+    curve: list[dict] = dataclasses.field(default_factory=list)  # the learning curve (eval_curve.jsonl rows)
+    recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
+    replays: int = 0  # steps replayed because a capacity was too small
+    alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (loss_alarms)
+    step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
+    programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
+
+
 # --- setup ----------------------------------------------------------------------------------
 
 
 def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
-          budget: TimeBudget | None = None, ahead: Ahead | None = None) -> Session:
-    """Scene, feature targets, fresh (or resumed) state, step and renderers.
+          budget: TimeBudget | None = None, ahead: Ahead | None = None) -> tuple[Session, Loop]:
+    """Scene, feature targets, fresh (or resumed) state, step and renderers: ``(session, loop)``.
 
     ``extra_strategies``: research code's own densification strategies
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
@@ -136,16 +146,16 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer devices: refused first
     out = _output_folder(output_dir)
     try:
-        session = _setup(cfg, out, extra_strategies, budget, ahead)
+        started = _setup(cfg, out, extra_strategies, budget, ahead)
     except UserError:  # refused: the folder's Hydra record goes back to the run it holds
         restore_hydra_record(out)
         raise
     accept_hydra_record(out)
-    return session
+    return started
 
 
 def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget,
-           ahead: Ahead | None) -> Session:
+           ahead: Ahead | None) -> tuple[Session, Loop]:
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
     latest = ckpt.latest_step()
     require(not cfg.train.resume or latest is not None, "train.resume", True,
@@ -184,56 +194,55 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
         state, tx = init_train_state(cfg, scene.points, len(train_idx), scene.extent, strategies, banks)
     session = Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                       feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies, tx=tx,
-                      state=state, ckpt=ckpt, curve=[],
-                      tallies={name: Tally() for name in names},
-                      capacities=capacity.Capacities.from_config(cfg), budget=budget, ahead=ahead)
+                      ckpt=ckpt, budget=budget, ahead=ahead)
     with budget.stage("probe"):
-        session.capacities = _fitted_capacities(session)
+        loop = Loop(state=state, capacities=_fitted_capacities(session, state),
+                    tallies={name: Tally() for name in names})
     if cfg.train.resume:
         with budget.stage("checkpoints"):
-            resume(session)
+            resume(session, loop)
     if cfg.train.batch_size > 1:
         log.info("%d views per step, sharded over %d of %d device(s)", cfg.train.batch_size, _devices(session),
                  jax.device_count())
     # The evaluation renders the padded model at the step's capacities with headroom (its own grow, should a
     # held-out view need more): one program per anchor capacity; with features one program for RGB and features.
     wrap = functools.partial(Program, ahead=ahead)  # its programs can be compiled ahead
-    if cfg.features.enabled:
-        session.feature_render = make_feature_render_fn(session.cfg, session.capacities.for_evaluation(), wrap=wrap)
-        session.render = RgbOfFeatureRender(session.feature_render, session.banks)
-    else:
-        session.render = make_render_fn(session.cfg, session.capacities.for_evaluation(), wrap=wrap)
-    session.batches = make_batches(session.scene, session.train_idx, session.cfg, session.targets, session.banks)
+    feature_render = (make_feature_render_fn(cfg, loop.capacities.for_evaluation(), wrap=wrap)
+                      if cfg.features.enabled else None)
+    render = (RgbOfFeatureRender(feature_render, banks) if feature_render
+              else make_render_fn(cfg, loop.capacities.for_evaluation(), wrap=wrap))
+    session = dataclasses.replace(session, render=render, feature_render=feature_render,
+                                  batches=make_batches(scene, train_idx, cfg, targets, banks))
     # the programs the loop starts with, compiled in the background from here on
-    _step_program(session, session.capacities).prepare(session.state, session.batches(int(session.state.step)))
-    _prepare_render(session, session.state.anchors)
-    return session
+    _step_program(session, loop, loop.capacities).prepare(loop.state, session.batches(int(loop.state.step)))
+    _prepare_render(session, loop, loop.state.anchors)
+    return session, loop
 
 
-def _step_program(session: Session, capacities: capacity.Capacities) -> Program:
+def _step_program(session: Session, loop: Loop, capacities: capacity.Capacities) -> Program:
     """The step's :class:`~cusgs_jax.app.ahead.Program` for ``capacities`` (one per capacities: its executables
     are those of each anchor capacity it was prepared or called for)."""
-    if capacities not in session.programs:
-        session.programs[capacities] = Program(make_train_step(session.cfg, session.tx, session.strategies,
+    if capacities not in loop.programs:
+        loop.programs[capacities] = Program(make_train_step(session.cfg, session.tx, session.strategies,
                                                                capacities), session.ahead)
-    return session.programs[capacities]
+    return loop.programs[capacities]
 
 
-def _prepare_render(session: Session, anchors) -> None:
+def _prepare_render(session: Session, loop: Loop, anchors) -> None:
     """Compile the evaluation render for ``anchors``' capacity in the background (``anchors``: arrays or
     ``ShapeDtypeStruct`` s of the padded model), so a held-out evaluation does not wait for it."""
     render = session.feature_render or session.render
     scene, view = session.scene, int(session.test_idx[0])
-    args = (anchors, session.state.nets, Camera.of_scene(scene, view),
+    args = (anchors, loop.state.nets, Camera.of_scene(scene, view),
             nearest_train_view(scene.camera_centers, scene.train_indices, view))
     render.program().prepare(*args, *((session.banks,) if session.feature_render else ()))
 
 
-def _fitted_capacities(session: Session, probes: int = 8) -> capacity.Capacities:
+def _fitted_capacities(session: Session, state: TrainState, probes: int = 8) -> capacity.Capacities:
     """The step's first work capacities, sized by what up to ``probes`` training views (spread over
     them) need of the initial model, with headroom (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`);
     the config's guesses are not used. They grow, and the step replays, when a later view needs more."""
-    scene, state, cfg = session.scene, session.state, session.cfg
+    scene, cfg = session.scene, session.cfg
     positions = _spread(np.arange(len(session.train_idx)), probes)
     needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), np.int32(p))
                                                   for p in positions], cfg)
@@ -272,37 +281,37 @@ def _spread(indices: np.ndarray, count: int) -> np.ndarray:
 # --- the loop -------------------------------------------------------------------------------
 
 
-def train(session: Session, progress_label: str = "train") -> None:
+def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
     """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint."""
     cfg = session.cfg
-    iterations, start = cfg.train.iterations, int(session.state.step)
+    iterations, start = cfg.train.iterations, int(loop.state.step)
     batches = session.batches
     cameras = scene_cameras(session.scene, session.train_idx) if cfg.train.viewer else []  # fixed during a run
-    snapshot = functools.partial(_snapshot, session, cameras)  # the live viewer's model as it is when called
+    snapshot = functools.partial(_snapshot, session, loop, cameras)  # the live viewer's model as it is when called
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
-    foresight = Foresight(session.strategies, iterations, functools.partial(_step_program, session),
-                          functools.partial(_prepare_render, session))
+    foresight = Foresight(session.strategies, iterations, functools.partial(_step_program, session, loop),
+                          functools.partial(_prepare_render, session, loop))
     with session.budget.stage("train_steps"):  # the first step's program, compiled during setup: waited for here
-        session.step_fn = _step_program(session, session.capacities)
-        session.step_fn.wait(session.state, batches(start))
+        loop.step_fn = _step_program(session, loop, loop.capacities)
+        loop.step_fn.wait(loop.state, batches(start))
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.budget.clock:
                 with session.budget.stage("train_steps"):
                     started = time.perf_counter()
-                    metrics = _exact_step(session, batches(step))
+                    metrics = _exact_step(session, loop, batches(step))
                     foresight.stepped(time.perf_counter() - started)
                 with session.budget.stage("densify"):
-                    _densify(session, step + 1)
-                    foresight.after(session, step + 1)
+                    _densify(session, loop, step + 1)
+                    foresight.after(session, loop, step + 1)
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
                 live.after_step()
             done = step + 1
             if done % cfg.train.log_every == 0 or done == iterations:
-                row = _log_row(session, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)
+                row = _log_row(session, loop, done, metrics, (time.perf_counter() - last_log) / cfg.train.log_every)
                 last_log = time.perf_counter()
                 metrics_file.write(json.dumps(row) + "\n")
                 metrics_file.flush()
@@ -310,30 +319,30 @@ def train(session: Session, progress_label: str = "train") -> None:
                                 anchors=row["alive_anchors"], step_s=row["step_s"])
             if cfg.eval.every and (done % cfg.eval.every == 0 or done == iterations):
                 with session.budget.stage("evaluation"):
-                    point = _curve_point(session, done)
+                    point = _curve_point(session, loop, done)
                 curve_file.write(json.dumps(point) + "\n")
                 curve_file.flush()
                 bar.write(f"step {done}: {_psnr_label(session)} {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 with session.budget.stage("checkpoints"):
-                    _save(session, done)
+                    _save(session, loop, done)
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
         with session.budget.stage("checkpoints"):
-            _save(session, iterations)
+            _save(session, loop, iterations)
 
 
-def _snapshot(session: Session, cameras: list[ViewCamera]) -> ViewModel:
+def _snapshot(session: Session, loop: Loop, cameras: list[ViewCamera]) -> ViewModel:
     """What the live viewer shows of the model as it is now (anchors compacted now).
 
     The snapshot owns its arrays: the step donates the state's buffers, so the networks are copied
     (small MLPs) rather than shared, and the snapshot stays valid after the next step.
     """
-    nets = jax.tree_util.tree_map(jnp.copy, session.state.nets)
-    return view_model(session.cfg, compact(session.state.anchors), nets, session.banks, cameras)
+    nets = jax.tree_util.tree_map(jnp.copy, loop.state.nets)
+    return view_model(session.cfg, compact(loop.state.anchors), nets, session.banks, cameras)
 
 
-def _exact_step(session: Session, batch: dict) -> dict:
+def _exact_step(session: Session, loop: Loop, batch: dict) -> dict:
     """One training step on ``batch`` that dropped no work; returns its metrics (host values).
 
     A step that reported dropped anchors or tile pairs changed nothing; the
@@ -341,18 +350,18 @@ def _exact_step(session: Session, batch: dict) -> dict:
     rebuilt and the same batch replayed.
     """
     while True:
-        if session.step_fn is None:
-            session.step_fn = _step_program(session, session.capacities)
-        session.state, metrics = session.step_fn(session.state, batch)
+        if loop.step_fn is None:
+            loop.step_fn = _step_program(session, loop, loop.capacities)
+        loop.state, metrics = loop.step_fn(loop.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
         if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
             return metrics
-        session.capacities = session.capacities.grown(metrics, session.state.anchors.capacity,
+        loop.capacities = loop.capacities.grown(metrics, loop.state.anchors.capacity,
                                                       session.cfg.model.n_offsets)
-        session.step_fn, session.replays, session.recompilations = None, session.replays + 1, session.recompilations + 1
+        loop.step_fn, loop.replays, loop.recompilations = None, loop.replays + 1, loop.recompilations + 1
 
 
-def _densify(session: Session, step: int) -> None:
+def _densify(session: Session, loop: Loop, step: int) -> None:
     """Run every strategy due after ``step`` completed steps (host side, between steps).
 
     Before a strategy's first update its :meth:`~cusgs_jax.densify.base.Strategy.before_first_update`
@@ -362,37 +371,37 @@ def _densify(session: Session, step: int) -> None:
     for strategy in session.strategies:
         if not strategy.due(step):
             continue
-        tally = session.tallies[strategy.name]
+        tally = loop.tallies[strategy.name]
         if tally.updates == 0:
-            tally = dataclasses.replace(tally, values=dict(strategy.before_first_update(_probe(session, step))))
-        session.state, info = strategy.update(session.state, session.tx, step)
+            tally = dataclasses.replace(tally, values=dict(strategy.before_first_update(_probe(session, loop, step))))
+        loop.state, info = strategy.update(loop.state, session.tx, step)
         if info.capacity_changed:
-            session.recompilations += 1  # new shapes: the jitted step retraces
-        session.tallies[strategy.name] = tally.add(info)
+            loop.recompilations += 1  # new shapes: the jitted step retraces
+        loop.tallies[strategy.name] = tally.add(info)
         log.debug("step %d: %s grew %d, pruned %d anchors%s %s", step, strategy.name, info.grown, info.pruned,
                   " (capacity changed)" if info.capacity_changed else "", dict(info.extra))
-        _shrink_if_empty(session, step)
+        _shrink_if_empty(session, loop, step)
 
 
-def _shrink_if_empty(session: Session, step: int) -> None:
+def _shrink_if_empty(session: Session, loop: Loop, step: int) -> None:
     """Move the anchors to a smaller capacity when pruning left most slots dead (:func:`ops.shrunk_capacity`),
     and refit the work capacities to the smaller model, so a step pays for what is alive."""
-    alive, old = int(np.sum(np.asarray(session.state.anchors.alive))), session.state.anchors.capacity
+    alive, old = int(np.sum(np.asarray(loop.state.anchors.alive))), loop.state.anchors.capacity
     new = ops.shrunk_capacity(alive, old)
     if new is None:
         return
-    session.state = ops.resize_capacity(session.state, session.tx, new)
-    session.capacities = _fitted_capacities(session)
-    session.step_fn, session.recompilations = None, session.recompilations + 1
+    loop.state = ops.resize_capacity(loop.state, session.tx, new)
+    loop.capacities = _fitted_capacities(session, loop.state)
+    loop.step_fn, loop.recompilations = None, loop.recompilations + 1
     log.info("step %d: %d of %d anchor slots alive: capacity shrunk to %d (the step recompiles once)",
              step, alive, old, new)
 
 
-def _probe(session: Session, step: int) -> Probe:
+def _probe(session: Session, loop: Loop, step: int) -> Probe:
     """What a strategy's ``before_first_update`` hook may measure of the run after ``step`` steps."""
     def render_ms_per_view() -> float:
         with session.budget.clock.paused(), session.budget.stage("evaluation"):
-            return _evaluate(session, session.state.anchors, time_renders=True)["render_ms_per_view"]
+            return _evaluate(session, loop, loop.state.anchors, time_renders=True)["render_ms_per_view"]
 
     return Probe(step=step, render_ms_per_view=render_ms_per_view)
 
@@ -402,42 +411,42 @@ def _devices(session: Session) -> int:
     return resolve_devices(session.cfg.train.batch_size, session.cfg.train.devices)
 
 
-def _log_row(session: Session, step: int, metrics: dict, step_s: float) -> dict:
-    state = session.state
+def _log_row(session: Session, loop: Loop, step: int, metrics: dict, step_s: float) -> dict:
+    state = loop.state
     row = dict(step=step, wall_s=round(session.budget.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(np.asarray(state.anchors.alive))),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
-               pairs=int(metrics["pairs"]), **strategy_row(session.strategies, session.tallies, session.cfg),
+               pairs=int(metrics["pairs"]), **strategy_row(session.strategies, loop.tallies, session.cfg),
                skipped=int(state.skipped), dropped_anchors=int(metrics["dropped_anchors"]),
                dropped_gaussians=int(metrics["dropped_gaussians"]),
-               dropped_pairs=int(metrics["dropped_pairs"]), replays=session.replays,
-               recompilations=session.recompilations, step_s=round(step_s, 4))
-    loss_alarms(session.alarmed, step, metrics)
+               dropped_pairs=int(metrics["dropped_pairs"]), replays=loop.replays,
+               recompilations=loop.recompilations, step_s=round(step_s, 4))
+    loss_alarms(loop.alarmed, step, metrics)
     return row
 
 
-def _evaluate(session: Session, anchors, **kwargs) -> dict:
-    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``session.state.anchors`` (padded, alive mask)."""
-    return evaluate_views(session.render, anchors, session.state.nets, session.scene, session.test_idx, **kwargs)
+def _evaluate(session: Session, loop: Loop, anchors, **kwargs) -> dict:
+    """Held-out PSNR/SSIM of the model as it is now; ``anchors`` = ``loop.state.anchors`` (padded, alive mask)."""
+    return evaluate_views(session.render, anchors, loop.state.nets, session.scene, session.test_idx, **kwargs)
 
 
-def _evaluate_features(session: Session, anchors, **kwargs) -> dict:
-    """Feature errors of the model as it is now; ``anchors`` = ``session.state.anchors`` (padded, alive mask)."""
-    return evaluate_features(session.feature_render, anchors, session.state.nets, session.scene, session.test_idx,
+def _evaluate_features(session: Session, loop: Loop, anchors, **kwargs) -> dict:
+    """Feature errors of the model as it is now; ``anchors`` = ``loop.state.anchors`` (padded, alive mask)."""
+    return evaluate_features(session.feature_render, anchors, loop.state.nets, session.scene, session.test_idx,
                              session.banks, session.feature_sets, **kwargs)
 
 
-def _curve_point(session: Session, step: int) -> dict:
-    anchors = session.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
-    result = _evaluate(session, anchors)
+def _curve_point(session: Session, loop: Loop, step: int) -> dict:
+    anchors = loop.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
+    result = _evaluate(session, loop, anchors)
     point = dict(step=step, wall_s=session.budget.clock.total, psnr=result["psnr"], ssim=result["ssim"],
-                 alive_anchors=int(np.sum(np.asarray(session.state.anchors.alive))))
+                 alive_anchors=int(np.sum(np.asarray(loop.state.anchors.alive))))
     if session.banks is not None:
-        feats = _evaluate_features(session, anchors, retrieval=False)["models"]
+        feats = _evaluate_features(session, loop, anchors, retrieval=False)["models"]
         point["feature_cosine"] = float(np.mean([m["cosine"] for m in feats.values()]))
         point["feature_l2"] = float(np.mean([m["l2"] for m in feats.values()]))
-    session.curve.append(point)
+    loop.curve.append(point)
     return point
 
 
@@ -445,17 +454,17 @@ def _psnr_label(session: Session) -> str:
     return "held-out PSNR" if session.evaluated_on == "held_out" else "training-view PSNR (no held-out views)"
 
 
-def _save(session: Session, step: int) -> None:
+def _save(session: Session, loop: Loop, step: int) -> None:
     meta = CheckpointMeta(
-        step=step, capacity=session.state.anchors.capacity, wall_s=session.budget.clock.total, curve=session.curve,
-        densify={name: tally.as_dict() for name, tally in session.tallies.items()},
-        recompilations=session.recompilations, replays=session.replays,
-        capacities=session.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
+        step=step, capacity=loop.state.anchors.capacity, wall_s=session.budget.clock.total, curve=loop.curve,
+        densify={name: tally.as_dict() for name, tally in loop.tallies.items()},
+        recompilations=loop.recompilations, replays=loop.replays,
+        capacities=loop.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
         # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
         world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),
         train_cameras=_cameras(session, session.train_idx), scene_digest=_digest(session),
         held_out_cameras=_cameras(session, session.scene.test_indices))  # cusgs-view's camera list
-    session.ckpt.save(step, session.state, meta.to_json())
+    session.ckpt.save(step, loop.state, meta.to_json())
     if session.banks is not None and not (session.out / BANKS_FILE).is_file():  # what cusgs-view renders with
         np.savez(session.out / BANKS_FILE, **{name: np.asarray(b) for name, b in session.banks.items()})
 
@@ -480,22 +489,22 @@ def _cameras(session: Session, idx) -> dict:
 # --- finalise -------------------------------------------------------------------------------
 
 
-def finalise(session: Session) -> EvalRecord:
+def finalise(session: Session, loop: Loop) -> EvalRecord:
     """Final held-out evaluation, ``eval.json``, plots; returns the run's record."""
-    cfg, out, state = session.cfg, session.out, session.state
+    cfg, out, state = session.cfg, session.out, loop.state
     save = cfg.eval.save_renders
     budget = session.budget
     with budget.stage("evaluation"):
         lpips = lpips_metrics(session.scene.width, session.scene.height)  # final evaluation only, not the curve
         anchors = state.anchors
-        final = _evaluate(session, anchors, out_dir=out / RENDERS_DIR if save else None, time_renders=True,
+        final = _evaluate(session, loop, anchors, out_dir=out / RENDERS_DIR if save else None, time_renders=True,
                           lpips=lpips)
         features = (None if session.banks is None else
-                    _evaluate_features(session, anchors, out_dir=out / FEATURES_DIR if save else None))
+                    _evaluate_features(session, loop, anchors, out_dir=out / FEATURES_DIR if save else None))
     with budget.stage("report"):
         if features is not None:
             (out / FEATURES_MD).write_text(features["markdown"])
-        plot_error_vs_time(session.curve, out / PLOT_FILE,
+        plot_error_vs_time(loop.curve, out / PLOT_FILE,
                            title=f"held-out PSNR vs time ({pathlib.Path(str(session.scene.path)).name})")
     with budget.stage("checkpoints"):
         session.ckpt.close()
@@ -507,17 +516,17 @@ def finalise(session: Session) -> EvalRecord:
         model_bytes=model_bytes(state.anchors, state.nets, session.banks),
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.budget.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
-        **strategy_results(session.strategies, session.tallies, session.cfg),  # render_ms_before_prune, prune, densify
+        **strategy_results(session.strategies, loop.tallies, session.cfg),  # render_ms_before_prune, prune, densify
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
-        replayed_steps=session.replays,
-        recompilations=session.recompilations + session.render.growths
+        replayed_steps=loop.replays,
+        recompilations=loop.recompilations + session.render.growths
         + (session.feature_render.growths if session.feature_render else 0),
-        capacities=session.capacities.as_dict(), voxel_size=cfg.model.voxel_size,
+        capacities=loop.capacities.as_dict(), voxel_size=cfg.model.voxel_size,
         world_transform=session.world.as_dict(), iterations=cfg.train.iterations,
         batch_size=cfg.train.batch_size, devices=_devices(session), width=session.scene.width,
         height=session.scene.height, held_out_views=len(session.scene.test_indices),
         evaluated_on=session.evaluated_on, dataset_format=session.scene.dataset_format, split=session.scene.split,
-        background=list(cfg.splat.background_color), curve=session.curve, curve_clock=CLOCK,
+        background=list(cfg.splat.background_color), curve=loop.curve, curve_clock=CLOCK,
         camera_frame=session.scene.camera_frame,
         # the initial points: the scene's own, or the random rule of a layout without any (data/random_points.py)
         initial_points=session.scene.random_points or "scene_points", scene_digest=_digest(session),
@@ -525,7 +534,7 @@ def finalise(session: Session) -> EvalRecord:
         # the share of the held-out pixels the metrics score: < 1 only with data.undistort=mask
         valid_pixels=1.0 if session.scene.valid is None
         else float(np.mean(session.scene.valid[session.scene.test_indices])) if len(session.scene.test_indices) else 1.0,
-        features=features, accelerator=accelerator_record(), compilations=_compilations(session),
+        features=features, accelerator=accelerator_record(), compilations=_compilations(session, loop),
         time=budget.as_dict())
     write_eval(out, record)
     log.info("%s %.2f dB, SSIM %.4f, %d anchors, %.0f s training", _psnr_label(session), record.psnr,
@@ -540,14 +549,14 @@ def finalise(session: Session) -> EvalRecord:
     return record
 
 
-def _compilations(session: Session) -> dict | None:
+def _compilations(session: Session, loop: Loop) -> dict | None:
     """``eval.json``'s ``compilations``: :meth:`CompileLog.summary` with the train step's and the
     evaluation render's counts (attributed by their jitted functions, :func:`compiled_name`); None when the
     run's budget keeps no compile log."""
     compiles = session.budget.compiles
     if compiles is None:
         return None
-    steps = {compiled_name(program) for program in session.programs.values()}
+    steps = {compiled_name(program) for program in loop.programs.values()}
     render = (session.feature_render or session.render).program()
     return dict(compiles.summary(), train_step=sum(compiles.count(name) for name in steps),
                 evaluation_renders=compiles.count(render))
@@ -572,10 +581,10 @@ def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies
             cache = use_compilation_cache(cfg.train.compilation_cache)
         log.debug("persistent compilation cache: %s", cache or "off")
         with Ahead(on_wait=budget.waited, enabled=cfg.train.compile_ahead) as ahead:
-            session = setup(cfg, output_dir, extra_strategies, budget, ahead)
+            session, loop = setup(cfg, output_dir, extra_strategies, budget, ahead)
             try:
-                train(session, progress_label)
-                return finalise(session)
+                train(session, loop, progress_label)
+                return finalise(session, loop)
             except BaseException:
                 session.ckpt.close_after_error()
                 raise

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import gc
 import logging
 import os
 import re
@@ -40,6 +41,9 @@ def quiet_orbax():
         try:
             yield
         finally:
+            # an abandoned asyncio task reports its exception when it is collected: collect now, while the
+            # filters hold, rather than at some later collection after they are gone
+            gc.collect()
             _AFTERMATH.uninstall()
 
 
