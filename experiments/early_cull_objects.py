@@ -31,7 +31,7 @@ from cusgs_jax.data.demo.objects import generate_object_scenes
 from cusgs_jax.run_folder import METRICS_FILE, read_eval
 
 COMMON = ["train.iterations=1500", "features=none", "train.progress=false", "eval.save_renders=false",
-          "train.log_every=10"]
+          "train.log_every=10", "train.compilation_cache=null"]  # every run compiles its own programs
 VARIANTS = {"cull": [], "no_cull": ["grow.early_cull=off"], "no_carve_cull": ["data.carve=none"],
             "no_carve": ["data.carve=none", "grow.early_cull=off"], "base": []}
 STEPS = (10, 100, 400)

@@ -94,8 +94,8 @@ class EarlyCullStrategy(Strategy):
         visits, opacity = np.asarray(stats.visits), np.asarray(stats.opacity_accum)
         judged = alive & (visits >= SEASONED_SHARE * self.cfg.early_cull_every)
         prune = judged & (opacity < self.cfg.min_opacity * visits)
-        anchors = state.anchors.replace(alive=jnp.asarray(alive & ~prune))
-        fresh = CullStats.zeros(alive.shape[0])
+        anchors = state.anchors.replace(alive=jax.device_put(alive & ~prune))
+        fresh = CullStats(*(jax.device_put(np.zeros(alive.shape[0], np.float32)) for _ in range(2)))
         state = state.replace(anchors=anchors, densify={**state.densify, self.name: fresh})
         return state, UpdateInfo(pruned=int(prune.sum()), extra=dict(alive=int((alive & ~prune).sum()),
                                                                     judged=int(judged.sum())))

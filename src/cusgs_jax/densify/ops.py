@@ -9,11 +9,16 @@ type (:class:`~cusgs_jax.model.anchors.PerAnchor`), never guessed from shapes.
 
 ``state`` is any frozen dataclass with ``anchors``, ``opt_state`` and
 ``densify`` fields and a ``replace`` method (:class:`cusgs_jax.training.state.TrainState`).
-Host side, between steps.
+Host side, between steps; each resize is one jitted program per capacity (``tx`` and the capacity static),
+not one small program per array shape. They move and zero rows, never compute: the values are the same
+either way.
 """
 
 from __future__ import annotations
 
+import functools
+
+import jax
 import numpy as np
 import optax
 
@@ -33,6 +38,7 @@ def map_moments(tx: optax.GradientTransformation, fn, opt_state):
         tx, lambda node: map_rows(fn, node) if is_per_anchor(node) else node, opt_state, is_leaf=is_per_anchor)
 
 
+@functools.partial(jax.jit, static_argnums=(1, 2))
 def grow_capacity(state, tx, new_capacity: int):
     """Pad every per-anchor array of ``state`` to ``new_capacity`` slots (new slots dead and zero)."""
     return state.replace(anchors=pad_rows(state.anchors, new_capacity),
@@ -52,7 +58,12 @@ def resize_capacity(state, tx, new_capacity: int, keep=None):
     keep = np.flatnonzero(np.asarray(state.anchors.alive)) if keep is None else np.asarray(keep)
     if len(keep) > new_capacity:
         raise ValueError(f"cannot keep {len(keep)} anchor rows in a capacity of {new_capacity}")
+    return _moved(state, tx, keep, new_capacity)
 
+
+@functools.partial(jax.jit, static_argnums=(1, 3))
+def _moved(state, tx, keep, new_capacity: int):
+    """:func:`resize_capacity` of the rows ``keep`` [K] int."""
     def leaf(x):
         return pad_leaf(x[keep], new_capacity)
 
@@ -75,6 +86,7 @@ def shrunk_capacity(alive: int, capacity: int) -> int | None:
     return target if target < capacity else None
 
 
+@functools.partial(jax.jit, static_argnums=(1,))
 def restart_rows(state, tx, rows):
     """Slots ``rows`` [A] bool hold new anchors: zero their optimiser moments and every statistic."""
     return state.replace(densify=zero_rows(state.densify, rows),

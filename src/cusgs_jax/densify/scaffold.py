@@ -183,7 +183,14 @@ def opacity_prune(alive: np.ndarray, stats: GrowStats, cfg: GrowConfig) -> tuple
     opacity_accum[seasoned] = 0.0
     visits[seasoned] = 0.0
     grad_accum[prune] = grad_count[prune] = 0.0
-    return prune, GrowStats(*(jnp.asarray(x) for x in (grad_accum, grad_count, opacity_accum, visits)))
+    return prune, GrowStats(*(jax.device_put(x) for x in (grad_accum, grad_count, opacity_accum, visits)))
+
+
+@jax.jit
+def _reset_gradients(stats: GrowStats, took_part) -> GrowStats:
+    """``stats`` with the gradient sums of the Gaussians ``took_part`` [A, N] bool zeroed (one program)."""
+    return dataclasses.replace(stats, grad_accum=jnp.where(took_part, 0.0, stats.grad_accum),
+                               grad_count=jnp.where(took_part, 0.0, stats.grad_count))
 
 
 NEXT_CAPACITY_USE = 0.85  # alive share of the capacity from which its next growth is expected (next_capacity)
@@ -241,8 +248,7 @@ class ScaffoldStrategy(Strategy):
         centers, latents, log_cells, took_part = plan_growth(state.anchors, stats, self.cfg, self.voxel_size,
                                                              self.generator(step))
         # the Gaussians that took part are reset (Scaffold-GS resets offset_denom/accum there)
-        stats = dataclasses.replace(stats, grad_accum=jnp.where(took_part, 0.0, stats.grad_accum),
-                                    grad_count=jnp.where(took_part, 0.0, stats.grad_count))
+        stats = _reset_gradients(stats, took_part)
         state = state.replace(densify={**state.densify, self.name: stats})
         capacity = old_capacity = state.anchors.capacity
         alive = np.asarray(state.anchors.alive)
@@ -260,7 +266,7 @@ class ScaffoldStrategy(Strategy):
             rows[slots] = True
             state = ops.restart_rows(state.replace(anchors=anchors), tx, rows)
         prune, stats = opacity_prune(np.asarray(state.anchors.alive), state.densify[self.name], self.cfg)
-        anchors = state.anchors.replace(alive=jnp.asarray(np.asarray(state.anchors.alive) & ~prune))
+        anchors = state.anchors.replace(alive=jax.device_put(np.asarray(state.anchors.alive) & ~prune))
         state = state.replace(anchors=anchors, densify={**state.densify, self.name: stats})
         return state, UpdateInfo(grown=len(centers), pruned=int(prune.sum()), capacity_changed=capacity != old_capacity,
                                  extra=dict(alive=int(np.sum(np.asarray(anchors.alive))), capacity=capacity))
