@@ -307,14 +307,14 @@ class GrowConfig:
     hierarchy_factor: int = 4  # update_hierachy_factor
     capacity_growth: float = 1.5
     # Random starts (no points): Scaffold-GS's opacity prune every early_cull_every steps before `start`
-    # (densify/early_cull.py); auto = on for random starts, off for SfM points.
+    # (densify/early_cull.py); auto = on for random starts not carved by alpha, off otherwise.
     early_cull: str = "auto"  # auto | on | off
     early_cull_every: int = 50
 
     def __post_init__(self):
         _at_least(self, "grow", 1, "interval", "levels", "init_factor", "hierarchy_factor", "early_cull_every")
         require(self.early_cull in ("auto", "on", "off"), "grow.early_cull", self.early_cull,
-                "must be auto (on for random starts, off for SfM points), on or off", "e.g. grow.early_cull=off")
+                "must be auto (on for random starts not carved by alpha), on or off", "e.g. grow.early_cull=off")
         require(_number(self.capacity_growth) and self.capacity_growth > 1, "grow.capacity_growth",
                 self.capacity_growth, "must be > 1")
 

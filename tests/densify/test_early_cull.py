@@ -66,11 +66,12 @@ def test_passes_run_every_early_cull_every_steps_until_the_schedule_takes_over()
         GrowConfig(early_cull="sometimes")
 
 
-def test_auto_is_on_for_random_starts_only_and_the_strategy_exists_only_when_on():
+def test_auto_is_on_for_random_starts_not_carved_by_alpha_and_the_strategy_exists_only_when_on():
     cfg = Config()
     assert cfg.grow.early_cull == "auto"
     on, off = resolve_early_cull(cfg, random_start=True), resolve_early_cull(cfg, random_start=False)
     assert (on.grow.early_cull, off.grow.early_cull) == ("on", "off")
+    assert resolve_early_cull(cfg, random_start=True, carved_by_coverage=True).grow.early_cull == "off"
     forced = cfg.replace(grow=dict(early_cull="off"))
     assert resolve_early_cull(forced, random_start=True).grow.early_cull == "off"  # a set value is kept
     sized = compose_config(["model.voxel_size=0.01"])

@@ -30,7 +30,9 @@ class SceneFacts(NamedTuple):
       demo: the built-in demo scene (``data.path`` not set): ``features.models=auto`` trains the demo's models.
       layout: ``SceneData.dataset_format``; background: the colour its images were composited on.
       random_start: the initial points are random (a layout without points): the voxel size comes from the
-        cameras, and ``grow.early_cull=auto`` is on.
+        cameras.
+      carved_by_coverage: carving dropped random points by the views' alpha (``SceneData.carving``: some
+        training view carries alpha); ``grow.early_cull=auto`` is on for a random start without it.
       points: the initial points' count.
     """
 
@@ -38,6 +40,7 @@ class SceneFacts(NamedTuple):
     layout: str
     background: tuple[float, float, float]
     random_start: bool
+    carved_by_coverage: bool
     points: int
 
 
@@ -53,10 +56,12 @@ def resolve_for_scene(cfg: Config, scene: SceneData) -> Resolved:
     resolved for ``scene`` (in the training frame); settings the user gave are kept."""
     facts = SceneFacts(demo=not cfg.data.path, layout=scene.dataset_format,
                        background=tuple(float(c) for c in scene.background),
-                       random_start=scene.random_points is not None, points=len(scene.points))
+                       random_start=scene.random_points is not None,
+                       carved_by_coverage=scene.carving is not None and scene.carving.views_with_alpha > 0,
+                       points=len(scene.points))
     cfg = dataclasses.replace(cfg, features=run_features(cfg))
     cfg = resolve_background(cfg, scene)  # splat.background not set: the layout's default (white for Blender)
     train = scene.train_indices
     cfg = resolve_voxel_size(cfg, scene.points, (scene.viewmats[train], scene.Ks[train], scene.width, scene.height)
                              if facts.random_start else None)
-    return Resolved(resolve_early_cull(cfg, facts.random_start), facts)
+    return Resolved(resolve_early_cull(cfg, facts.random_start, facts.carved_by_coverage), facts)

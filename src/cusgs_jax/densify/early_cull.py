@@ -8,8 +8,10 @@ in most steps of a window whose Gaussians stayed transparent (Scaffold-GS ``prun
 until the schedule takes over. The shell then shrinks the anchor capacity to what is alive
 (:func:`cusgs_jax.densify.ops.shrunk_capacity`), so a step pays for the survivors.
 
-``grow.early_cull=auto`` runs it for random starts only (:func:`resolve_early_cull`): a run from SfM points
-keeps its strategies, its state and its numbers.
+``grow.early_cull=auto`` runs it for the random starts that carving could not carve by coverage
+(:func:`resolve_early_cull`: no view with alpha, or ``data.carve=none``); a run from SfM points keeps its
+strategies, its state and its numbers, and so does a carved Blender capture, where it removed next to nothing
+(experiments/README.md#early-culling-of-random-starts).
 
 Naming (:mod:`cusgs_jax.types`): A anchor capacity, N offsets per anchor, S gathered slots of a view.
 """
@@ -101,9 +103,10 @@ class EarlyCullStrategy(Strategy):
                                                                     judged=int(judged.sum())))
 
 
-def resolve_early_cull(cfg: Config, random_start: bool) -> Config:
-    """``cfg`` with ``grow.early_cull=auto`` replaced: ``on`` for a random start (a layout without points), else
+def resolve_early_cull(cfg: Config, random_start: bool, carved_by_coverage: bool = False) -> Config:
+    """``cfg`` with ``grow.early_cull=auto`` replaced: ``on`` for a random start (a layout without points) that
+    carving did not carve by the views' coverage (``carved_by_coverage``: some training view had alpha), else
     ``off``. A set value is kept."""
     if cfg.grow.early_cull != "auto":
         return cfg
-    return cfg.replace(grow=dict(early_cull="on" if random_start else "off"))
+    return cfg.replace(grow=dict(early_cull="on" if random_start and not carved_by_coverage else "off"))
