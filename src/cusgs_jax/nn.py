@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -10,8 +11,10 @@ import jax.numpy as jnp
 from cusgs_jax.precision import HIGHEST
 
 
+@functools.partial(jax.jit, static_argnums=1)
 def init_mlp(key: jax.Array, sizes: tuple[int, ...]) -> dict:
-    """Dense layers initialised like PyTorch ``nn.Linear`` (U(±1/√fan_in)).
+    """Dense layers initialised like PyTorch ``nn.Linear`` (U(±1/√fan_in)); one program per ``sizes`` (a tuple),
+    drawing the same values as its layers drawn one call at a time (``tests/test_nn.py``).
 
     Returns:
       {"w0": [sizes[0], sizes[1]], "b0": [sizes[1]], "w1": …}.
