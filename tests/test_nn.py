@@ -24,8 +24,9 @@ def _layer_by_layer(key, sizes):
 
 
 def test_the_one_program_draws_bit_for_bit_what_separate_draws_give(compiles):
-    # the demo's decoder and query-head shapes (latent 32 + 3 (+ appearance 32), hidden 32, N = 10) and odd ones
-    shapes = [(67, 32, 10), (67, 32, 70), (99, 32, 30), (35, 32, 48), (51, 48), (7, 5, 3)]
+    # the demo run's heads (latent 32 + 3 (+ appearance 32), hidden 32, N = 10, 3 feature models of 16 query
+    # channels: opacity, cov, color, query voxel, query gaussian) and an odd one
+    shapes = [(35, 32, 10), (35, 32, 70), (67, 32, 30), (67, 32, 48), (51, 48), (7, 5, 3)]
     for seed in range(5):
         for sizes in shapes:
             key = jax.random.PRNGKey(seed)
