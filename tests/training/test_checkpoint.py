@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import gc
 import json
 import logging
 import os
@@ -286,6 +287,10 @@ def test_failed_save_removes_the_partial_checkpoint(fresh, tmp_path, monkeypatch
     # as cusgs-train does: without quiet_orbax the same error arrives, followed by unraisable "Event loop is closed";
     # what quiet_orbax lets through during the failed save is recorded (orbax's later reads, which a loaded
     # machine's garbage collector may report at any time, are not this test's business)
+    # what earlier tests' failed reads left unawaited is collected (and its log records forgotten) first, so that
+    # what the block lets through can only be this save's
+    gc.collect()
+    caplog.clear()
     passed_through, outer = [], sys.unraisablehook
     sys.unraisablehook = passed_through.append
     try:
