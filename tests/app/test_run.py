@@ -351,6 +351,7 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, ti
         np.testing.assert_array_equal(a, b)  # replaying steps 21-30 gives the uninterrupted run's state
 
 
+@pytest.mark.slow
 def test_a_fresh_run_in_a_folder_with_checkpoints_is_refused_and_a_finished_run_resumes_to_itself(straight,
                                                                                                  tiny_scene, tmp_path):
     from cusgs_jax.errors import ConfigError
@@ -507,6 +508,7 @@ def test_compiling_ahead_changes_when_programs_compile_not_what_they_compute(str
     assert set(result.time) >= {"compile_wait", "compile"} and plain.time["compile_wait"] > 0
 
 
+@pytest.mark.slow
 def test_learning_rates_that_diverge_end_the_run_with_exit_2_and_a_record(tiny_scene, tmp_path):
     """Every update skipped as NaN is not a trained model: the record is written, the run is refused naming optim."""
     from cusgs_jax.errors import UserError

@@ -33,6 +33,7 @@ RUN = ["train.iterations=6", "train.checkpoint_every=0", "train.progress=false",
        "model.appearance_dim=8", "features=none", "prune=none", "grow.start=100"]
 
 
+@pytest.mark.slow
 def test_a_rerun_loads_every_program_from_the_cache_and_the_budget_covers_the_process(tmp_path):
     """Two identical runs in fresh processes sharing train.compilation_cache: the first compiles and
     stores, the second loads them all (train step once, evaluation render once in each), and each run's

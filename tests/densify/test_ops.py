@@ -67,6 +67,7 @@ def _assert_grown(before, after, old, new, what):
     assert not np.any(after[old:]), what  # new rows zero (alive False)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("granularity", ["per_anchor", "per_gaussian"])
 def test_grow_capacity_resizes_per_anchor_leaves_only(granularity):
     state, tx = _state(granularity)

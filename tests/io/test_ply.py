@@ -110,6 +110,7 @@ def test_reads_an_inria_ply(tmp_path, variant):
         np.testing.assert_array_equal(getattr(back, name), getattr(m, name), err_msg=name)
 
 
+@pytest.mark.slow
 def test_render_matches_rasterize_with_reference_colours(tmp_path, monkeypatch):
     s = make_scene(seed=3, num=60, width=40, height=28)
     rng = np.random.default_rng(4)

@@ -63,6 +63,7 @@ def _train_loss(model, scene) -> float:
 STEPS = 6  # the refinements below share this length, hence one compiled step (io.refine caches it)
 
 
+@pytest.mark.slow
 def test_refine_lowers_training_loss_and_raises_heldout_psnr(scene):
     model = _points_model(scene)
     history = []
@@ -136,6 +137,7 @@ def test_a_step_is_jitted_pure_and_deterministic(scene):
     assert np.max(moved) == pytest.approx(1.6e-4 * scene.extent, rel=1e-3)
 
 
+@pytest.mark.slow
 def test_a_valid_pixel_mask_makes_the_target_outside_it_irrelevant(scene):
     """data.undistort=mask: the refinement step's loss, PSNR and update ignore the target's invalid pixels."""
     settings, params, opt_state, camera, image = _step_inputs(scene, _points_model(scene))
@@ -150,6 +152,7 @@ def test_a_valid_pixel_mask_makes_the_target_outside_it_irrelevant(scene):
     assert float(outs[2][2]["loss"]) != float(outs[1][2]["loss"])
 
 
+@pytest.mark.slow
 def test_an_overflowing_view_changes_nothing(scene):
     settings, params, opt_state, camera, image = _step_inputs(scene, _points_model(scene))
     p, s, m = make_refine_step(settings, 8)(params, opt_state, camera, image, jnp.zeros(3))
@@ -177,6 +180,7 @@ def test_refine_grows_the_pair_capacity_and_replays(scene, monkeypatch):
         np.testing.assert_allclose(getattr(tight_model, name), getattr(free, name), rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_the_step_gradient_matches_finite_differences(scene, x64):
     """∂loss/∂params of the refine step's loss (float64) against central differences along random directions."""
     model = _points_model(scene, degree=1, opacity=0.5)

@@ -86,6 +86,7 @@ def _mostly_masked_state():
     return cfg, state, batch
 
 
+@pytest.mark.slow
 def test_the_compacted_step_has_the_loss_and_gradients_of_rasterising_every_decoded_gaussian():
     cfg, state, batch = _mostly_masked_state()
     camera, anchors = batch["camera"], state.anchors

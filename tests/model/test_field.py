@@ -123,6 +123,7 @@ def test_scene_without_features_traces_no_feature_work(feature_scene):
         assert has_query_channels == enabled and has_bank == enabled, enabled
 
 
+@pytest.mark.slow
 def test_feature_training_step_runs_and_learns(feature_scene, compiles):
     # every pixel in the loss (sample_pixels = 0), so the loss is a function of the parameters alone and the
     # curve is not sampling noise

@@ -146,6 +146,7 @@ def test_forward_through_a_lens_matches_reference(lens):
     np.testing.assert_array_equal(out.visible, ref["visible"])
 
 
+@pytest.mark.slow
 def test_float32_gradients_match_float64():
     scene = make_scene(5, num=150, width=40, height=32, channels=3, behind=3, offscreen=3, opaque=5)
     weights = _loss_weights(scene)
@@ -161,6 +162,7 @@ def test_float32_gradients_match_float64():
         np.testing.assert_allclose(np.asarray(a), b, atol=2e-4 * np.abs(b).max() + 1e-6, err_msg=name)
 
 
+@pytest.mark.slow
 def test_jit_matches_no_jit():
     scene = as_dtype(make_scene(2, num=30, width=20, height=18, behind=2), np.float32)
     jitted = _render(scene)
@@ -181,6 +183,7 @@ def test_permutation_invariance():
     np.testing.assert_array_equal(np.asarray(a.hits)[perm], b.hits)
 
 
+@pytest.mark.slow
 def test_zero_opacity_contributes_nothing_and_gets_zero_gradient():
     scene = as_dtype(make_scene(6, num=60), np.float32)
     extra = as_dtype(make_scene(16, num=20), np.float32)
@@ -207,6 +210,7 @@ def test_zero_opacity_contributes_nothing_and_gets_zero_gradient():
         assert np.all(np.isfinite(np.asarray(g))), name
 
 
+@pytest.mark.slow
 def test_tile_size_and_chunk_do_not_change_the_image():
     scene = as_dtype(make_scene(8, num=200, width=45, height=37), np.float32)
     base = _render(scene)

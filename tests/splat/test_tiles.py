@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 import jax.numpy as jnp
 from cusgs_jax.splat.tiles import TileGrid, intersect_tiles, tile_bounds
@@ -43,6 +44,7 @@ def test_intersections_match_brute_force_in_depth_order():
     assert int(isect.num_pairs) == sum(map(len, expected))
 
 
+@pytest.mark.slow
 def test_overflow_drops_the_farthest_pairs_and_counts_them():
     grid = TileGrid(64, 64, 16)
     means2d, radii, depths, visible = _random_footprints(1, 200, 64, 64)

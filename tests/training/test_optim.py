@@ -51,6 +51,7 @@ def test_every_parameter_has_its_group():
         param_labels({"mystery": jnp.zeros(3)})
 
 
+@pytest.mark.slow
 def test_each_group_steps_with_its_own_decaying_rate():
     """With a constant unit gradient Adam's bias-corrected step is the learning rate (float32 rounding)."""
     trainable = _trainable()

@@ -168,6 +168,7 @@ def _train_render(cfg):
     return render
 
 
+@pytest.mark.slow
 def test_prune_statistics_equal_a_direct_float64_computation(prune_setup):
     """One step's PruneStats against a direct computation: autodiff of the same loss for ∇z, the
     float64 reference rasteriser for Σ opacity·T, and testing.prune_reference for the score."""
@@ -345,6 +346,7 @@ def _batched(batch_size, devices, tx=None, **grow):
     return cfg, strategies, state, tx, make_train_step(cfg, tx, strategies)
 
 
+@pytest.mark.slow
 def test_two_view_step_on_two_devices_equals_one_device(two_devices):
     """The same B = 2 step, views sharded over 2 devices or both on 1: same loss, same parameters.
 
@@ -365,6 +367,7 @@ def test_two_view_step_on_two_devices_equals_one_device(two_devices):
         np.testing.assert_allclose(np.asarray(b, np.float64), np.asarray(a, np.float64), atol=2e-6, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_batched_step_is_the_mean_of_its_views_and_counts_every_view(two_devices):
     """B = 2 from one state: loss = mean of the single-view losses, update (plain SGD, lr 1) = mean of
     the single-view updates, every additive densification statistic = the sum of both views' additions."""
@@ -409,6 +412,7 @@ def test_sharded_step_compiles_once_across_growing_and_pruning(two_devices, comp
     assert int(state.step) == 10 and bool(metrics["finite"])
 
 
+@pytest.mark.slow
 def test_a_batched_step_whose_views_overflow_changes_nothing(two_devices):
     cfg, strategies, state, tx, step = _batched(2, "2")
     cfg = cfg.replace(model=dict(visible_fraction=1 / 64))  # far fewer visible slots than either view needs
@@ -420,6 +424,7 @@ def test_a_batched_step_whose_views_overflow_changes_nothing(two_devices):
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_a_valid_pixel_mask_makes_the_invalid_target_pixels_irrelevant(setup):
     """batch["valid"] (data.undistort=mask): the step's loss, metrics and new parameters do not depend
     on the target outside the mask, and do depend on it without one."""
@@ -443,6 +448,7 @@ def test_a_valid_pixel_mask_makes_the_invalid_target_pixels_irrelevant(setup):
     assert results[2][1]["loss"] != results[1][1]["loss"]
 
 
+@pytest.mark.slow
 def test_a_camera_with_a_lens_renders_through_it_and_a_zero_lens_is_the_pinhole(setup):
     """data.undistort=lens: a lens with zero coefficients (and a box around the whole view) gives the
     pinhole step's loss and update up to float rounding; a real lens changes them."""
@@ -462,6 +468,7 @@ def test_a_camera_with_a_lens_renders_through_it_and_a_zero_lens_is_the_pinhole(
     assert abs(results[2][1] - results[0][1]) > 1e-3 * abs(results[0][1])
 
 
+@pytest.mark.slow
 def test_the_pallas_compositor_takes_the_same_step(setup):
     """splat.backend=pallas (the kernels; Pallas's interpreter on a CPU) takes the step the JAX compositor
     takes: loss, metrics and new parameters agree to float32 rounding."""

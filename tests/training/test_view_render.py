@@ -45,6 +45,7 @@ def _state(cfg, banks=None):
     return state.replace(anchors=state.anchors.replace(params=params, alive=jnp.asarray(alive)))
 
 
+@pytest.mark.slow
 def test_evaluation_renders_size_their_capacities_by_the_first_view_or_take_given_ones():
     state = _state(CFG)
     anchors = compact(state.anchors)
@@ -60,6 +61,7 @@ def test_evaluation_renders_size_their_capacities_by_the_first_view_or_take_give
     assert make_render_fn(CFG, given).capacities == given
 
 
+@pytest.mark.slow
 def test_compact_render_equals_the_full_model_and_the_direct_path():
     state = _state(CFG)
     render = make_render_fn(CFG)
@@ -125,6 +127,7 @@ def test_gaussian_and_query_heads_read_one_input_bundle():
     np.testing.assert_array_equal(np.asarray(gaussians2.means), np.asarray(gaussians.means))  # positions ignore d
 
 
+@pytest.mark.slow
 def test_a_render_that_would_drop_tile_pairs_grows_its_capacity_and_is_exact(monkeypatch):
     from cusgs_jax.training import capacity
 

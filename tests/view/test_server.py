@@ -122,6 +122,7 @@ def test_the_page_shows_the_splatters_render_of_the_browsers_camera(viewer, page
     assert "ms at 640×480" in viewer.gui_time.value
 
 
+@pytest.mark.slow
 def test_a_feature_pca_mode_shows_the_pca_colours_of_the_rendered_features(viewer, page):
     from cusgs_jax.view.modes import pca_colours
 
@@ -142,6 +143,7 @@ def test_a_feature_pca_mode_shows_the_pca_colours_of_the_rendered_features(viewe
     assert error < MAX_MEAN_ABS_ERROR and psnr > MIN_PSNR_DB
 
 
+@pytest.mark.slow
 def test_a_click_queries_the_feature_under_the_pointer(viewer, page):
     viewer.gui_mode.value = "PCA semantic"
     _shown(viewer, page, "PCA semantic")

@@ -14,6 +14,7 @@ def trained(feature_run):
     return load_trained(feature_run)
 
 
+@pytest.mark.slow
 def test_frame_equals_the_library_render_with_the_mean_appearance(trained):
     import jax.numpy as jnp
 
