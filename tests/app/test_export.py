@@ -202,6 +202,7 @@ def test_export_refines_by_default_against_the_runs_scene(trained, tmp_path, cap
     assert read_ply(ply).num_gaussians == summary["gaussians"]  # no densification
 
 
+@pytest.mark.slow
 def test_export_refines_in_the_normalised_frame_too(trained, tmp_path):
     scene, run_dir = trained
     colmap = export_run(run_dir, tmp_path / "c.ply", progress=False, refine=0)

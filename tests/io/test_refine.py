@@ -80,6 +80,7 @@ def test_refine_lowers_training_loss_and_raises_heldout_psnr(scene):
         assert not np.allclose(getattr(refined, name), getattr(model, name)), name
 
 
+@pytest.mark.slow
 def test_refine_uses_training_views_only(scene):
     """Scrambling the held-out images changes nothing: they never reach the optimiser."""
     model = _points_model(scene)

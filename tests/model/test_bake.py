@@ -80,6 +80,7 @@ def test_mean_shape_is_exact_for_one_shape_and_ignores_zero_weights():
 
 
 
+@pytest.mark.slow
 def test_mean_covariance_is_the_weighted_mean_of_the_covariances():
     rng = np.random.default_rng(2)
     q = rng.normal(size=(3, 9, 4)).astype(np.float32)

@@ -88,7 +88,8 @@ def _jax(*args):
     return composite_tiles(GRID, 4, 2, *args)
 
 
-@pytest.mark.parametrize("kind,channels", [("plain", 3), ("opaque", 1), ("empty", 13),
+@pytest.mark.parametrize("kind,channels", [("plain", 3), ("opaque", 1),
+                                           pytest.param("empty", 13, marks=pytest.mark.slow),
                                            pytest.param("opaque", 20, marks=pytest.mark.slow)])  # -m slow: in CI
 def test_matches_dense_oracle_and_jax_compositor_float64(x64, kind, channels):
     gaussians, lists, lengths = _case(kind, channels)
@@ -123,6 +124,7 @@ def test_matches_dense_oracle_and_jax_compositor_float64(x64, kind, channels):
             np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10, err_msg=name)
 
 
+@pytest.mark.slow
 def test_float32_matches_jax_compositor():
     gaussians, lists, _ = _case("opaque", 3, seed=4)
     gaussians = tuple(g.astype(jnp.float32) for g in gaussians)
@@ -171,6 +173,7 @@ def test_rasterize_backends_agree_forward_and_gradients(x64, tile_size, channels
         np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-10, err_msg=name)
 
 
+@pytest.mark.slow
 def test_vmap_over_views_equals_single_renders():
     scene = as_dtype(make_scene(8, num=40, width=24, height=16), np.float32)
     args = [jnp.asarray(scene[k]) for k in KEYS]

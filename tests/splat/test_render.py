@@ -93,7 +93,8 @@ LENSES = {"OPENCV": ([-0.12, 0.02, 0.0, 0.0, 0.004, -0.006], False),
           "OPENCV_FISHEYE": ([0.05, -0.01, 0.003, -0.001, 0.0, 0.0], True)}
 
 
-@pytest.mark.parametrize("antialiased,lens", [(False, None), (True, None), (False, "OPENCV"),
+@pytest.mark.parametrize("antialiased,lens", [(False, None), (True, None),
+                                              pytest.param(False, "OPENCV", marks=pytest.mark.slow),
                                               (True, "OPENCV_FISHEYE")])
 def test_gradients_match_finite_differences_float64(x64, antialiased, lens):
     from cusgs_jax.splat.lens import Lens

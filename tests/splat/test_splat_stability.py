@@ -494,7 +494,7 @@ def _stack_case(kind: str):
     return scene, _render(scene, STACK_MAX_PAIRS), _reference(scene)
 
 
-@pytest.mark.parametrize("kind", ["opaque", "faint"])
+@pytest.mark.parametrize("kind", ["opaque", pytest.param("faint", marks=pytest.mark.slow)])
 def test_stack_of_2000_on_one_pixel(kind):
     scene, out, ref = _stack_case(kind)
     # Same tolerance model as the other scenes with N = n_contrib.max(); for "faint"

@@ -274,6 +274,7 @@ def test_prune_ratio_counts_exactly_and_repeated_passes_do_not_recompile(prune_s
     assert compiles.count("jit(train_step)") <= 1 and compiles.count("jit(pruning_pass)") <= 1
 
 
+@pytest.mark.slow
 def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     cfg = _prune_cfg(strategy="none")
     strategies, state, tx = _init(cfg)
@@ -397,6 +398,7 @@ def test_batched_step_is_the_mean_of_its_views_and_counts_every_view(two_devices
     assert int(after.step) == 1 and int(after.skipped) == 0
 
 
+@pytest.mark.slow
 def test_sharded_step_compiles_once_across_growing_and_pruning(two_devices, compiles):
     cfg, strategies, state, tx, step = _batched(2, "2", grad_threshold=0.0, min_opacity=0.2, success_threshold=0.8)
     scaffold = _scaffold(strategies)
