@@ -12,7 +12,7 @@ import pytest
 
 from cusgs_jax.config import PruneConfig
 from cusgs_jax.densify.base import ViewRecord
-from cusgs_jax.densify.feature_prune import (FeaturePruneStrategy, PruneStats, _floor_ratio, kth_smallest,
+from cusgs_jax.densify.feature_prune import (FeaturePruneStrategy, PruneDials, PruneStats, _floor_ratio, kth_smallest,
                                              accumulate_prune_stats, anchor_scores, gaussian_volume_weight,
                                              prune_due, prune_pass, select_prune, stats_window)
 from cusgs_jax.densify.scaffold import GrowStats
@@ -292,6 +292,46 @@ def test_prune_pass_jit_once_and_clears_alive(compiles):
         assert int(info["pruned"]) == 0
     with pytest.raises(ValueError):
         PruneConfig(strategy="lightgaussian")
+
+
+@pytest.mark.parametrize("ratio", [0.001, 0.01, 0.0015, 1 / 3, 0.9, 0.0])
+def test_a_pass_with_traced_dials_equals_the_pass_with_constants(ratio):
+    """The strategy passes ratio, weights and min_visits as arguments: the same anchors pruned, the same
+    scores, as with the configuration's constants (a non-decimal ratio such as 1/3 takes the float path)."""
+    rng = np.random.default_rng(11)
+    a, f = 700, 8
+    for lambda_norm, lambda_grad, min_visits in ((2.0, 8.0, 1), (0.37, 1.9, 0), (6.0, 4.0, 3)):
+        cfg = PruneConfig(ratio=ratio, lambda_norm=lambda_norm, lambda_grad=lambda_grad, min_visits=min_visits)
+        alive = rng.uniform(size=a) < 0.8
+        anchors = _anchors(jnp.asarray(rng.normal(size=(a, 3)), jnp.float32), jnp.asarray(alive),
+                           jnp.asarray(rng.normal(size=(a, f)), jnp.float32))
+        stats = PruneStats(jnp.asarray(rng.uniform(0, 1, a), jnp.float32),
+                           jnp.asarray(rng.integers(0, 5, a), jnp.float32), jnp.asarray(rng.uniform(0, 100, a), jnp.float32))
+        constant = jax.jit(lambda an, st, c=cfg: prune_pass(an, st, c))(anchors, stats)
+        traced = jax.jit(lambda an, st, d, c=cfg: prune_pass(an, st, c, d))(anchors, stats, PruneDials.of(cfg))
+        np.testing.assert_array_equal(traced[0].alive, constant[0].alive)
+        assert {k: int(v) for k, v in traced[2].items()} == {k: int(v) for k, v in constant[2].items()}
+        assert int(traced[2]["pruned"]) == min(int(_floor_ratio(jnp.int32(alive.sum()), ratio)),
+                                               int(traced[2]["candidates"]))
+        np.testing.assert_array_equal(anchor_scores(anchors.params.latent, stats, anchors.alive, PruneDials.of(cfg)),
+                                      anchor_scores(anchors.params.latent, stats, anchors.alive, cfg))
+
+
+def test_a_sweep_over_ratio_and_weights_lowers_one_pruning_program():
+    """Jobs that differ in prune.ratio, λ_n, λ_g or min_visits lower the same pass (one persistent-cache entry);
+    another strategy or schedule is the only thing that changes the program."""
+    a, f = 300, 8
+    anchors = _anchors(jnp.zeros((a, 3)), jnp.ones(a, bool), jnp.zeros((a, f)))
+    stats = PruneStats.zeros(a)
+
+    def lowered(cfg):
+        strategy = FeaturePruneStrategy(cfg)
+        return strategy._pass.lower(anchors, stats, strategy.dials).as_text()
+
+    base = lowered(PruneConfig())
+    for changed in (dict(ratio=0.01), dict(ratio=1 / 3), dict(lambda_norm=8.0, lambda_grad=2.0), dict(min_visits=4),
+                    dict(start=200, interval=50)):
+        assert lowered(PruneConfig(**changed)) == base, changed
 
 
 def test_schedule():

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -9,12 +10,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.config import Config, FeatureModelConfig
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
 from cusgs_jax.model.anchors import AnchorState, voxelize
-from cusgs_jax.training.state import TrainState, init_nets, init_train_state
+from cusgs_jax.training.state import TrainState, _draw_nets, init_nets, init_train_state
 from cusgs_jax.testing.scenes import random_banks, sfm_points
 
 CFG = Config().replace(train=dict(iterations=50),
@@ -127,3 +128,24 @@ def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():
     grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3), -1).reshape(-1, 3) * 0.3  # spacing 0.3
     assert auto_voxel_size(np.concatenate([grid, grid])) == pytest.approx(0.3)  # duplicates ignored
     assert resolve_voxel_size(CFG, points) is CFG  # an explicit size is kept
+
+
+@pytest.mark.parametrize("granularity, adapter", [("per_anchor", "affine"), ("per_gaussian", "lowrank")])
+def test_the_networks_are_one_program_drawing_what_draws_one_call_at_a_time_give(granularity, adapter, compiles):
+    """``init_nets`` draws every network in one program, bit for bit what its body gives run call by call
+    (``_draw_nets.__wrapped__``: each draw and division its own program, as the networks were drawn before), for
+    the demo run's exact shapes (latent 32, hidden 32, N = 10, 26 training views, banks of 104-, 32- and
+    256-D features: dimensions whose square roots are not exact, where XLA merged a division into the draw)."""
+    models = tuple(dataclasses.replace(m, adapter=adapter) for m in DEMO_FEATURE_MODELS)
+    cfg = Config().replace(features=dict(models=models), model=dict(query_granularity=granularity))
+    banks = {"daisy": np.zeros((263, 104), np.float32), "semantic": np.zeros((16, 32), np.float32),
+             "vgg16": np.zeros((838, 256), np.float32)}
+    key = jax.random.PRNGKey(0)
+    before = compiles.count()
+    nets = init_nets(key, cfg, 26, banks)
+    assert compiles.count() - before == 1 and compiles.count("jit(_draw_nets)") >= 1
+    eager = _draw_nets.__wrapped__(key, cfg, 26, tuple(sorted((n, b.shape) for n, b in banks.items())))
+    got, want = jax.tree_util.tree_leaves_with_path(nets), jax.tree_util.tree_leaves_with_path(eager)
+    assert [p for p, _ in got] == [p for p, _ in want] and len(got) > 20
+    for (path, a), (_, b) in zip(got, want):
+        np.testing.assert_array_equal(a, b, err_msg=jax.tree_util.keystr(path))

@@ -18,7 +18,7 @@ from cusgs_jax.model.decode import decode_view, num_visible_slots
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import make_render_fn, render_gaussians, render_model
 from cusgs_jax.training.state import init_train_state
-from cusgs_jax.training.step import make_train_step
+from cusgs_jax.training.step import loss_weights, make_train_step
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import sfm_points
 
@@ -106,6 +106,39 @@ def test_same_seed_same_numbers(setup):
     assert len(leaves_a) == len(leaves_b) > 0
     for a, b in zip(leaves_a, leaves_b):
         np.testing.assert_array_equal(a, b)
+
+
+WEIGHTED = dict(loss=dict(l1_weight=0.55, ssim_weight=0.45, volume_weight=0.3))
+
+
+def test_loss_weights_in_the_batch_give_the_numbers_of_weights_folded_in(setup):
+    """The loop passes the loss weights as arguments (``batch["loss_weights"]``); the step's numbers are those of
+    the same weights as the program's constants (a batch without them), bit for bit, over three steps."""
+    cfg0, tx, strategies, _, state0 = setup
+    cfg = cfg0.replace(**WEIGHTED)
+    step = make_train_step(cfg, tx, strategies)
+    finals = []
+    for given in (False, True):
+        state = _copy(state0)
+        for i in range(3):
+            batch = dict(_batch(i), loss_weights=jax.device_put(loss_weights(cfg))) if given else _batch(i)
+            state, metrics = step(state, batch)
+        finals.append(jax.device_get((state.trainable, state.densify, metrics)))
+    for a, b in zip(*(jax.tree_util.tree_leaves(f) for f in finals)):
+        np.testing.assert_array_equal(a, b)
+    terms = finals[1][2]  # and they are the weights the loss was made of
+    np.testing.assert_allclose(terms["loss"], 0.55 * terms["loss_l1"] + 0.45 * terms["loss_ssim_loss"]
+                               + 0.3 * terms["loss_volume"], rtol=1e-6)
+
+
+def test_a_sweep_over_loss_weights_shares_one_step_program(setup):
+    """Configurations that differ only in ``loss.*_weight`` lower the same step (one persistent-cache entry)."""
+    cfg0, tx, strategies, _, state0 = setup
+
+    def lowered(cfg):
+        return make_train_step(cfg, tx, strategies).lower(state0, dict(_batch(0), loss_weights=loss_weights(cfg))).as_text()
+
+    assert lowered(cfg0.replace(**WEIGHTED)) == lowered(cfg0)
 
 
 def test_non_finite_update_is_skipped_and_counted(setup):

@@ -72,6 +72,7 @@ from fractions import Fraction
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.config import PruneConfig
 from cusgs_jax.densify.base import Probe, Strategy, Tally, UpdateInfo
@@ -109,6 +110,18 @@ class PruneStats(PerAnchor):
         return jax.tree_util.tree_map(lambda x: jnp.where(mask, 0.0, x), self)
 
 
+def _exact_fraction(ratio: float) -> tuple[int, int] | None:
+    """``(p, q)`` with ``ratio`` the nearest double of p/q, q ≤ 46340 and 0 ≤ p ≤ q; None for other ratios."""
+    frac = Fraction(float(ratio)).limit_denominator(_MAX_DENOMINATOR)
+    p, q = frac.numerator, frac.denominator
+    return (p, q) if float(frac) == float(ratio) and 0 <= p <= q else None
+
+
+def _floor_fraction(count: jax.Array, p, q) -> jax.Array:
+    """``floor(count · p / q)`` in int32 without overflow (q ≤ 46340, p ≤ q)."""
+    return (count // q) * p + ((count % q) * p) // q
+
+
 def _floor_ratio(count: jax.Array, ratio) -> jax.Array:
     """``floor(count · ratio)`` as int32, exact for fractional ``ratio``.
 
@@ -125,11 +138,53 @@ def _floor_ratio(count: jax.Array, ratio) -> jax.Array:
     """
     count = jnp.asarray(count).astype(jnp.int32)
     if isinstance(ratio, (int, float)) and not isinstance(ratio, bool):
-        frac = Fraction(float(ratio)).limit_denominator(_MAX_DENOMINATOR)
-        p, q = frac.numerator, frac.denominator
-        if float(frac) == float(ratio) and 0 <= p <= q:  # the float *is* this fraction's nearest double
-            return (count // q) * p + ((count % q) * p) // q
+        exact = _exact_fraction(ratio)
+        if exact is not None:  # the float *is* this fraction's nearest double
+            return _floor_fraction(count, *exact)
     return jnp.floor(count.astype(jnp.float32) * jnp.asarray(ratio, jnp.float32)).astype(jnp.int32)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PruneDials:
+    """The settings a pruning pass reads, as arrays (all [] shaped).
+
+    A sweep over ``prune.ratio``, ``prune.lambda_norm``, ``prune.lambda_grad`` or ``prune.min_visits``
+    changes these values, not the pass's program: :class:`FeaturePruneStrategy` passes them as
+    arguments, so every job of such a sweep runs one compiled pass (shared through the persistent
+    compilation cache). The pass computes what the constants gave: the same count
+    ``floor(ratio · alive)`` (exact for decimal ratios, :func:`_floor_ratio`) and the same scores.
+
+    Attributes:
+      ratio: float32 ratio (used when it is no fraction p/q with q ≤ 46340).
+      exact: bool, ``ratio`` is the fraction ``num / den``.
+      num, den: int32 p and q (0 and 1 when not exact).
+      lambda_norm, lambda_grad: float32 λ_n, λ_g.
+      min_visits: float32, the views since the last pass an anchor needs to be a candidate.
+    """
+
+    ratio: jax.Array
+    exact: jax.Array
+    num: jax.Array
+    den: jax.Array
+    lambda_norm: jax.Array
+    lambda_grad: jax.Array
+    min_visits: jax.Array
+
+    @staticmethod
+    def of(cfg: PruneConfig) -> PruneDials:
+        """The dials of ``cfg`` (host arrays)."""
+        fraction = _exact_fraction(cfg.ratio)
+        num, den = fraction if fraction is not None else (0, 1)
+        return PruneDials(ratio=np.float32(cfg.ratio), exact=np.bool_(fraction is not None), num=np.int32(num),
+                          den=np.int32(den), lambda_norm=np.float32(cfg.lambda_norm),
+                          lambda_grad=np.float32(cfg.lambda_grad), min_visits=np.float32(cfg.min_visits))
+
+    def count(self, alive_count: jax.Array) -> jax.Array:
+        """``floor(ratio · alive_count)`` [] int32, as :func:`_floor_ratio` of the Python ratio."""
+        count = jnp.asarray(alive_count).astype(jnp.int32)
+        by_float = jnp.floor(count.astype(jnp.float32) * self.ratio).astype(jnp.int32)
+        return jnp.where(self.exact, _floor_fraction(count, self.num, self.den), by_float)
 
 
 def _order_key(values: jax.Array) -> jax.Array:
@@ -238,8 +293,8 @@ def accumulate_prune_stats(stats: PruneStats, slots: jax.Array, valid: jax.Array
     )
 
 
-def anchor_scores(latent: jax.Array, stats: PruneStats, alive: jax.Array, cfg: PruneConfig = PruneConfig()
-                  ) -> jax.Array:
+def anchor_scores(latent: jax.Array, stats: PruneStats, alive: jax.Array,
+                  cfg: PruneConfig | PruneDials = PruneConfig()) -> jax.Array:
     """Feature-aware pruning score of every anchor slot.
 
     ``S_v = λ_n ‖z_v‖ + λ_g g_v + contrib_v / mean_{alive} contrib`` with
@@ -250,6 +305,7 @@ def anchor_scores(latent: jax.Array, stats: PruneStats, alive: jax.Array, cfg: P
       latent: [A, F] anchor latents z.
       stats: accumulated :class:`PruneStats`.
       alive: [A] bool.
+      cfg: where ``lambda_norm`` and ``lambda_grad`` come from (a :class:`PruneDials` traces them).
     Returns:
       [A] float32; +inf for dead slots (never chosen).
     """
@@ -283,22 +339,28 @@ def select_prune(scores: jax.Array, alive: jax.Array, ratio, eligible: jax.Array
     Returns:
       [A] bool, ``min(floor(ratio · alive_count), candidates)`` entries set.
     """
-    num = scores.shape[0]
     candidate = alive if eligible is None else alive & eligible
-    k = _floor_ratio(jnp.sum(alive), ratio)
+    return _lowest(scores, candidate, _floor_ratio(jnp.sum(alive), ratio))
+
+
+def _lowest(scores: jax.Array, candidate: jax.Array, k: jax.Array) -> jax.Array:
+    """[A] bool: the ``k`` lowest-scoring ``candidate`` slots (ties: the lower index; NaN last)."""
+    num = scores.shape[0]
     index = jnp.arange(num, dtype=jnp.int32)
     *_, order = jax.lax.sort(((~candidate).astype(jnp.int32), scores, index), num_keys=3)
     rank = jnp.zeros(num, jnp.int32).at[order].set(index)
     return (rank < k) & candidate
 
 
-def prune_pass(anchors: AnchorState, stats: PruneStats, cfg: PruneConfig = PruneConfig()
-               ) -> tuple[AnchorState, PruneStats, dict[str, jax.Array]]:
+def prune_pass(anchors: AnchorState, stats: PruneStats, cfg: PruneConfig = PruneConfig(),
+               dials: PruneDials | None = None) -> tuple[AnchorState, PruneStats, dict[str, jax.Array]]:
     """One feature-aware pruning pass (pure, jittable; ``cfg`` closed over).
 
     Args:
       anchors: the anchors (centres, alive, latents z [A, F]).
       stats: statistics accumulated since the last pass.
+      dials: the ratio, weights and ``min_visits`` as arrays (traced when passed to a jitted pass);
+        None: those of ``cfg``. The result is the same either way.
     Returns:
       (anchors with the selected ``alive`` bits cleared, statistics reset to
       zero for every slot, info) with info ``{"pruned", "alive",
@@ -310,9 +372,10 @@ def prune_pass(anchors: AnchorState, stats: PruneStats, cfg: PruneConfig = Prune
     if cfg.strategy != "feature_aware":
         zero = jnp.int32(0)
         return anchors, fresh, dict(pruned=zero, alive=jnp.sum(alive).astype(jnp.int32), candidates=zero)
-    scores = anchor_scores(anchors.params.latent, stats, alive, cfg)
-    eligible = stats.grad_count >= cfg.min_visits
-    prune = select_prune(scores, alive, cfg.ratio, eligible)
+    dials = PruneDials.of(cfg) if dials is None else dials
+    scores = anchor_scores(anchors.params.latent, stats, alive, dials)
+    eligible = stats.grad_count >= dials.min_visits
+    prune = _lowest(scores, alive & eligible, dials.count(jnp.sum(alive)))
     new_alive = alive & ~prune
     info = dict(pruned=jnp.sum(prune).astype(jnp.int32), alive=jnp.sum(new_alive).astype(jnp.int32),
                 candidates=jnp.sum(alive & eligible).astype(jnp.int32))
@@ -358,8 +421,10 @@ class FeaturePruneStrategy(Strategy):
 
     def __init__(self, cfg: PruneConfig):
         self.cfg = cfg
-        def pruning_pass(anchors, stats):  # its name in compile logs: jit(pruning_pass)
-            return prune_pass(anchors, stats, cfg)
+        self.dials = PruneDials.of(cfg)  # arguments, not constants: a sweep over them shares the program
+
+        def pruning_pass(anchors, stats, dials):  # its name in compile logs: jit(pruning_pass)
+            return prune_pass(anchors, stats, cfg, dials)
 
         self._pass = jax.jit(pruning_pass, donate_argnums=(0, 1))
 
@@ -389,7 +454,7 @@ class FeaturePruneStrategy(Strategy):
           ``alive`` (anchors after the pass) and ``candidates`` (alive anchors seen often enough).
         """
         del tx, step  # a mask flip: shapes, moments and the other statistics are untouched
-        anchors, stats, info = self._pass(state.anchors, state.densify[self.name])
+        anchors, stats, info = self._pass(state.anchors, state.densify[self.name], self.dials)
         info = jax.device_get(info)
         return (state.replace(anchors=anchors, densify={**state.densify, self.name: stats}),
                 UpdateInfo(pruned=int(info["pruned"]),

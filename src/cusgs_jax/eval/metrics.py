@@ -41,8 +41,9 @@ def psnr(pred, target, data_range: float = 1.0, *, max_db: float = PSNR_MAX_DB, 
     dtype = jnp.promote_types(jnp.promote_types(pred.dtype, target.dtype), jnp.float32)
     diff = pred.astype(dtype) - target.astype(dtype)
     mse = masked_mean(diff * diff, mask)
-    peak = jnp.asarray(data_range, dtype) ** 2
-    floor = peak * 10.0 ** (-max_db / 10.0)  # the MSE at which PSNR = max_db
+    # the two constants in NumPy (one IEEE rounding each, as XLA's x·x and x·c): no program of their own
+    peak = np.asarray(data_range, dtype) * np.asarray(data_range, dtype)
+    floor = peak * np.asarray(10.0 ** (-max_db / 10.0), dtype)  # the MSE at which PSNR = max_db
     return jnp.minimum(10.0 * jnp.log10(peak / jnp.maximum(mse, floor)), max_db)
 
 

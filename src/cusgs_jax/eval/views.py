@@ -64,7 +64,7 @@ def evaluate_views(render, anchors: AnchorState, nets: dict, scene, views, *, ou
         if valid is not None:
             scored, reference = (np.asarray(x) for x in zero_invalid(scored, target, valid))
         for key, fn in (lpips or {}).items():
-            row[key] = float(fn(scored[None], reference[None])[0])
+            row[key] = float(np.asarray(fn(scored[None], reference[None]))[0])
         per_view.append(row)
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)

@@ -81,8 +81,13 @@ def init_memory_head(key, query_dim: int, feature_dim: int, *, adapter: str = "a
     if not temperature > 0:
         raise ValueError(f"temperature must be > 0, got {temperature}")
     k_proj, k_u = jax.random.split(key)
+    # inside a larger program XLA would merge the division into the draw's last multiplication (sqrt 2 · erfinv),
+    # 1 ulp off what the draw and the division give one call at a time; the barrier keeps the draw whole
+    def scaled_normal(k, shape):
+        return jax.lax.optimization_barrier(jax.random.normal(k, shape, dtype)) / math.sqrt(feature_dim)
+
     params = {
-        "key_proj": jax.random.normal(k_proj, (query_dim, feature_dim), dtype) / math.sqrt(feature_dim),
+        "key_proj": scaled_normal(k_proj, (query_dim, feature_dim)),
         "log_temperature": jnp.asarray(math.log(temperature), dtype),
     }
     if adapter == "affine":
@@ -91,7 +96,7 @@ def init_memory_head(key, query_dim: int, feature_dim: int, *, adapter: str = "a
         if rank < 1:
             raise ValueError(f"rank must be >= 1, got {rank}")
         params["adapter"] = {
-            "u": jax.random.normal(k_u, (feature_dim, rank), dtype) / math.sqrt(feature_dim),
+            "u": scaled_normal(k_u, (feature_dim, rank)),
             "v": jnp.zeros((feature_dim, rank), dtype),
             "bias": jnp.zeros((feature_dim,), dtype),
         }

@@ -23,6 +23,7 @@ from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
 from cusgs_jax.memory import psc
 from cusgs_jax.model.field import image_pixel_of
 from cusgs_jax.splat.lens import Lens
+from cusgs_jax.training.step import loss_weights
 from cusgs_jax.types import Camera
 
 log = logging.getLogger("cusgs_jax")
@@ -204,6 +205,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
     per_view = jax.device_put(per_view)  # transfers, not a program per array
     lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
     pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
+    weights = jax.device_put(loss_weights(cfg))  # arguments of the step, not constants (step.loss_weights)
 
     def batch(step: int) -> dict:
         if size == 1:
@@ -214,7 +216,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
         views = pick((per_view, lens), view)
         (picked, view_lens), view = views, jax.device_put(view)
         camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
-        out = dict(image=picked["image"], camera=camera, index=view)
+        out = dict(image=picked["image"], camera=camera, index=view, loss_weights=weights)
         if "valid" in picked:
             out["valid"] = picked["valid"]
         if banks is not None:

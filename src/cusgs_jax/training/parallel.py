@@ -19,6 +19,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cusgs_jax.config import Config, require
 
+SHARED_INPUTS = ("banks", "loss_weights")
+"""Batch entries every view of a step shares (no view axis with B > 1; replicated over a mesh)."""
+
 AXIS = "views"
 
 
@@ -83,17 +86,12 @@ def place_step_types(mesh: Mesh, state, batch: dict):
             lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding, weak_type=getattr(x, "weak_type", False)),
             tree)
 
-    views = {k: v for k, v in batch.items() if k != "banks"}
-    placed = typed(views, by_view(mesh))
-    if "banks" in batch:
-        placed["banks"] = typed(batch["banks"], replicated(mesh))
+    placed = {k: typed(v, replicated(mesh) if k in SHARED_INPUTS else by_view(mesh)) for k, v in batch.items()}
     return typed(state, replicated(mesh)), placed
 
 
 def place_step_inputs(mesh: Mesh, state, batch: dict):
-    """(state replicated, batch views split over the mesh, the memory banks replicated)."""
-    views = {k: v for k, v in batch.items() if k != "banks"}
-    placed = place(views, by_view(mesh))
-    if "banks" in batch:
-        placed["banks"] = place(batch["banks"], replicated(mesh))
+    """(state replicated, batch views split over the mesh, what the views share — memory banks, loss weights —
+    replicated)."""
+    placed = {k: place(v, replicated(mesh) if k in SHARED_INPUTS else by_view(mesh)) for k, v in batch.items()}
     return place(state, replicated(mesh)), placed

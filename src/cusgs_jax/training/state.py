@@ -6,6 +6,7 @@ Naming (:mod:`cusgs_jax.types`): A anchor capacity, V training views, E appearan
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 from typing import Any
 
@@ -96,15 +97,27 @@ class TrainState:
 
 
 def init_nets(key, cfg: Config, num_train_views: int, banks: dict | None = None) -> dict:
-    """Network parameters; the feature heads exist only when feature models are configured."""
+    """Network parameters; the feature heads exist only when feature models are configured.
+
+    One program for every network's draws (:func:`_draw_nets`), bit for bit the values the draws give
+    one call at a time (``tests/training/test_state.py``); ``banks`` give only their shapes.
+    """
+    if cfg.features.enabled and (banks is None or set(banks) != {m.name for m in cfg.features.model_list}):
+        raise ValueError("feature models are configured: pass one PSC bank per model")
+    bank_shapes = tuple(sorted((name, np.shape(bank)) for name, bank in (banks or {}).items()))
+    return _draw_nets(key, cfg, num_train_views, bank_shapes if cfg.features.enabled else None)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2, 3))
+def _draw_nets(key, cfg: Config, num_train_views: int, banks) -> dict:
+    """:func:`init_nets` (``banks``: ((model, (M, D)), …), static, or None)."""
     model, features = cfg.model, cfg.features
+    banks = {name: jax.ShapeDtypeStruct(shape, jnp.float32) for name, shape in banks or ()}
     nets = {"decoder": init_decoder(key, model.decoder())}
     if model.appearance:
         # Scaffold-GS: nn.Embedding default init N(0, 1).
         nets["appearance"] = jax.random.normal(jax.random.fold_in(key, 1), (num_train_views, model.appearance_dim))
     if features.enabled:
-        if banks is None or set(banks) != {m.name for m in features.model_list}:
-            raise ValueError("feature models are configured: pass one PSC bank per model")
         if model.query_granularity == "per_anchor":
             nets["queries"] = init_query_heads(jax.random.fold_in(key, 2), features, model.latent_dim,
                                                model.appearance_dim if model.appearance else 0)
@@ -133,8 +146,6 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     _check_scaffold(int(layout["alive"].sum()), model.voxel_size, points)
 
     key = jax.random.PRNGKey(cfg.train.seed)
-    # the networks are drawn call by call, as before: inside one program XLA would fold a division by a constant
-    # into a multiplication (model/field.py's key_proj init moved by 1 ulp) and the run's numbers with it
     nets = init_nets(key, cfg, num_train_views, banks)
 
     def fresh(layout, nets):

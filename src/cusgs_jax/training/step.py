@@ -24,6 +24,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax import losses
 from cusgs_jax.config import Config, require_config
@@ -36,6 +37,17 @@ from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training import parallel
 from cusgs_jax.training.render import decode_view_inputs, render_gaussians, work_metrics
 from cusgs_jax.training.state import TrainState
+
+
+def loss_weights(cfg: Config) -> dict[str, np.float32]:
+    """The loss terms' weights as arrays: ``{"l1", "ssim", "volume", "feature"}`` ([] float32).
+
+    :func:`~cusgs_jax.training.inputs.make_batches` puts them in every batch (``"loss_weights"``), so they
+    are arguments of the step's program, not constants: jobs of a sweep over ``loss.*_weight`` or
+    ``features.weight`` share one compiled step. A batch without them uses these values as constants
+    (the same numbers)."""
+    return dict(l1=np.float32(cfg.loss.l1_weight), ssim=np.float32(cfg.loss.ssim_weight),
+                volume=np.float32(cfg.loss.volume_weight), feature=np.float32(cfg.features.weight))
 
 
 def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
@@ -53,6 +65,7 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
 
     def loss_fn(local, delta, centers, decoded, batch, key):
         camera = batch["camera"]
+        weights = batch["loss_weights"] if "loss_weights" in batch else loss_weights(cfg)
         # differentiated with respect to the S gathered rows (local["anchor"]), not the [A] arrays;
         # a scene without feature models (static) traces no query head
         inputs = view_inputs(local, local["anchor"], centers, decoded, camera, batch["index"], model)
@@ -60,12 +73,12 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
                                        pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
-                                        pixel_mask=batch.get("valid"), l1_weight=cfg.loss.l1_weight,
-                                        ssim_weight=cfg.loss.ssim_weight, volume_weight=cfg.loss.volume_weight)
+                                        pixel_mask=batch.get("valid"), l1_weight=weights["l1"],
+                                        ssim_weight=weights["ssim"], volume_weight=weights["volume"])
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
                                                                 local["memory"], batch["banks"], key, features)
-            loss = loss + features.weight * feature_total
+            loss = loss + weights["feature"] * feature_total
             terms.update(feature_terms, feature=feature_total)
         return loss, (out, gaussians, chosen, terms)
 
@@ -163,12 +176,11 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
             views = [parts]
             reduce = lambda v, _: v  # noqa: E731
         else:
-            def local_views(trainable, anchors, views, banks, keys):
+            def local_views(trainable, anchors, views, shared, keys):
                 """On one device: its B/D views' losses, parts and row gradients, and the dense gradient sum."""
                 def visit(args):
                     view, view_key = args
-                    loss, grads, parts = one(trainable, anchors,
-                                             dict(view, banks=banks) if banks is not None else view, view_key)
+                    loss, grads, parts = one(trainable, anchors, dict(view, **shared), view_key)
                     return loss, grads, parts, _dense(grads, parts["view"], capacity)
 
                 loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
@@ -180,9 +192,9 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
                                     out_specs=(P(parallel.AXIS),) * 3 + (P(),),
                                     check_vma=False)  # the splatter's scans carry values that vary over views
             keys = jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch_size))
-            per_view = {k: v for k, v in batch.items() if k != "banks"}
-            losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, per_view,
-                                                          batch.get("banks"), keys)
+            per_view = {k: v for k, v in batch.items() if k not in parallel.SHARED_INPUTS}
+            shared = {k: v for k, v in batch.items() if k in parallel.SHARED_INPUTS}
+            losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, per_view, shared, keys)
             loss = jnp.mean(losses_b)
             grads = jax.tree_util.tree_map(lambda g: g / batch_size, total)
             pick = lambda tree, b: jax.tree_util.tree_map(lambda x: x[b], tree)  # noqa: E731
