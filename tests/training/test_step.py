@@ -111,9 +111,10 @@ def test_same_seed_same_numbers(setup):
 WEIGHTED = dict(loss=dict(l1_weight=0.55, ssim_weight=0.45, volume_weight=0.3))
 
 
-def test_loss_weights_in_the_batch_give_the_numbers_of_weights_folded_in(setup):
-    """The loop passes the loss weights as arguments (``batch["loss_weights"]``); the step's numbers are those of
-    the same weights as the program's constants (a batch without them), bit for bit, over three steps."""
+def test_loss_weights_and_seed_in_the_batch_give_the_numbers_of_constants_folded_in(setup):
+    """The loop passes the loss weights and the seed's key as arguments (``batch["loss_weights"]``,
+    ``batch["seed_key"]``); the step's numbers are those of the same settings as the program's constants (a batch
+    without them), bit for bit, over three steps."""
     cfg0, tx, strategies, _, state0 = setup
     cfg = cfg0.replace(**WEIGHTED)
     step = make_train_step(cfg, tx, strategies)
@@ -121,7 +122,8 @@ def test_loss_weights_in_the_batch_give_the_numbers_of_weights_folded_in(setup):
     for given in (False, True):
         state = _copy(state0)
         for i in range(3):
-            batch = dict(_batch(i), loss_weights=jax.device_put(loss_weights(cfg))) if given else _batch(i)
+            batch = (dict(_batch(i), loss_weights=jax.device_put(loss_weights(cfg)),
+                          seed_key=jax.random.PRNGKey(cfg.train.seed)) if given else _batch(i))
             state, metrics = step(state, batch)
         finals.append(jax.device_get((state.trainable, state.densify, metrics)))
     for a, b in zip(*(jax.tree_util.tree_leaves(f) for f in finals)):
@@ -131,14 +133,18 @@ def test_loss_weights_in_the_batch_give_the_numbers_of_weights_folded_in(setup):
                                + 0.3 * terms["loss_volume"], rtol=1e-6)
 
 
-def test_a_sweep_over_loss_weights_shares_one_step_program(setup):
-    """Configurations that differ only in ``loss.*_weight`` lower the same step (one persistent-cache entry)."""
+def test_a_sweep_over_loss_weights_or_seeds_shares_one_step_program(setup):
+    """Configurations that differ only in ``loss.*_weight``, ``features.weight`` or ``train.seed`` lower the same
+    step (one persistent-cache entry); the batch is what the loop gives (``make_batches``)."""
     cfg0, tx, strategies, _, state0 = setup
 
     def lowered(cfg):
-        return make_train_step(cfg, tx, strategies).lower(state0, dict(_batch(0), loss_weights=loss_weights(cfg))).as_text()
+        batch = dict(_batch(0), loss_weights=loss_weights(cfg), seed_key=jax.random.PRNGKey(cfg.train.seed))
+        return make_train_step(cfg, tx, strategies).lower(state0, batch).as_text()
 
-    assert lowered(cfg0.replace(**WEIGHTED)) == lowered(cfg0)
+    base = lowered(cfg0)
+    assert lowered(cfg0.replace(**WEIGHTED)) == base
+    assert lowered(cfg0.replace(features=dict(weight=0.9), train=dict(iterations=50, seed=7))) == base
 
 
 def test_non_finite_update_is_skipped_and_counted(setup):

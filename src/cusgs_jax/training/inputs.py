@@ -205,7 +205,8 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
     per_view = jax.device_put(per_view)  # transfers, not a program per array
     lens = None if scene.lens is None else Lens.of_views(scene.lens, idx)  # [V] lenses
     pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
-    weights = jax.device_put(loss_weights(cfg))  # arguments of the step, not constants (step.loss_weights)
+    # arguments of the step, not constants: a sweep over the loss weights or the seed shares its program
+    weights, seed_key = jax.device_put(loss_weights(cfg)), jax.random.PRNGKey(cfg.train.seed)
 
     def batch(step: int) -> dict:
         if size == 1:
@@ -216,7 +217,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
         views = pick((per_view, lens), view)
         (picked, view_lens), view = views, jax.device_put(view)
         camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
-        out = dict(image=picked["image"], camera=camera, index=view, loss_weights=weights)
+        out = dict(image=picked["image"], camera=camera, index=view, loss_weights=weights, seed_key=seed_key)
         if "valid" in picked:
             out["valid"] = picked["valid"]
         if banks is not None:

@@ -123,7 +123,10 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     for the appearance embedding)}`` plus, with feature models, ``"features":
     {model: [h, w, D]}`` and ``"banks": {model: [M, D]}``, and for a scene with a
     valid-pixel mask (``SceneData.valid``) ``"valid": [H, W] bool``, and returns
-    ``(state, metrics)``. A non-finite loss or gradient leaves the parameters
+    ``(state, metrics)``. Optional entries make settings arguments instead of the program's
+    constants (the numbers are the same; jobs that differ only in them share one program):
+    ``"loss_weights"`` (:func:`loss_weights`) and ``"seed_key"`` (``jax.random.PRNGKey(train.seed)``);
+    :func:`~cusgs_jax.training.inputs.make_batches` gives both. A non-finite loss or gradient leaves the parameters
     and optimiser state untouched and increments ``state.skipped``. Every
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
 
@@ -132,8 +135,8 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
 
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
-    [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``
-    shared), the views are sharded over a mesh and the step is placed on it
+    [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``, ``loss_weights``
+    and ``seed_key`` shared), the views are sharded over a mesh and the step is placed on it
     (:func:`make_batched_step`). B = 1 runs the same body with one view and no mesh.
 
     **No truncated step.** When the view has more visible anchors than the
@@ -169,7 +172,8 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
         camera = batch["camera"]
         capacity = state.anchors.capacity
         one = _view_pass(cfg, capacities, capacity)
-        key = jax.random.fold_in(jax.random.PRNGKey(cfg.train.seed), state.step)
+        seed_key = batch["seed_key"] if "seed_key" in batch else jax.random.PRNGKey(cfg.train.seed)
+        key = jax.random.fold_in(seed_key, state.step)
         if batch_size == 1:
             loss, grads, parts = one(state.trainable, state.anchors, batch, key)
             latent_grads = [grads["anchor"].latent]
