@@ -53,7 +53,8 @@ def signature(args) -> tuple:
     """What decides a jitted function's program for ``args``: the tree structure (static fields
     included) and every leaf's shape, dtype and weak type (a Python scalar by its type, not its value)."""
     leaves, treedef = jax.tree_util.tree_flatten(args)
-    return treedef, tuple((tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False)))
+    # dtype objects, not their names (a name is built anew at every call): this runs at every step
+    return treedef, tuple((tuple(x.shape), x.dtype, bool(getattr(x, "weak_type", False)))
                           if hasattr(x, "shape") and hasattr(x, "dtype") else type(x).__name__ for x in leaves)
 
 
