@@ -7,7 +7,8 @@ import types
 import numpy as np
 
 from cusgs_jax.app.foresight import LEAD, MIN_LEAD_STEPS, PREVIEWS, Foresight
-from cusgs_jax.config import GrowConfig
+from cusgs_jax.config import GrowConfig, PruneConfig
+from cusgs_jax.densify.feature_prune import FeaturePruneStrategy
 from cusgs_jax.densify.scaffold import NEXT_CAPACITY_USE, ScaffoldStrategy
 
 
@@ -40,6 +41,22 @@ def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that():
     lead = foresight.lead_steps([4.0])  # 30 steps
     assert seen == [(400 - lead, 400), (400 - lead // 2, 400), (500 - lead, 500), (500 - lead // 2, 500)]
     assert PREVIEWS == 2
+
+
+def test_updates_that_only_remove_anchors_are_not_previewed():
+    """A pruning pass clears alive bits: no view needs more after it, so only the grower's updates are previewed
+    (the main job's passes after grow.stop, every 100 steps to step 3000, were previewed twice each before)."""
+    grower = ScaffoldStrategy(GrowConfig(start=400, stop=600, interval=100), voxel_size=0.01, n_offsets=4, seed=0)
+    pruner = FeaturePruneStrategy(PruneConfig(start=500, interval=100))
+    assert pruner.only_removes(500) and not grower.only_removes(500)
+    foresight = Foresight([grower, pruner], iterations=1000, step_program=None, prepare_render=None)
+    seen = []
+    foresight._preview = lambda session, loop, done, due: seen.append(due)
+    foresight._next_capacities = lambda session, loop, done: None
+    session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[]))
+    for done in range(1, 1000):
+        foresight.after(session, types.SimpleNamespace(state=None), done)
+    assert sorted(set(seen)) == [400, 500, 600]  # 500 and 600: the grower is due too; 700-900: the pruner alone
 
 
 def test_scaffold_announces_its_next_capacity_once_the_slots_fill_up_while_it_still_grows():

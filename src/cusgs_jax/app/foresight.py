@@ -67,9 +67,11 @@ class Foresight:
         self._recent = (self._recent + [seconds])[-RECENT_STEPS:]
 
     def _due_after(self, done: int) -> int | None:
+        """The next update after ``done`` steps that may need new programs: one that can add anchors or
+        capacity (an update that only removes anchors — a pruning pass, an early cull — needs none)."""
         if self._next_due is None or self._next_due <= done:
             self._next_due = next((d for d in range(done + 1, self.iterations + 1)
-                                   if any(s.due(d) for s in self.strategies)), None)
+                                   if any(s.due(d) and not _only_removes(s, d) for s in self.strategies)), None)
         return self._next_due
 
     def lead_steps(self, compile_seconds: list[float]) -> int:
@@ -132,6 +134,12 @@ class Foresight:
                           done, due, capacity, caps)
         if capacity != loop.state.anchors.capacity:
             self.prepare_render(preview.anchors)
+
+
+def _only_removes(strategy, step: int) -> bool:
+    """:meth:`~cusgs_jax.densify.base.Strategy.only_removes` (False for a strategy without the hook)."""
+    only_removes = getattr(strategy, "only_removes", None)
+    return bool(only_removes(step)) if only_removes is not None else False
 
 
 @jax.jit

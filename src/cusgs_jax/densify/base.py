@@ -145,7 +145,8 @@ class Strategy(Protocol):
 
     Optional hooks (the shell calls them for every strategy; the defaults do nothing):
 
-    * :meth:`before_first_update`, :meth:`log_values`, :meth:`results`, :meth:`next_capacity`.
+    * :meth:`before_first_update`, :meth:`log_values`, :meth:`results`, :meth:`next_capacity`,
+      :meth:`only_removes`.
     """
 
     name: str
@@ -170,6 +171,13 @@ class Strategy(Protocol):
         (:mod:`cusgs_jax.app.foresight`). A guess: a wrong one costs a compile, never a result."""
         del state, step
         return None
+
+    def only_removes(self, step: int) -> bool:
+        """Whether the update after ``step`` completed steps can only clear ``alive`` bits (no new anchors, no
+        larger capacity): then no view needs more work after it, and the shell does not preview it to compile
+        the step ahead (:mod:`cusgs_jax.app.foresight`). Default False (every update is previewed)."""
+        del step
+        return False
 
     def log_values(self, tally: Tally) -> Mapping[str, Any]:
         """Top-level keys this strategy adds to every ``metrics.jsonl`` row (default: none)."""

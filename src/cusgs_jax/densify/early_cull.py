@@ -83,6 +83,11 @@ class EarlyCullStrategy(Strategy):
         every = self.cfg.early_cull_every
         return 0 < step < self.cfg.start and step % every == 0
 
+    def only_removes(self, step: int) -> bool:
+        """An early cull only clears ``alive`` bits."""
+        del step
+        return True
+
     def update(self, state, tx, step: int) -> tuple[object, UpdateInfo]:
         """Remove the seasoned transparent anchors, then start a new window (host side).
 

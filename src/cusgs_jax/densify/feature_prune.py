@@ -442,6 +442,11 @@ class FeaturePruneStrategy(Strategy):
         """A pass after ``step`` completed steps."""
         return prune_due(step, self.cfg)
 
+    def only_removes(self, step: int) -> bool:
+        """A pruning pass only clears ``alive`` bits."""
+        del step
+        return True
+
     def before_first_update(self, probe: Probe) -> dict:
         """The held-out render time per view of the model before any pass: ``render_ms_before_prune``."""
         return dict(render_ms_before_prune=probe.render_ms_per_view())
