@@ -111,6 +111,7 @@ def test_same_seed_same_numbers(setup):
 WEIGHTED = dict(loss=dict(l1_weight=0.55, ssim_weight=0.45, volume_weight=0.3))
 
 
+@pytest.mark.slow  # two step programs compiled (27 s); the lowered-program test below stays in the default run
 def test_loss_weights_and_seed_in_the_batch_give_the_numbers_of_constants_folded_in(setup):
     """The loop passes the loss weights and the seed's key as arguments (``batch["loss_weights"]``,
     ``batch["seed_key"]``); the step's numbers are those of the same settings as the program's constants (a batch
