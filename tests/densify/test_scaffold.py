@@ -13,7 +13,7 @@ from cusgs_jax.config import GrowConfig, OptimConfig
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import UpdateInfo, ViewRecord
 from cusgs_jax.densify.scaffold import GrowStats, ScaffoldStrategy, accumulate_stats, opacity_prune, plan_growth
-from cusgs_jax.model.anchors import AnchorParams, AnchorState
+from cusgs_jax.model.anchors import AnchorParams, AnchorState, capacity_rung
 from cusgs_jax.model.decode import VisibleSlots
 from cusgs_jax.training.optim import make_optimizer
 from cusgs_jax.training.state import TrainState
@@ -217,3 +217,18 @@ def test_accumulate_rows_equals_the_dense_statistics_and_ignores_nan_of_skipped_
                           jnp.full((s, n, 2), np.inf), 16, 12, jnp.array(False))
     for a, b in zip(jax.tree_util.tree_leaves(bad), jax.tree_util.tree_leaves(start)):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_full_capacity_grows_onto_the_ladder_as_forecast(always_keep):
+    # 64 full slots, growth 1.5: ceil(96) → the ladder's rung 128, and next_capacity forecast exactly that
+    cfg = GrowConfig(interval=10, levels=1, init_factor=1, capacity_growth=1.5, stop=100)
+    offsets = np.zeros((64, 2, 3), np.float32)
+    offsets[:, 0, 2] = np.arange(64) + 5.0
+    anchors = _anchors(capacity=64, alive=64, offsets=offsets)
+    stats = GrowStats(jnp.full((64, 2), 1.0), jnp.full((64, 2), 10.0), jnp.ones(64), jnp.ones(64))
+    state, tx = _train_state(anchors, stats)
+    strategy = ScaffoldStrategy(cfg, 1.0, 2, 0)
+    forecast = strategy.next_capacity(state, 10)
+    _, info = strategy.update(state, tx, 10)
+    assert info.capacity_changed and info.extra["capacity"] == forecast == capacity_rung(96) == 128
+    assert strategy.next_capacity(state, 100) is None  # growth has stopped: nothing to forecast

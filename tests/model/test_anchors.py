@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from cusgs_jax.model.anchors import (AnchorParams, AnchorState, PerAnchor, compact, compacted_capacity,
-                                    init_anchors, map_rows,
+from cusgs_jax.model.anchors import (AnchorParams, AnchorState, PerAnchor, capacity_rung, compact,
+                                     init_anchors, map_rows,
                                      nearest_neighbour_sq_dist, pad_rows, parameter_counts, place_anchors,
                                      take_rows, voxelize, zero_rows)
 
@@ -48,7 +48,11 @@ def test_init_anchors_capacity_and_alive_mask():
     anchors = init_anchors(points, 0.2, n_offsets=5, latent_dim=8, capacity_factor=2.0)
     params = anchors.params
     num = int(anchors.alive.sum())
-    assert anchors.capacity == int(np.ceil(2.0 * num))
+    assert anchors.capacity == capacity_rung(int(np.ceil(2.0 * num))) >= 2 * num
+    # 100 and 110 anchors (one per lattice cell) stand on one rung: one capacity, one step program
+    lattice = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    sizes = {init_anchors(lattice[:n], 1.0, n_offsets=2, latent_dim=3).capacity for n in (100, 110)}
+    assert sizes == {256}
     assert params.offsets.shape == (anchors.capacity, 5, 3)
     assert params.latent.shape == (anchors.capacity, 8)
     assert np.all(np.asarray(anchors.alive[:num])) and not np.any(np.asarray(anchors.alive[num:]))
@@ -146,14 +150,14 @@ def test_compact_keeps_alive_rows_in_order_and_drops_dead_ones():
         assert parameter_counts(compacted) == parameter_counts(anchors)
 
 
-def test_compacted_capacities_come_in_quarter_octave_buckets():
-    caps = [compacted_capacity(n) for n in range(1, 40_000)]
+def test_the_capacity_ladder_has_four_rungs_per_doubling():
+    caps = [capacity_rung(n) for n in range(1, 40_000)]
     assert all(c >= n and c % 64 == 0 for n, c in zip(range(1, 40_000), caps))
     # at most 25 % padding once the quarter octave exceeds the multiple of 64
     assert all(c <= 1.25 * n for n, c in zip(range(1, 40_000), caps) if n >= 256)
     # a model growing from 5k to 13k anchors (the default demo run) sees 7 shapes, not one per 64 anchors (125)
-    assert len({compacted_capacity(n) for n in range(5_000, 13_001)}) == 7
-    assert [compacted_capacity(n) for n in (6, 64, 65, 5202, 8252, 9790, 13044)] == [
+    assert len({capacity_rung(n) for n in range(5_000, 13_001)}) == 7
+    assert [capacity_rung(n) for n in (6, 64, 65, 5202, 8252, 9790, 13044)] == [
         64, 64, 128, 6144, 10240, 10240, 14336]
 
 

@@ -14,7 +14,7 @@ from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, FeatureModelConfig
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.densify.feature_prune import PruneStats
 from cusgs_jax.densify.scaffold import GrowStats
-from cusgs_jax.model.anchors import AnchorState, voxelize
+from cusgs_jax.model.anchors import AnchorState, capacity_rung, voxelize
 from cusgs_jax.training.state import TrainState, _draw_nets, init_nets, init_train_state
 from cusgs_jax.testing.scenes import random_banks, sfm_points
 
@@ -32,7 +32,7 @@ def test_fresh_state_from_points():
     state, tx = init_train_state(CFG, sfm_points(), 3, 2.0, strategies)
     initial = len(voxelize(sfm_points(), CFG.model.voxel_size))
     assert isinstance(state.anchors, AnchorState)
-    assert state.anchors.capacity == math.ceil(CFG.model.capacity_factor * initial)
+    assert state.anchors.capacity == capacity_rung(math.ceil(CFG.model.capacity_factor * initial))
     assert int(np.sum(state.anchors.alive)) == initial and bool(np.all(np.asarray(state.anchors.alive)[:initial]))
     assert state.anchors.params.offsets.shape == (state.anchors.capacity, 4, 3)
     assert state.anchors.params.latent.shape == (state.anchors.capacity, 8)

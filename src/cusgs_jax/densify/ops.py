@@ -22,14 +22,12 @@ import jax
 import numpy as np
 import optax
 
-from cusgs_jax.model.anchors import is_per_anchor, map_rows, pad_leaf, pad_rows, zero_leaf, zero_rows
+from cusgs_jax.model.anchors import capacity_rung, is_per_anchor, map_rows, pad_leaf, pad_rows, zero_leaf, zero_rows
 
 SHRINK_BELOW = 0.25
 """The capacity shrinks when the alive anchors fill less than this fraction of it (:func:`shrunk_capacity`)."""
 SHRINK_HEADROOM = 2.0
 """A shrunk capacity holds this many times the alive anchors (room to grow before it must grow again)."""
-CAPACITY_MULTIPLE = 256
-"""Shrunk capacities are multiples of this (few distinct shapes, few compiles)."""
 
 
 def map_moments(tx: optax.GradientTransformation, fn, opt_state):
@@ -77,12 +75,12 @@ def shrunk_capacity(alive: int, capacity: int) -> int | None:
     Pruning can leave a capacity sized for the initial points nearly empty (100k random initial
     points pruned to a few thousand anchors), and every step pays for the capacity's slots
     (visible-slot, active and pair capacities are fractions of it; the statistics are [A]).
-    Shrink when fewer than :data:`SHRINK_BELOW` of the slots are alive, to
-    :data:`SHRINK_HEADROOM` × alive rounded up to :data:`CAPACITY_MULTIPLE`.
+    Shrink when fewer than :data:`SHRINK_BELOW` of the slots are alive, to the capacity ladder's rung
+    (:func:`~cusgs_jax.model.anchors.capacity_rung`) of :data:`SHRINK_HEADROOM` × alive.
     """
     if alive >= SHRINK_BELOW * capacity:
         return None
-    target = int(np.ceil(max(alive, 1) * SHRINK_HEADROOM / CAPACITY_MULTIPLE) * CAPACITY_MULTIPLE)
+    target = capacity_rung(int(np.ceil(max(alive, 1) * SHRINK_HEADROOM)))
     return target if target < capacity else None
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from cusgs_jax.config import GrowConfig
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Strategy, UpdateInfo
-from cusgs_jax.model.anchors import AnchorState, PerAnchor, place_anchors
+from cusgs_jax.model.anchors import AnchorState, PerAnchor, capacity_rung, place_anchors
 
 log = logging.getLogger("cusgs_jax")
 
@@ -224,13 +224,19 @@ class ScaffoldStrategy(Strategy):
         return self.cfg.start <= step <= self.cfg.stop and step % self.cfg.interval == 0
 
     def next_capacity(self, state, step: int) -> int | None:
-        """``ceil(A · grow.capacity_growth)`` once the alive anchors fill :data:`NEXT_CAPACITY_USE` of A while
+        """:meth:`grown_capacity` of A (the ladder's rung of ``ceil(A · grow.capacity_growth)``) once the alive anchors fill :data:`NEXT_CAPACITY_USE` of A while
         growth is still scheduled: what :meth:`update` grows a full capacity to (unless one growth alone
         needs more)."""
         capacity = state.anchors.capacity
         if step >= self.cfg.stop or np.sum(np.asarray(state.anchors.alive)) < NEXT_CAPACITY_USE * capacity:
             return None
-        return int(np.ceil(capacity * self.cfg.capacity_growth))
+        return self.grown_capacity(capacity, 0)
+
+    def grown_capacity(self, capacity: int, need: int) -> int:
+        """The anchor capacity a full capacity of ``capacity`` slots grows to when ``need`` slots must be
+        alive: the ladder's rung (:func:`~cusgs_jax.model.anchors.capacity_rung`) of the larger of
+        ``ceil(A · grow.capacity_growth)`` and ``need``."""
+        return capacity_rung(max(int(np.ceil(capacity * self.cfg.capacity_growth)), int(need)))
 
     def generator(self, step: int) -> np.random.Generator:
         """The candidate-dropping draws of the adjustment after ``step`` steps (seeded: resumes replay it)."""
@@ -254,7 +260,7 @@ class ScaffoldStrategy(Strategy):
         alive = np.asarray(state.anchors.alive)
         free = np.flatnonzero(~alive)
         if len(centers) > len(free):
-            capacity = int(max(np.ceil(capacity * self.cfg.capacity_growth), alive.sum() + len(centers)))
+            capacity = self.grown_capacity(capacity, alive.sum() + len(centers))
             state = ops.grow_capacity(state, tx, capacity)
             log.warning("anchor capacity full: grew %d -> %d slots (the step recompiles once)", old_capacity, capacity)
             free = np.flatnonzero(~np.asarray(state.anchors.alive))

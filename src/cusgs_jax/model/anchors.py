@@ -199,7 +199,7 @@ def anchor_layout(points: np.ndarray, voxel_size: float, *, capacity: int | None
     ``log(voxel_size)``)."""
     centers = voxelize(points, voxel_size)
     num = centers.shape[0]
-    capacity = capacity or max(int(math.ceil(capacity_factor * num)), num)
+    capacity = capacity or capacity_rung(max(int(math.ceil(capacity_factor * num)), num))
     if capacity < num:
         raise ValueError(f"capacity {capacity} is smaller than the {num} initial anchors")
     log_scale = np.log(np.sqrt(nearest_neighbour_sq_dist(centers)))
@@ -241,7 +241,7 @@ def init_anchors(points: np.ndarray, voxel_size: float, *, n_offsets: int = 10, 
     Args:
       points: [P, 3] SfM points.
       voxel_size: cell size l.
-      capacity: total slots; default ``ceil(capacity_factor · A0)``.
+      capacity: total slots; default the :func:`capacity_rung` of ``ceil(capacity_factor · A0)``.
       query_dim: Q > 0 adds a per-Gaussian query table drawn with ``key``.
     Returns:
       :class:`AnchorState` with the first A0 slots alive.
@@ -289,28 +289,32 @@ def _merge_rows(anchors: AnchorState, rows, centers, latent, log_scale, key) -> 
     return AnchorState(jnp.where(rows[:, None], centers, anchors.centers), anchors.alive | rows, params)
 
 
-def compacted_capacity(alive: int, multiple: int = 64) -> int:
-    """The capacity :func:`compact` gives ``alive`` anchors: ``alive`` rounded up to a multiple of
-    ``max(multiple, 2^(⌊log₂ alive⌋ − 2))`` — quarter-octave buckets (at most 25 % padding, four
-    shapes per doubling), so a growing model's evaluation renders recompile a few times, not at
-    every evaluation."""
-    step = max(int(multiple), 2 ** max(int(alive).bit_length() - 3, 0))
-    return max(int(multiple), -(-int(alive) // step) * step)
+def capacity_rung(need: int, multiple: int = 64) -> int:
+    """The anchor-capacity ladder: the smallest rung that holds ``need`` slots.
+
+    Rungs are the multiples of ``max(multiple, 2^(⌊log₂ need⌋ − 2))``: four per doubling (2^k · 1, 1.25,
+    1.5, 1.75), so a capacity pads at most 25 % once ``need`` ≥ 4 · ``multiple``. Every anchor capacity of a
+    run stands on it — the first (``capacity_factor`` × the initial anchors), each growth and shrink, and the
+    compacted models of renders and exports — so a run compiles its step for few capacities and runs whose
+    counts fall on one rung (jobs of a voxel-size sweep) share programs through the persistent cache.
+    """
+    step = max(int(multiple), 2 ** max(int(need).bit_length() - 3, 0))
+    return max(int(multiple), -(-int(need) // step) * step)
 
 
 def compact(anchors: AnchorState, multiple: int = 64) -> AnchorState:
     """Drop dead slots so rendering pays only for alive anchors (host side, outside jit).
 
     Gathers the alive slots (in slot order) of every per-anchor array into a capacity of
-    :func:`compacted_capacity` (``alive`` rounded up to a quarter-octave bucket, a multiple of
-    ``multiple``: few distinct shapes, few compiles); the padding slots are dead. Decode the
+    :func:`capacity_rung` (``alive`` rounded up to the capacity ladder: few distinct shapes, few
+    compiles); the padding slots are dead. Decode the
     result with every slot visible (``visible_fraction = 1``), so no anchor is dropped.
 
     Returns:
-      :class:`AnchorState` with capacity ``compacted_capacity(alive, multiple)``.
+      :class:`AnchorState` with capacity ``capacity_rung(alive, multiple)``.
     """
     keep = np.flatnonzero(np.asarray(anchors.alive))
-    new_capacity = compacted_capacity(len(keep), multiple)
+    new_capacity = capacity_rung(len(keep), multiple)
     index = np.concatenate([keep, np.full(new_capacity - len(keep), keep[0] if len(keep) else 0)])
     compacted = take_rows(anchors, index)
     return compacted.replace(alive=jnp.asarray(np.arange(new_capacity) < len(keep)))
