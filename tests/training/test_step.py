@@ -18,6 +18,7 @@ from cusgs_jax.model.decode import decode_view, num_visible_slots
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import make_render_fn, render_gaussians, render_model
 from cusgs_jax.training.state import init_train_state
+from cusgs_jax.training.optim import group_rates, make_optimizer, rate_arguments
 from cusgs_jax.training.step import loss_weights, make_train_step
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import sfm_points
@@ -111,11 +112,18 @@ def test_same_seed_same_numbers(setup):
 WEIGHTED = dict(loss=dict(l1_weight=0.55, ssim_weight=0.45, volume_weight=0.3))
 
 
+def _settings(cfg, extent=2.0) -> dict:
+    """The batch entries that make settings arguments, as ``make_batches`` gives them (``extent`` as ``_init``)."""
+    return dict(loss_weights=jax.device_put(loss_weights(cfg)), seed_key=jax.random.PRNGKey(cfg.train.seed),
+                learning_rates=rate_arguments(group_rates(cfg.optim, extent, cfg.train.batch_size)))
+
+
 @pytest.mark.slow  # two step programs compiled (27 s); the lowered-program test below stays in the default run
 def test_loss_weights_and_seed_in_the_batch_give_the_numbers_of_constants_folded_in(setup):
-    """The loop passes the loss weights and the seed's key as arguments (``batch["loss_weights"]``,
-    ``batch["seed_key"]``); the step's numbers are those of the same settings as the program's constants (a batch
-    without them), bit for bit, over three steps."""
+    """The loop passes the loss weights, the seed's key and the learning rates as arguments
+    (``batch["loss_weights"]``, ``batch["seed_key"]``, ``batch["learning_rates"]``); the step's numbers are those
+    of the same settings as the program's constants (a batch without them), bit for bit, over three steps (the
+    decaying and the constant learning-rate groups both move)."""
     cfg0, tx, strategies, _, state0 = setup
     cfg = cfg0.replace(**WEIGHTED)
     step = make_train_step(cfg, tx, strategies)
@@ -123,8 +131,7 @@ def test_loss_weights_and_seed_in_the_batch_give_the_numbers_of_constants_folded
     for given in (False, True):
         state = _copy(state0)
         for i in range(3):
-            batch = (dict(_batch(i), loss_weights=jax.device_put(loss_weights(cfg)),
-                          seed_key=jax.random.PRNGKey(cfg.train.seed)) if given else _batch(i))
+            batch = dict(_batch(i), **_settings(cfg)) if given else _batch(i)
             state, metrics = step(state, batch)
         finals.append(jax.device_get((state.trainable, state.densify, metrics)))
     for a, b in zip(*(jax.tree_util.tree_leaves(f) for f in finals)):
@@ -134,18 +141,23 @@ def test_loss_weights_and_seed_in_the_batch_give_the_numbers_of_constants_folded
                                + 0.3 * terms["loss_volume"], rtol=1e-6)
 
 
-def test_a_sweep_over_loss_weights_or_seeds_shares_one_step_program(setup):
-    """Configurations that differ only in ``loss.*_weight``, ``features.weight`` or ``train.seed`` lower the same
-    step (one persistent-cache entry); the batch is what the loop gives (``make_batches``)."""
-    cfg0, tx, strategies, _, state0 = setup
+def test_a_sweep_over_loss_weights_learning_rates_or_seeds_shares_one_step_program(setup):
+    """Configurations that differ only in ``loss.*_weight``, ``features.weight``, ``optim.*`` learning rates or
+    ``train.seed`` lower the same step (one persistent-cache entry); the batch and the optimiser are what the loop
+    gives (``make_batches``, ``init_train_state``)."""
+    cfg0, _, strategies, _, state0 = setup
 
     def lowered(cfg):
-        batch = dict(_batch(0), loss_weights=loss_weights(cfg), seed_key=jax.random.PRNGKey(cfg.train.seed))
-        return make_train_step(cfg, tx, strategies).lower(state0, batch).as_text()
+        tx = make_optimizer(cfg.optim, state0.trainable, cfg.train.iterations, 2.0)
+        return make_train_step(cfg, tx, strategies).lower(state0, dict(_batch(0), **_settings(cfg))).as_text()
 
     base = lowered(cfg0)
     assert lowered(cfg0.replace(**WEIGHTED)) == base
-    assert lowered(cfg0.replace(features=dict(weight=0.9), train=dict(iterations=50, seed=7))) == base
+    assert lowered(cfg0.replace(features=dict(weight=0.9), train=dict(seed=7))) == base
+    assert lowered(cfg0.replace(optim=dict(offsets=(0.02, 0.0002), mlp_color=(0.004, 0.0001)))) == base
+    # a group whose rate stops decaying (initial = final) changes the program; so does the schedule's length
+    assert lowered(cfg0.replace(optim=dict(offsets=(0.01, 0.01)))) != base
+    assert lowered(cfg0.replace(train=dict(iterations=60))) != base
 
 
 def test_non_finite_update_is_skipped_and_counted(setup):

@@ -77,21 +77,69 @@ def batch_scaled(batch_size: int, eps: float, betas=ADAM_BETAS) -> tuple[float, 
     return root, eps / root, tuple(b ** batch_size for b in betas)
 
 
+def group_rates(cfg: OptimConfig, extent: float, batch_size: int = 1) -> dict[str, tuple[float, float]]:
+    """{group: (initial, final) learning rate}: ``optim.<group>`` with Scaffold-GS's extent scaling of the
+    offsets and :func:`batch_scaled`'s √B for ``batch_size`` views per step."""
+    scale = batch_scaled(batch_size, cfg.eps)[0]
+    rates = {}
+    for name, (init, final) in cfg.groups().items():
+        if name == "offsets":
+            init, final = init * extent, final * extent
+        if batch_size > 1:
+            init, final = init * scale, final * scale
+        rates[name] = (init, final)
+    return rates
+
+
+def rate_arguments(rates: dict[str, tuple[float, float]]) -> dict[str, jax.Array]:
+    """The step's ``learning_rates`` argument for :func:`group_rates` ``rates``: {group: [2] float32}, the
+    (log initial, log final) of a decaying group — ``jnp.log`` as :func:`log_linear_schedule` takes them — and
+    (rate, rate) of a constant one. As an argument, a sweep over learning rates shares the step's program."""
+    return {name: jnp.stack([jnp.float32(init), jnp.float32(final)]) if init == final
+            else jnp.stack([jnp.log(init), jnp.log(final)]) for name, (init, final) in rates.items()}
+
+
+def scale_by_group_rate(group: str, decays: bool, steps: int,
+                        default: jax.Array) -> optax.GradientTransformationExtraArgs:
+    """``optax.scale_by_learning_rate`` of :func:`log_linear_schedule` (``decays``) or of a constant rate,
+    read from the update's ``learning_rates[group]`` (:func:`rate_arguments`; ``default`` when the update is
+    given none). The same state and arithmetic as optax's, so the updates are bit for bit those of
+    ``optax.adam(log_linear_schedule(...))`` (``tests/training/test_optim.py``)."""
+
+    def init_fn(params):
+        del params
+        return optax.ScaleByScheduleState(count=jnp.zeros([], jnp.int32))
+
+    def update_fn(updates, state, params=None, *, learning_rates=None, **extra_args):
+        del params, extra_args
+        rate = default if learning_rates is None else learning_rates[group]
+        if decays:
+            t = jnp.clip(state.count / max(steps, 1), 0.0, 1.0)
+            step_size = -1 * jnp.exp(rate[0] * (1 - t) + rate[1] * t)
+        else:  # optax.constant_schedule
+            step_size = -1 * rate[0]
+        updates = jax.tree.map(lambda g: jnp.array(step_size, dtype=g.dtype) * g, updates)
+        return updates, optax.ScaleByScheduleState(count=optax.safe_increment(state.count))
+
+    return optax.GradientTransformationExtraArgs(init_fn, update_fn)
+
+
 def make_optimizer(cfg: OptimConfig, params, total_steps: int, extent: float,
-                   batch_size: int = 1) -> optax.GradientTransformation:
+                   batch_size: int = 1) -> optax.GradientTransformationExtraArgs:
     """Adam (eps from cfg) per group with its own log-linear schedule.
+
+    ``update(grads, state, params, learning_rates=...)`` takes the rates as an argument
+    (:func:`rate_arguments`; the train step passes ``batch["learning_rates"]``); without it, those of ``cfg``.
 
     Args:
       params: the trainable tree (:meth:`cusgs_jax.training.state.TrainState.trainable`); only its
         structure is read, to label every leaf with its group.
       batch_size: views per step B; learning rates, eps and betas follow :func:`batch_scaled`.
     """
-    scale, eps, (b1, b2) = batch_scaled(batch_size, cfg.eps)
-    groups = {}
-    for name, (init, final) in cfg.groups().items():
-        if name == "offsets":
-            init, final = init * extent, final * extent
-        if batch_size > 1:
-            init, final = init * scale, final * scale
-        groups[name] = optax.adam(log_linear_schedule(init, final, total_steps), b1=b1, b2=b2, eps=eps)
+    _, eps, (b1, b2) = batch_scaled(batch_size, cfg.eps)
+    rates = group_rates(cfg, extent, batch_size)
+    defaults = rate_arguments(rates)
+    groups = {name: optax.chain(optax.scale_by_adam(b1=b1, b2=b2, eps=eps),
+                                scale_by_group_rate(name, init != final, total_steps, defaults[name]))
+              for name, (init, final) in rates.items()}
     return optax.multi_transform(groups, param_labels(params))

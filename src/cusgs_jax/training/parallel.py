@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from cusgs_jax.config import Config, require
 
-SHARED_INPUTS = ("banks", "loss_weights", "seed_key")
+SHARED_INPUTS = ("banks", "loss_weights", "seed_key", "learning_rates")
 """Batch entries every view of a step shares (no view axis with B > 1; replicated over a mesh)."""
 
 AXIS = "views"

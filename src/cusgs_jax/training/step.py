@@ -125,8 +125,9 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     valid-pixel mask (``SceneData.valid``) ``"valid": [H, W] bool``, and returns
     ``(state, metrics)``. Optional entries make settings arguments instead of the program's
     constants (the numbers are the same; jobs that differ only in them share one program):
-    ``"loss_weights"`` (:func:`loss_weights`) and ``"seed_key"`` (``jax.random.PRNGKey(train.seed)``);
-    :func:`~cusgs_jax.training.inputs.make_batches` gives both. A non-finite loss or gradient leaves the parameters
+    ``"loss_weights"`` (:func:`loss_weights`), ``"seed_key"`` (``jax.random.PRNGKey(train.seed)``) and
+    ``"learning_rates"`` (:func:`cusgs_jax.training.optim.rate_arguments`, read by ``tx`` from
+    :func:`~cusgs_jax.training.optim.make_optimizer`); :func:`~cusgs_jax.training.inputs.make_batches` gives all three. A non-finite loss or gradient leaves the parameters
     and optimiser state untouched and increments ``state.skipped``. Every
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
 
@@ -135,8 +136,8 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
 
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
-    [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``, ``loss_weights``
-    and ``seed_key`` shared), the views are sharded over a mesh and the step is placed on it
+    [B, 4, 4], ``index`` [B], ``features`` {model: [B, h, w, D]}; ``banks``, ``loss_weights``,
+    ``seed_key`` and ``learning_rates`` shared), the views are sharded over a mesh and the step is placed on it
     (:func:`make_batched_step`). B = 1 runs the same body with one view and no mesh.
 
     **No truncated step.** When the view has more visible anchors than the
@@ -215,12 +216,13 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
             record = _record(view_parts, latent_grad, capacity, camera, state.step, apply)
             densify = {s.name: s.accumulate(densify[s.name], record) for s in strategies}  # gated by record.finite
         metrics = _metrics(loss, finite, parts, reduce)
+        rates = batch.get("learning_rates")  # None: the rates tx was built with, as constants
         if sparse:
-            state = _apply_rows(state, tx, grads, parts["view"].slots, parts["view"].valid, apply)
+            state = _apply_rows(state, tx, grads, parts["view"].slots, parts["view"].valid, apply, rates)
         elif batch_size == 1:  # optim.sparse=false: the S rows scattered into a dense [A] gradient
-            state = _apply(state, tx, _dense(grads, parts["view"], capacity), apply)
+            state = _apply(state, tx, _dense(grads, parts["view"], capacity), apply, rates)
         else:
-            state = _apply(state, tx, grads, apply)
+            state = _apply(state, tx, grads, apply, rates)
         return _finish(state, finite, complete, densify), metrics
 
     return train_step
@@ -239,10 +241,11 @@ def _select(apply, new, old):
     return jax.tree_util.tree_map(lambda a, b: jnp.where(apply, a, b), new, old)
 
 
-def _apply(state: TrainState, tx, grads, apply) -> TrainState:
-    """Dense masked optax update: applied only when ``apply``; dead anchor slots never move."""
+def _apply(state: TrainState, tx, grads, apply, rates=None) -> TrainState:
+    """Dense masked optax update: applied only when ``apply``; dead anchor slots never move. ``rates``: the
+    batch's ``learning_rates`` (:func:`cusgs_jax.training.optim.rate_arguments`) or None."""
     trainable = state.trainable
-    updates, new_opt = tx.update(grads, state.opt_state, trainable)
+    updates, new_opt = tx.update(grads, state.opt_state, trainable, learning_rates=rates)
     # dead anchor slots never move (their Adam moments may still be non-zero)
     alive = state.anchors.alive
     updates["anchor"] = jax.tree_util.tree_map(
@@ -252,7 +255,7 @@ def _apply(state: TrainState, tx, grads, apply) -> TrainState:
         opt_state=_select(apply, new_opt, state.opt_state))
 
 
-def _apply_rows(state: TrainState, tx, grads, slots, valid, apply) -> TrainState:
+def _apply_rows(state: TrainState, tx, grads, slots, valid, apply, rates=None) -> TrainState:
     """Row-sparse optax update over the S visible slots (gsplat ``visible_adam`` / selective Adam).
 
     Every per-anchor leaf of the parameters and of the optimiser state (found by type,
@@ -265,11 +268,12 @@ def _apply_rows(state: TrainState, tx, grads, slots, valid, apply) -> TrainState
 
     Args:
       grads: {"anchor": AnchorParams [S, …], networks}; slots: [S] int32; valid: [S] bool.
+      rates: the batch's ``learning_rates`` or None (as :func:`_apply`).
     """
     capacity = state.anchors.capacity
     trainable = state.trainable
     rows, opt_rows = map_rows(lambda x: x[slots], trainable), map_rows(lambda x: x[slots], state.opt_state)
-    updates, new_opt_rows = tx.update(grads, opt_rows, rows)
+    updates, new_opt_rows = tx.update(grads, opt_rows, rows, learning_rates=rates)
     new_rows = jax.tree_util.tree_map(lambda p, u: p + u, rows, updates)
     index = jnp.where(apply & valid, slots, capacity)  # out of range: dropped
 
