@@ -91,3 +91,20 @@ def test_disabled_compiles_nothing_ahead():
         assert not program.prepare(jnp.ones(3))
         np.testing.assert_array_equal(program(jnp.ones(3)), jnp.sin(jnp.ones(3)))
     assert ahead.submitted == 0
+
+
+def test_settle_waits_for_every_compile_submitted_and_charges_one_wait():
+    release = threading.Event()
+    waits = []
+    with Ahead(on_wait=waits.append) as ahead:
+        blocker = ahead._pool.submit(release.wait)  # the thread is busy: both compiles queue behind it
+        first, second = Program(jax.jit(jnp.sin), ahead), Program(jax.jit(jnp.cos), ahead)
+        assert first.prepare(jnp.ones(4)) and second.prepare(jnp.ones(4))
+        threading.Timer(0.3, release.set).start()
+        ahead.settle()
+        assert all(future.done() for future in second._pending.values())  # both compiled: the calls wait for nothing
+        assert len(waits) == 1 and waits[0] >= 0.25
+        np.testing.assert_array_equal(second(jnp.ones(4)), jnp.cos(jnp.ones(4)))
+        ahead.settle()  # nothing left: no wait
+        blocker.result()
+    assert len(waits) == 1 and ahead.waits == 1

@@ -73,6 +73,7 @@ class Ahead:
         self.submitted = 0  # programs compiled ahead
         self.waits = 0  # calls that waited for one
         self.compile_seconds: list[float] = []  # wall seconds of each finished background compile
+        self._futures: list[concurrent.futures.Future] = []  # every compile submitted (settle waits for them)
 
     def compile(self, fn: Callable, args) -> concurrent.futures.Future:
         """A future of ``fn``'s executable for the types of ``args`` (arrays or ``ShapeDtypeStruct`` s).
@@ -92,7 +93,20 @@ class Ahead:
             self.compile_seconds.append(time.perf_counter() - start)
             return compiled
 
-        return self._pool.submit(compile_now)
+        future = self._pool.submit(compile_now)
+        self._futures.append(future)
+        return future
+
+    def settle(self) -> None:
+        """Wait for every compile submitted so far (the wait reported as one): where a compile would share the
+        cores with the steps (a CPU backend), the loop starts after the start-up's programs, not beside them."""
+        pending = [future for future in self._futures if not future.done()]
+        if pending:
+            start = time.perf_counter()
+            concurrent.futures.wait(pending)
+            self.waits += 1
+            self._on_wait(time.perf_counter() - start)
+        self._futures = []
 
     def result(self, future: concurrent.futures.Future):
         """The executable of ``future`` (waiting, and reporting the wait, if it is not ready), or None when its

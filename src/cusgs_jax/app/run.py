@@ -296,6 +296,8 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
     with session.budget.stage("train_steps"):  # the first step's program, compiled during setup: waited for here
         loop.step_fn = _step_program(session, loop, loop.capacities)
         loop.step_fn.wait(loop.state, batches(start))
+        if session.ahead is not None and jax.default_backend() == "cpu":
+            session.ahead.settle()  # the evaluation render too: on a CPU its compile would share the steps' cores
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
