@@ -24,7 +24,7 @@ class _Every:
         return step >= self.start and (step - self.start) % self.interval == 0
 
 
-def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that():
+def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that_when_near_the_capacities():
     foresight = Foresight([_Every(400, 100)], iterations=3000, step_program=None, prepare_render=None)
     assert foresight.lead_steps([]) == MIN_LEAD_STEPS  # nothing measured yet
     for _ in range(10):
@@ -32,14 +32,19 @@ def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that():
     assert foresight.lead_steps([12.0, 15.0]) == int(np.ceil(LEAD * 15.0 / 0.2))  # the slowest compile, 1.5x
     assert foresight.lead_steps([0.1]) == MIN_LEAD_STEPS
     seen = []
-    foresight._preview = lambda session, loop, done, due: seen.append((done, due))
+
+    def preview(session, loop, done, due):
+        seen.append((done, due))
+        return due == 400  # the update at 400 comes near the capacities; the one at 500 leaves room to spare
+
+    foresight._preview = preview
     session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]))
     loop = types.SimpleNamespace(state=None)
     foresight._next_capacities = lambda session, loop, done: None
     for done in range(1, 520):
         foresight.after(session, loop, done)
     lead = foresight.lead_steps([4.0])  # 30 steps
-    assert seen == [(400 - lead, 400), (400 - lead // 2, 400), (500 - lead, 500), (500 - lead // 2, 500)]
+    assert seen == [(400 - lead, 400), (400 - lead // 2, 400), (500 - lead, 500)]  # 500: no second look
     assert PREVIEWS == 2
 
 

@@ -104,3 +104,13 @@ def test_shortfall_reports_what_a_step_would_and_replayed_follows_the_replays_in
     assert passed[0] == first and first.visible_fraction == 0.5625  # 1.25 × 4530 of 10404 slots → 9/16
     assert len(passed) == 2 and passed[1].pairs_per_active > first.pairs_per_active
     assert passed[1].shortfall(views[2], A, N) is None
+
+
+def test_roomy_means_every_view_fits_each_capacity_with_a_growths_headroom():
+    caps = capacity.Capacities(visible_fraction=0.5, active_fraction=0.5, pairs_per_active=4.0)
+    A, N = 1024, 10
+    slots, active, pairs = caps.visible_slots(A), caps.active_gaussians(A, N), caps.pairs(A, N)
+    room = dict(visible_anchors=int(slots / 1.25), active_gaussians=int(active / 1.25), pairs=int(pairs / 1.25))
+    assert caps.roomy([room, room], A, N)
+    for key in room:  # any one need past 1/1.25 of its capacity, in any view, is near
+        assert not caps.roomy([room, dict(room, **{key: room[key] + 2})], A, N), key

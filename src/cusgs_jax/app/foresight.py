@@ -8,7 +8,8 @@ happen:
 
 * **the update's preview.** When the next strategy update is about one compile away (the measured
   seconds of a background compile over the median step's, times :data:`LEAD`), and again at half
-  that lead (the statistics an update reads are then nearer to what it will read), the update is run on
+  that lead (the statistics an update reads are then nearer to what it will read) unless the first look
+  left every capacity a growth's headroom to spare (:meth:`~cusgs_jax.training.capacity.Capacities.roomy`), the update is run on
   a copy of the state; the views of the :data:`PREVIEW_STEPS` steps after it are measured on the
   preview (:func:`cusgs_jax.training.render.view_needs`), and the step is compiled for the preview's
   anchor capacity at every capacities those views would grow the run to
@@ -96,7 +97,8 @@ class Foresight:
         for look in range(PREVIEWS):  # at the lead, then at half of it: a later preview sees more of the statistics
             if (due, look) not in self._previewed and due - done <= max(lead >> look, MIN_LEAD_STEPS):
                 self._previewed.update((due, earlier) for earlier in range(look + 1))
-                self._preview(session, loop, done, due)
+                if not self._preview(session, loop, done, due):  # room to spare: a second look would find it too
+                    self._previewed.update((due, later) for later in range(PREVIEWS))
                 return
 
     def _next_capacities(self, session, loop, done: int) -> None:
@@ -111,7 +113,10 @@ class Foresight:
             self.step_program(loop.capacities).prepare(grown, session.batches(int(state.step)))
             self.prepare_render(grown.anchors)
 
-    def _preview(self, session, loop, done: int, due: int) -> None:
+    def _preview(self, session, loop, done: int, due: int) -> bool:
+        """Preview the update due after ``due`` steps and compile ahead what the steps after it need; returns whether
+        they come near the run's capacities: an anchor capacity of its own, or a view needing more than
+        1/:data:`~cusgs_jax.training.capacity.GROWTH_HEADROOM` of a work capacity."""
         cfg = session.cfg
         preview = _copy(loop.state)  # an update may donate the arrays it is given
         with _quiet():
@@ -121,7 +126,7 @@ class Foresight:
         steps = range(due, min(due + PREVIEW_STEPS, self.iterations))
         batches = [session.batches(step) for step in steps]
         if not batches:
-            return
+            return False
         size = cfg.train.batch_size
         views = [(b["camera"], b["index"]) for b in batches] if size == 1 else [
             (jax.tree_util.tree_map(lambda x, v=v: x[v], b["camera"]), b["index"][v]) for b in batches
@@ -134,6 +139,8 @@ class Foresight:
                           done, due, capacity, caps)
         if capacity != loop.state.anchors.capacity:
             self.prepare_render(preview.anchors)
+            return True
+        return not loop.capacities.roomy(needs, capacity, cfg.model.n_offsets)
 
 
 def _only_removes(strategy, step: int) -> bool:
