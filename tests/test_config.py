@@ -231,6 +231,13 @@ def test_experiments_compose_and_sweep_config_fields(experiment):
             assert isinstance(compose_config([*base, f"{key}={values[0]}"]), Config)
 
 
+def test_the_voxel_size_sweep_puts_capacities_on_the_ladder_and_a_single_run_does_not():
+    assert compose_config(["experiment=voxel_size"]).model.capacity_ladder is True
+    assert compose_config([]).model.capacity_ladder is False
+    with pytest.raises(ConfigError, match="model.capacity_ladder"):
+        Config(model=ModelConfig(capacity_ladder="yes"))
+
+
 def test_scaffold_grow_option_and_demo_features(monkeypatch):
     monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")  # the config never asks
     cfg = compose_config(["grow=scaffold", "features=demo"])

@@ -165,6 +165,9 @@ class ModelConfig:
     appearance: bool = True
     appearance_dim: int = 32
     capacity_factor: float = 2.0
+    # Anchor capacities on one ladder (model/anchors.py::capacity_rung, four rungs per doubling): jobs of a voxel-size
+    # sweep whose anchor counts fall on one rung share programs; a single run pays up to 25 % more slots for it.
+    capacity_ladder: bool = False
     frustum_margin: float = 0.15
     # Frustum anchors are gathered into ceil(visible_fraction · A) slots before decoding (culled ones cost nothing);
     # a first guess: a view that sees more grows it and the step replays (training/capacity.py). 1.0: every slot.
@@ -183,6 +186,8 @@ class ModelConfig:
             object.__setattr__(self, "voxel_size", float(self.voxel_size))
         _at_least(self, "model", 1, "n_offsets", "latent_dim", "hidden", "capacity_factor")
         _at_least(self, "model", 0, "appearance_dim", "frustum_margin")
+        require(isinstance(self.capacity_ladder, bool), "model.capacity_ladder", self.capacity_ladder,
+                "must be true or false")
         require(_number(self.visible_fraction) and 0 < self.visible_fraction <= 1, "model.visible_fraction",
                 self.visible_fraction, "must lie in (0, 1] (it only sets the first visible-slot capacity, "
                 "which grows when a view sees more)")

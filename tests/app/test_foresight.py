@@ -71,5 +71,5 @@ def test_scaffold_announces_its_next_capacity_once_the_slots_fill_up_while_it_st
     alive[: int(NEXT_CAPACITY_USE * 1000) - 1] = True
     assert strategy.next_capacity(state, 500) is None
     alive[: int(NEXT_CAPACITY_USE * 1000)] = True
-    assert strategy.next_capacity(state, 500) == 1536  # the ladder's rung of ceil(A · grow.capacity_growth) = 1500
+    assert strategy.next_capacity(state, 500) == 1500  # ceil(A · grow.capacity_growth), what update grows to
     assert strategy.next_capacity(state, 1000) is None  # no growth after grow.stop

@@ -18,7 +18,7 @@ import pytest
 from cusgs_jax.config import Config, DataConfig, FeatureConfig, FeatureModelConfig, ModelConfig
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.factory import make_strategies
-from cusgs_jax.model.anchors import capacity_rung, voxelize
+from cusgs_jax.model.anchors import voxelize
 from cusgs_jax.training.state import init_train_state
 
 VOXEL = 0.5
@@ -34,7 +34,7 @@ def _state(granularity):
 
     Cached: states are immutable pytrees and the operations under test are pure.
     """
-    capacity = capacity_rung(int(np.ceil(2.0 * len(voxelize(_points(), VOXEL)))))
+    capacity = int(np.ceil(2.0 * len(voxelize(_points(), VOXEL))))
     cfg = Config(model=ModelConfig(voxel_size=VOXEL, n_offsets=3, latent_dim=5, hidden=capacity,
                                    appearance_dim=capacity, capacity_factor=2.0, query_granularity=granularity),
                  features=FeatureConfig(models=(FeatureModelConfig("alpha", query_dim=4),), hidden=capacity))
@@ -227,6 +227,9 @@ def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_pat
 
 def test_shrunk_capacity_rule():
     assert ops.shrunk_capacity(alive=5000, capacity=10000) is None  # half full: kept
-    assert ops.shrunk_capacity(alive=3200, capacity=200000) == 7168  # 2 × alive = 6400, up to the ladder's rung
-    assert ops.shrunk_capacity(alive=0, capacity=100000) == 64  # the ladder's lowest rung
+    assert ops.shrunk_capacity(alive=3200, capacity=200000) == 6400  # 2 × alive, a multiple of 256
+    assert ops.shrunk_capacity(alive=0, capacity=100000) == 256
+    # model.capacity_ladder: 2 × alive up to the ladder's rung, the lowest rung 64
+    assert ops.shrunk_capacity(alive=3200, capacity=200000, ladder=True) == 7168
+    assert ops.shrunk_capacity(alive=0, capacity=100000, ladder=True) == 64
     assert ops.shrunk_capacity(alive=100, capacity=300) is None  # nothing smaller to move to

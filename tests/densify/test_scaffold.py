@@ -219,16 +219,18 @@ def test_accumulate_rows_equals_the_dense_statistics_and_ignores_nan_of_skipped_
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_full_capacity_grows_onto_the_ladder_as_forecast(always_keep):
-    # 64 full slots, growth 1.5: ceil(96) → the ladder's rung 128, and next_capacity forecast exactly that
+@pytest.mark.parametrize("ladder, grown", [(False, 96), (True, 128)])
+def test_a_full_capacity_grows_as_forecast_on_or_off_the_ladder(always_keep, ladder, grown):
+    # 64 full slots, growth 1.5: ceil(96), with model.capacity_ladder its rung 128; next_capacity forecasts it
     cfg = GrowConfig(interval=10, levels=1, init_factor=1, capacity_growth=1.5, stop=100)
     offsets = np.zeros((64, 2, 3), np.float32)
-    offsets[:, 0, 2] = np.arange(64) + 5.0
+    offsets[:16, 0, 2] = np.arange(16) + 5.0  # 16 new anchors: 80 alive, fewer than ceil(1.5 · 64)
     anchors = _anchors(capacity=64, alive=64, offsets=offsets)
     stats = GrowStats(jnp.full((64, 2), 1.0), jnp.full((64, 2), 10.0), jnp.ones(64), jnp.ones(64))
     state, tx = _train_state(anchors, stats)
-    strategy = ScaffoldStrategy(cfg, 1.0, 2, 0)
+    strategy = ScaffoldStrategy(cfg, 1.0, 2, 0, ladder=ladder)
     forecast = strategy.next_capacity(state, 10)
     _, info = strategy.update(state, tx, 10)
-    assert info.capacity_changed and info.extra["capacity"] == forecast == capacity_rung(96) == 128
+    assert info.capacity_changed and info.extra["capacity"] == forecast == grown
+    assert not ladder or grown == capacity_rung(96)
     assert strategy.next_capacity(state, 100) is None  # growth has stopped: nothing to forecast

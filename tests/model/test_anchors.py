@@ -48,11 +48,15 @@ def test_init_anchors_capacity_and_alive_mask():
     anchors = init_anchors(points, 0.2, n_offsets=5, latent_dim=8, capacity_factor=2.0)
     params = anchors.params
     num = int(anchors.alive.sum())
-    assert anchors.capacity == capacity_rung(int(np.ceil(2.0 * num))) >= 2 * num
-    # 100 and 110 anchors (one per lattice cell) stand on one rung: one capacity, one step program
+    assert anchors.capacity == int(np.ceil(2.0 * num))
+    laddered = init_anchors(points, 0.2, n_offsets=5, latent_dim=8, capacity_factor=2.0, ladder=True)
+    assert laddered.capacity == capacity_rung(int(np.ceil(2.0 * num))) >= 2 * num
+    # with the ladder, 100 and 110 anchors (one per lattice cell) stand on one rung: one capacity, one program
     lattice = np.stack(np.meshgrid(*[np.arange(5.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
-    sizes = {init_anchors(lattice[:n], 1.0, n_offsets=2, latent_dim=3).capacity for n in (100, 110)}
+    sizes = {init_anchors(lattice[:n], 1.0, n_offsets=2, latent_dim=3, ladder=ladder).capacity
+             for n in (100, 110) for ladder in (True,)}
     assert sizes == {256}
+    assert init_anchors(lattice[:110], 1.0, n_offsets=2, latent_dim=3).capacity == 220  # off the ladder
     assert params.offsets.shape == (anchors.capacity, 5, 3)
     assert params.latent.shape == (anchors.capacity, 8)
     assert np.all(np.asarray(anchors.alive[:num])) and not np.any(np.asarray(anchors.alive[num:]))

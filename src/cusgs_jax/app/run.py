@@ -389,7 +389,7 @@ def _shrink_if_empty(session: Session, loop: Loop, step: int) -> None:
     """Move the anchors to a smaller capacity when pruning left most slots dead (:func:`ops.shrunk_capacity`),
     and refit the work capacities to the smaller model, so a step pays for what is alive."""
     alive, old = int(np.sum(np.asarray(loop.state.anchors.alive))), loop.state.anchors.capacity
-    new = ops.shrunk_capacity(alive, old)
+    new = ops.shrunk_capacity(alive, old, ladder=session.cfg.model.capacity_ladder)
     if new is None:
         return
     loop.state = ops.resize_capacity(loop.state, session.tx, new)

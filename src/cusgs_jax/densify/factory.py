@@ -19,7 +19,8 @@ def make_strategies(cfg: Config) -> tuple[Strategy, ...]:
     :func:`~cusgs_jax.densify.early_cull.resolve_early_cull`; unresolved it is off), Scaffold growing always,
     feature-aware pruning when ``prune.strategy == "feature_aware"``."""
     strategies: list[Strategy] = [EarlyCullStrategy(cfg.grow)] if cfg.grow.early_cull == "on" else []
-    strategies.append(ScaffoldStrategy(cfg.grow, cfg.model.voxel_size, cfg.model.n_offsets, cfg.train.seed))
+    strategies.append(ScaffoldStrategy(cfg.grow, cfg.model.voxel_size, cfg.model.n_offsets, cfg.train.seed,
+                                       ladder=cfg.model.capacity_ladder))
     if cfg.prune.strategy == "feature_aware":
         strategies.append(FeaturePruneStrategy(cfg.prune))
     return tuple(strategies)

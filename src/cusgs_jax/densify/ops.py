@@ -28,6 +28,8 @@ SHRINK_BELOW = 0.25
 """The capacity shrinks when the alive anchors fill less than this fraction of it (:func:`shrunk_capacity`)."""
 SHRINK_HEADROOM = 2.0
 """A shrunk capacity holds this many times the alive anchors (room to grow before it must grow again)."""
+CAPACITY_MULTIPLE = 256
+"""Shrunk capacities off the capacity ladder are multiples of this (few distinct shapes, few compiles)."""
 
 
 def map_moments(tx: optax.GradientTransformation, fn, opt_state):
@@ -69,18 +71,22 @@ def _moved(state, tx, keep, new_capacity: int):
                          opt_state=map_moments(tx, leaf, state.opt_state))
 
 
-def shrunk_capacity(alive: int, capacity: int) -> int | None:
+def shrunk_capacity(alive: int, capacity: int, ladder: bool = False) -> int | None:
     """The smaller anchor capacity a state should move to, or None to keep ``capacity``.
 
     Pruning can leave a capacity sized for the initial points nearly empty (100k random initial
     points pruned to a few thousand anchors), and every step pays for the capacity's slots
     (visible-slot, active and pair capacities are fractions of it; the statistics are [A]).
-    Shrink when fewer than :data:`SHRINK_BELOW` of the slots are alive, to the capacity ladder's rung
-    (:func:`~cusgs_jax.model.anchors.capacity_rung`) of :data:`SHRINK_HEADROOM` × alive.
+    Shrink when fewer than :data:`SHRINK_BELOW` of the slots are alive, to :data:`SHRINK_HEADROOM` × alive
+    rounded up to :data:`CAPACITY_MULTIPLE` — with ``ladder`` (``model.capacity_ladder``), to its rung
+    (:func:`~cusgs_jax.model.anchors.capacity_rung`).
     """
     if alive >= SHRINK_BELOW * capacity:
         return None
-    target = capacity_rung(int(np.ceil(max(alive, 1) * SHRINK_HEADROOM)))
+    if ladder:
+        target = capacity_rung(int(np.ceil(max(alive, 1) * SHRINK_HEADROOM)))
+    else:
+        target = int(np.ceil(max(alive, 1) * SHRINK_HEADROOM / CAPACITY_MULTIPLE) * CAPACITY_MULTIPLE)
     return target if target < capacity else None
 
 

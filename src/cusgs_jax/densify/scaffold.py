@@ -205,8 +205,9 @@ class ScaffoldStrategy(Strategy):
 
     name = "scaffold"
 
-    def __init__(self, cfg: GrowConfig, voxel_size: float, n_offsets: int, seed: int):
+    def __init__(self, cfg: GrowConfig, voxel_size: float, n_offsets: int, seed: int, ladder: bool = False):
         self.cfg, self.voxel_size, self.n_offsets, self.seed = cfg, voxel_size, n_offsets, seed
+        self.ladder = ladder  # model.capacity_ladder: a grown capacity is a rung of model/anchors.py::capacity_rung
 
     def init_state(self, capacity: int) -> GrowStats:
         return GrowStats.zeros(capacity, self.n_offsets)
@@ -224,7 +225,7 @@ class ScaffoldStrategy(Strategy):
         return self.cfg.start <= step <= self.cfg.stop and step % self.cfg.interval == 0
 
     def next_capacity(self, state, step: int) -> int | None:
-        """:meth:`grown_capacity` of A (the ladder's rung of ``ceil(A · grow.capacity_growth)``) once the alive anchors fill :data:`NEXT_CAPACITY_USE` of A while
+        """:meth:`grown_capacity` of A once the alive anchors fill :data:`NEXT_CAPACITY_USE` of A while
         growth is still scheduled: what :meth:`update` grows a full capacity to (unless one growth alone
         needs more)."""
         capacity = state.anchors.capacity
@@ -234,9 +235,10 @@ class ScaffoldStrategy(Strategy):
 
     def grown_capacity(self, capacity: int, need: int) -> int:
         """The anchor capacity a full capacity of ``capacity`` slots grows to when ``need`` slots must be
-        alive: the ladder's rung (:func:`~cusgs_jax.model.anchors.capacity_rung`) of the larger of
-        ``ceil(A · grow.capacity_growth)`` and ``need``."""
-        return capacity_rung(max(int(np.ceil(capacity * self.cfg.capacity_growth)), int(need)))
+        alive: the larger of ``ceil(A · grow.capacity_growth)`` and ``need`` — with the ladder, its rung
+        (:func:`~cusgs_jax.model.anchors.capacity_rung`)."""
+        grown = max(int(np.ceil(capacity * self.cfg.capacity_growth)), int(need))
+        return capacity_rung(grown) if self.ladder else grown
 
     def generator(self, step: int) -> np.random.Generator:
         """The candidate-dropping draws of the adjustment after ``step`` steps (seeded: resumes replay it)."""

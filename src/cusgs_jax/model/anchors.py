@@ -193,13 +193,14 @@ def fresh_queries(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
 
 
 def anchor_layout(points: np.ndarray, voxel_size: float, *, capacity: int | None = None,
-                  capacity_factor: float = 2.0) -> dict[str, np.ndarray]:
+                  capacity_factor: float = 2.0, ladder: bool = False) -> dict[str, np.ndarray]:
     """The host part of :func:`init_anchors` (NumPy): ``{"centers": [A, 3] float32, "log_scaling": [A, 6]
     float32, "alive": [A] bool}`` with the first A0 slots the voxelised points (the rest dead, at
-    ``log(voxel_size)``)."""
+    ``log(voxel_size)``); ``ladder``: the default capacity is :func:`capacity_rung` of ``capacity_factor`` · A0."""
     centers = voxelize(points, voxel_size)
     num = centers.shape[0]
-    capacity = capacity or capacity_rung(max(int(math.ceil(capacity_factor * num)), num))
+    wanted = max(int(math.ceil(capacity_factor * num)), num)
+    capacity = capacity or (capacity_rung(wanted) if ladder else wanted)
     if capacity < num:
         raise ValueError(f"capacity {capacity} is smaller than the {num} initial anchors")
     log_scale = np.log(np.sqrt(nearest_neighbour_sq_dist(centers)))
@@ -231,8 +232,8 @@ def anchors_of_layout(layout: dict, *, n_offsets: int, latent_dim: int, query_di
 
 
 def init_anchors(points: np.ndarray, voxel_size: float, *, n_offsets: int = 10, latent_dim: int = 32,
-                 capacity: int | None = None, capacity_factor: float = 2.0, query_dim: int = 0,
-                 key: jax.Array | None = None) -> AnchorState:
+                 capacity: int | None = None, capacity_factor: float = 2.0, ladder: bool = False,
+                 query_dim: int = 0, key: jax.Array | None = None) -> AnchorState:
     """Anchors from an SfM point cloud (Scaffold-GS ``create_from_pcd``).
 
     Offsets and latents start at zero; ``log_scaling`` is ``log sqrt`` of the
@@ -241,12 +242,12 @@ def init_anchors(points: np.ndarray, voxel_size: float, *, n_offsets: int = 10, 
     Args:
       points: [P, 3] SfM points.
       voxel_size: cell size l.
-      capacity: total slots; default the :func:`capacity_rung` of ``ceil(capacity_factor · A0)``.
+      capacity: total slots; default ``ceil(capacity_factor · A0)`` (with ``ladder``: its :func:`capacity_rung`).
       query_dim: Q > 0 adds a per-Gaussian query table drawn with ``key``.
     Returns:
       :class:`AnchorState` with the first A0 slots alive.
     """
-    layout = anchor_layout(points, voxel_size, capacity=capacity, capacity_factor=capacity_factor)
+    layout = anchor_layout(points, voxel_size, capacity=capacity, capacity_factor=capacity_factor, ladder=ladder)
     return anchors_of_layout(layout, n_offsets=n_offsets, latent_dim=latent_dim, query_dim=query_dim, key=key)
 
 
@@ -293,10 +294,10 @@ def capacity_rung(need: int, multiple: int = 64) -> int:
     """The anchor-capacity ladder: the smallest rung that holds ``need`` slots.
 
     Rungs are the multiples of ``max(multiple, 2^(⌊log₂ need⌋ − 2))``: four per doubling (2^k · 1, 1.25,
-    1.5, 1.75), so a capacity pads at most 25 % once ``need`` ≥ 4 · ``multiple``. Every anchor capacity of a
-    run stands on it — the first (``capacity_factor`` × the initial anchors), each growth and shrink, and the
-    compacted models of renders and exports — so a run compiles its step for few capacities and runs whose
-    counts fall on one rung (jobs of a voxel-size sweep) share programs through the persistent cache.
+    1.5, 1.75), so a capacity pads at most 25 % once ``need`` ≥ 4 · ``multiple``. The compacted models of renders
+    and exports stand on it, and with ``model.capacity_ladder`` every anchor capacity of a run — the first
+    (``capacity_factor`` × the initial anchors), each growth and shrink — so runs whose counts fall on one rung
+    (jobs of a voxel-size sweep) share programs through the persistent cache.
     """
     step = max(int(multiple), 2 ** max(int(need).bit_length() - 3, 0))
     return max(int(multiple), -(-int(need) // step) * step)

@@ -35,7 +35,7 @@ from cusgs_jax.model.decode import num_visible_slots
 log = logging.getLogger("cusgs_jax")
 
 PAIR_SLACK = 4096  # pairs added to ``max_pairs_per_gaussian · G`` (covers tiny scenes)
-FRACTION_BUCKET = 16  # visible_fraction grows in steps of 1/16 (of a capacity on the anchor-capacity ladder)
+FRACTION_BUCKET = 8  # visible_fraction grows in steps of 1/8
 ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 # Headroom over the need after an overflow: a growing model overflows again soon, and every growth
 # recompiles the whole step (~30 s for the demo's feature step on 2 CPU cores) while 25 % more slots
@@ -59,7 +59,7 @@ def grown_visible_fraction(current: float, needed_slots: int, capacity: int,
                            headroom: float = GROWTH_HEADROOM) -> float:
     """A visible fraction of the A = ``capacity`` slots that holds ``headroom`` × ``needed_slots``.
 
-    Grows by at least one bucket of 1/16 and never beyond 1 (every slot decoded).
+    Grows by at least one bucket of 1/8 and never beyond 1 (every slot decoded).
     """
     want = max(current + 1.0 / FRACTION_BUCKET, headroom * needed_slots / max(capacity, 1))
     return min(1.0, math.ceil(want * FRACTION_BUCKET) / FRACTION_BUCKET)
@@ -191,7 +191,7 @@ class Capacities:
           needs: the most any probed view needed: ``visible_anchors``, ``active_gaussians``, ``pairs``
             (:func:`cusgs_jax.training.render.view_work`).
         Returns:
-          visible slots ≥ 1.1 × the visible anchors (in buckets of 1/16 of A), active Gaussians
+          visible slots ≥ 1.1 × the visible anchors (in buckets of 1/8 of A), active Gaussians
           ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
           per active Gaussian).
         """
@@ -204,7 +204,7 @@ class Capacities:
 
     def for_evaluation(self) -> Capacities:
         """The capacities an evaluation render starts from: these with :data:`EVAL_HEADROOM` × the visible
-        slots (in buckets of 1/16 of A; the active Gaussians and tile pairs scale with them).
+        slots (in buckets of 1/8 of A; the active Gaussians and tile pairs scale with them).
 
         Held-out views may see more than the training views the step was fitted to, and the model grows
         between evaluations; each overflow would cost the render a recompilation (a replayed step grows

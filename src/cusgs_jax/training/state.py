@@ -142,7 +142,8 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     require(model.voxel_size is not None, "model.voxel_size", "auto",
             "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
-    layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor)
+    layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor,
+                           ladder=model.capacity_ladder)
     _check_scaffold(int(layout["alive"].sum()), model.voxel_size, points)
 
     key = jax.random.PRNGKey(cfg.train.seed)
