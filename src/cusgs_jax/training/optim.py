@@ -6,6 +6,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from cusgs_jax.config import OptimConfig
@@ -95,8 +96,11 @@ def rate_arguments(rates: dict[str, tuple[float, float]]) -> dict[str, jax.Array
     """The step's ``learning_rates`` argument for :func:`group_rates` ``rates``: {group: [2] float32}, the
     (log initial, log final) of a decaying group — ``jnp.log`` as :func:`log_linear_schedule` takes them — and
     (rate, rate) of a constant one. As an argument, a sweep over learning rates shares the step's program."""
-    return {name: jnp.stack([jnp.float32(init), jnp.float32(final)]) if init == final
-            else jnp.stack([jnp.log(init), jnp.log(final)]) for name, (init, final) in rates.items()}
+    def pair(init, final):  # assembled on the host and placed once: eager stacks would each compile a program
+        values = (init, final) if init == final else (jnp.log(init), jnp.log(final))
+        return np.asarray([np.asarray(v, np.float32) for v in values], np.float32)
+
+    return jax.device_put({name: pair(init, final) for name, (init, final) in rates.items()})
 
 
 def scale_by_group_rate(group: str, decays: bool, steps: int,
