@@ -73,7 +73,7 @@ class Ahead:
         self.submitted = 0  # programs compiled ahead
         self.waits = 0  # calls that waited for one
         self.compile_seconds: list[float] = []  # wall seconds of each finished background compile
-        self._futures: list[concurrent.futures.Future] = []  # every compile submitted (settle waits for them)
+        self._futures: list[concurrent.futures.Future] = []  # compiles submitted and not yet seen done (settle)
 
     def compile(self, fn: Callable, args) -> concurrent.futures.Future:
         """A future of ``fn``'s executable for the types of ``args`` (arrays or ``ShapeDtypeStruct`` s).
@@ -94,7 +94,7 @@ class Ahead:
             return compiled
 
         future = self._pool.submit(compile_now)
-        self._futures.append(future)
+        self._futures = [f for f in self._futures if not f.done()] + [future]
         return future
 
     def settle(self) -> None:

@@ -163,11 +163,8 @@ class Capacities:
               headroom: float = GROWTH_HEADROOM) -> bool:
         """Whether every view of ``needs`` (:func:`cusgs_jax.training.render.view_work`) fits these capacities
         ``headroom`` times over: visible slots, active Gaussians and tile pairs."""
-        slots = self.visible_slots(anchor_capacity)
-        active = self.active_gaussians(anchor_capacity, n_offsets)
-        pairs = self.pairs(anchor_capacity, n_offsets)
-        return all(headroom * need["visible_anchors"] <= slots and headroom * need["active_gaussians"] <= active
-                   and headroom * need["pairs"] <= pairs for need in needs)
+        return all(self.shortfall({key: headroom * need[key] for key in ("visible_anchors", "active_gaussians", "pairs")},
+                                  anchor_capacity, n_offsets) is None for need in needs)
 
     def replayed(self, needs: list[dict], anchor_capacity: int, n_offsets: int) -> list[Capacities]:
         """The capacities a run starting from these would pass through on steps whose views need ``needs``,

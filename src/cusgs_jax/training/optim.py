@@ -17,12 +17,13 @@ def log_linear_schedule(init: float, final: float, steps: int) -> optax.Schedule
     if init == final:
         return optax.constant_schedule(init)
     log_init, log_final = jnp.log(init), jnp.log(final)
+    return lambda step: _log_lerp(log_init, log_final, step, steps)
 
-    def schedule(step):
-        t = jnp.clip(step / max(steps, 1), 0.0, 1.0)
-        return jnp.exp(log_init * (1 - t) + log_final * t)
 
-    return schedule
+def _log_lerp(log_init, log_final, step, steps: int):
+    """``exp(lerp(log_init, log_final, clip(step / steps, 0, 1)))``: the schedule's value at ``step``."""
+    t = jnp.clip(step / max(steps, 1), 0.0, 1.0)
+    return jnp.exp(log_init * (1 - t) + log_final * t)
 
 
 GROUP_OF_PATH = {
@@ -118,8 +119,7 @@ def scale_by_group_rate(group: str, decays: bool, steps: int,
         del params, extra_args
         rate = default if learning_rates is None else learning_rates[group]
         if decays:
-            t = jnp.clip(state.count / max(steps, 1), 0.0, 1.0)
-            step_size = -1 * jnp.exp(rate[0] * (1 - t) + rate[1] * t)
+            step_size = -1 * _log_lerp(rate[0], rate[1], state.count, steps)
         else:  # optax.constant_schedule
             step_size = -1 * rate[0]
         updates = jax.tree.map(lambda g: jnp.array(step_size, dtype=g.dtype) * g, updates)
