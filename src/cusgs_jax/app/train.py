@@ -40,7 +40,7 @@ from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.compose import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
-from cusgs_jax.run_folder import FAILED_FILE
+from cusgs_jax.run_folder import EVAL_FILE, FAILED_FILE
 from cusgs_jax.sweep.pareto import result_objectives
 
 log = logging.getLogger("cusgs_jax")
@@ -61,14 +61,37 @@ def record_failure(output_dir: str | pathlib.Path, error: BaseException) -> path
 
 
 class FailedJobs(Callback):
-    """Hydra callback: after a sweep, collect the jobs that wrote ``failed.json`` (read by :func:`main`)."""
+    """Hydra callback: the sweep's folder when it starts, and after it the jobs that wrote ``failed.json`` (read by
+    :func:`main`)."""
 
     found: list[dict] = []
+    sweep_dir: pathlib.Path | None = None
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        FailedJobs.sweep_dir = pathlib.Path(str(config.hydra.sweep.dir))
 
     def on_multirun_end(self, config: DictConfig, **kwargs) -> None:
         sweep_dir = pathlib.Path(str(config.hydra.sweep.dir))
         FailedJobs.found = [dict(json.loads(path.read_text()), path=str(path))
                             for path in sorted(sweep_dir.glob(f"*/{FAILED_FILE}"))]
+
+
+LOST = ("JobLost: the job's process ended before the job did (killed, or stopped with the launcher's worker pool "
+        "when another job's process died); its checkpoints are kept: rerun the sweep with train.resume=true to "
+        "continue it")
+
+
+def record_lost_jobs(sweep_dir: pathlib.Path) -> list[pathlib.Path]:
+    """Write ``failed.json`` (:data:`LOST`) into every job folder under ``sweep_dir`` that Hydra started
+    (``.hydra/``) and that holds neither ``eval.json`` nor ``failed.json``: a sweep whose launcher broke (a worker
+    killed: joblib's pool then stops every other job too) says which jobs it lost. Returns the files written."""
+    written = []
+    for record in sorted(pathlib.Path(sweep_dir).rglob(".hydra")):
+        job = record.parent
+        if record.is_dir() and not (job / EVAL_FILE).exists() and not (job / FAILED_FILE).exists():
+            (job / FAILED_FILE).write_text(json.dumps({"error": LOST, "user_error": False, "traceback": ""}, indent=1))
+            written.append(job / FAILED_FILE)
+    return written
 
 
 def _parallel_jobs(hydra_cfg) -> int | None:
@@ -131,8 +154,15 @@ def main(argv: list[str] | None = None) -> None:
         print(f"{PROG}: error: {problem}", file=sys.stderr)
         raise SystemExit(2)
     sys.argv = [sys.argv[0] or PROG] + argv
-    FailedJobs.found = []
-    _hydra_main()
+    FailedJobs.found, FailedJobs.sweep_dir = [], None
+    try:
+        _hydra_main()
+    except SystemExit as stopped:  # Hydra reports a launcher's error (a killed joblib worker) and exits 1
+        if stopped.code not in (0, None) and FailedJobs.sweep_dir is not None:
+            for path in record_lost_jobs(FailedJobs.sweep_dir):
+                print(f"{PROG}: job lost: {path.parent} did not finish; rerun the sweep with train.resume=true to "
+                      "continue it", file=sys.stderr)
+        raise
     if FailedJobs.found:
         for job in FailedJobs.found:
             print(f"{PROG}: job failed: {job['error'].splitlines()[0]} ({job['path']})", file=sys.stderr)

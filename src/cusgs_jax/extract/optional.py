@@ -6,7 +6,7 @@ is installed and left out otherwise, so that the demo trains without optional pa
 model whose package is missing stops the run where it is extracted, with the install hint
 (:func:`cusgs_jax.extract.vgg.vgg16_features` for vgg16).
 
-The configuration never probes packages: setup (:func:`cusgs_jax.app.run.setup`) asks once, after
+The configuration never probes packages: setup (:func:`cusgs_jax.app.session.setup`) asks once, after
 resolving ``features.models`` (:meth:`~cusgs_jax.config.FeatureConfig.resolve`), and the viewer asks
 again for a run folder it opens (:func:`cusgs_jax.view.render.from_trained`). Importing this module
 imports neither JAX nor the optional packages.
