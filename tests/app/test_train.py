@@ -151,7 +151,7 @@ def test_a_sweep_whose_worker_is_killed_records_every_lost_job(tiny_scene, tmp_p
             assert time.monotonic() < deadline and sweep_process.poll() is None, sweep_process.stderr.read()[-3000:]
             time.sleep(0.5)
         workers = [child for child in psutil.Process(sweep_process.pid).children(recursive=True)
-                   if "loky" in " ".join(child.cmdline()) or "joblib" in " ".join(child.cmdline())]
+                   if "popen_loky" in " ".join(child.cmdline())]  # not the resource tracker
         assert len(workers) >= 2, [w.cmdline() for w in workers]
         workers[0].send_signal(signal.SIGKILL)
         _, stderr = sweep_process.communicate(timeout=300)
@@ -164,3 +164,7 @@ def test_a_sweep_whose_worker_is_killed_records_every_lost_job(tiny_scene, tmp_p
         assert failure["error"].startswith("JobLost:") and "train.resume=true" in failure["error"]
         assert f"job lost: {sweep / str(job)} did not finish" in stderr
     assert not (sweep / "0" / "eval.json").exists()
+    report = subprocess.run([sys.executable, "-m", "cusgs_jax.app.report", str(sweep)], capture_output=True,
+                            text=True, timeout=300)
+    rows = list(csv.DictReader((sweep / "report" / "report.csv").open()))
+    assert [r["status"].split(":")[:2] for r in rows] == [["failed", " JobLost"]] * 2, report.stderr[-2000:]
