@@ -112,3 +112,8 @@ def test_roomy_means_every_view_fits_each_capacity_with_a_growths_headroom():
     assert caps.roomy([room, room], A, N)
     for key in room:  # any one need past 1/1.25 of its capacity, in any view, is near
         assert not caps.roomy([room, dict(room, **{key: room[key] + 2})], A, N), key
+    # the foresight's looser test: a first fit's headroom (1.1) to spare, which a 1.2x margin has and 1.05x has not
+    near = dict(visible_anchors=int(slots / 1.2), active_gaussians=int(active / 1.2), pairs=int(pairs / 1.2))
+    assert caps.roomy([near], A, N, headroom=capacity.FIT_HEADROOM) and not caps.roomy([near], A, N)
+    tight = dict(near, pairs=int(pairs / 1.05))
+    assert not caps.roomy([near, tight], A, N, headroom=capacity.FIT_HEADROOM)

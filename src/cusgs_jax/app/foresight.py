@@ -9,7 +9,8 @@ happen:
 * **the update's preview.** When the next strategy update is about one compile away (the measured
   seconds of a background compile over the median step's, times :data:`LEAD`), and again at half
   that lead (the statistics an update reads are then nearer to what it will read) unless the first look
-  left every capacity a growth's headroom to spare (:meth:`~cusgs_jax.training.capacity.Capacities.roomy`), the update is run on
+  left every capacity the headroom of a first fit to spare (:data:`~cusgs_jax.training.capacity.FIT_HEADROOM`,
+  :meth:`~cusgs_jax.training.capacity.Capacities.roomy`), the update is run on
   a copy of the state; the views of the :data:`PREVIEW_STEPS` steps after it are measured on the
   preview (:func:`cusgs_jax.training.render.view_needs`), and the step is compiled for the preview's
   anchor capacity at every capacities those views would grow the run to
@@ -34,6 +35,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax.densify import ops
+from cusgs_jax.training.capacity import FIT_HEADROOM
 from cusgs_jax.training.render import view_needs
 
 log = logging.getLogger("cusgs_jax")
@@ -116,7 +118,7 @@ class Foresight:
     def _preview(self, session, loop, done: int, due: int) -> bool:
         """Preview the update due after ``due`` steps and compile ahead what the steps after it need; returns whether
         they come near the run's capacities: an anchor capacity of its own, or a view needing more than
-        1/:data:`~cusgs_jax.training.capacity.GROWTH_HEADROOM` of a work capacity."""
+        1/:data:`~cusgs_jax.training.capacity.FIT_HEADROOM` of a work capacity."""
         cfg = session.cfg
         preview = _copy(loop.state)  # an update may donate the arrays it is given
         with _quiet():
@@ -140,7 +142,7 @@ class Foresight:
         if capacity != loop.state.anchors.capacity:
             self.prepare_render(preview.anchors)
             return True
-        return not loop.capacities.roomy(needs, capacity, cfg.model.n_offsets)
+        return not loop.capacities.roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM)
 
 
 def _only_removes(strategy, step: int) -> bool:

@@ -41,6 +41,7 @@ ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 # recompiles the whole step (~30 s for the demo's feature step on 2 CPU cores) while 25 % more slots
 # cost a few per cent of a step; the first fit (Capacities.fitted) uses the tighter 1.1 / 1.15.
 GROWTH_HEADROOM = 1.25
+FIT_HEADROOM = 1.1  # the least headroom a first fit leaves (its visible slots; Capacities.fitted)
 EVAL_HEADROOM = 1.5  # visible slots of an evaluation render over the step's (Capacities.for_evaluation)
 
 
@@ -192,7 +193,7 @@ class Capacities:
           ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
           per active Gaussian).
         """
-        visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity, headroom=1.1)
+        visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity, headroom=FIT_HEADROOM)
         decoded = num_visible_slots(anchor_capacity, visible) * n_offsets
         active = grown_active_fraction(0.0, int(needs["active_gaussians"]), decoded, headroom=1.15)
         num_active = cls(visible, active, 1.0).active_gaussians(anchor_capacity, n_offsets)
