@@ -65,7 +65,8 @@ def child(args) -> dict:
     from cusgs_jax.model.anchors import compact
     from cusgs_jax.training import capacity
     from cusgs_jax.training.render import make_render_fn
-    from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+    from cusgs_jax.app.resolve import resolve_voxel_size
+    from cusgs_jax.training.state import init_train_state
     from cusgs_jax.training.step import make_train_step
     from cusgs_jax.types import Camera
 

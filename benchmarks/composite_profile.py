@@ -37,7 +37,8 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
     from cusgs_jax.splat.tiles import TileGrid, intersect_tiles
     from cusgs_jax.training import capacity
     from cusgs_jax.training.render import most_work
-    from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+    from cusgs_jax.app.resolve import resolve_voxel_size
+    from cusgs_jax.training.state import init_train_state
     from cusgs_jax.types import Camera
 
     if scene_path == "demo":

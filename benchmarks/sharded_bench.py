@@ -44,7 +44,8 @@ def main() -> None:
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.densify.factory import make_strategies
-    from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+    from cusgs_jax.app.resolve import resolve_voxel_size
+    from cusgs_jax.training.state import init_train_state
     from cusgs_jax.training.step import make_train_step
     from cusgs_jax.types import Camera
 

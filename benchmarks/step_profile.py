@@ -46,7 +46,8 @@ def build(scene_path: str):
     from cusgs_jax.densify.factory import make_strategies
     from cusgs_jax.training import capacity
     from cusgs_jax.training.render import most_work
-    from cusgs_jax.training.state import init_train_state, resolve_voxel_size
+    from cusgs_jax.app.resolve import resolve_voxel_size
+    from cusgs_jax.training.state import init_train_state
     from cusgs_jax.training.step import make_train_step
     from cusgs_jax.types import Camera
 

@@ -155,7 +155,7 @@ class ModelConfig:
     in YAML and on the command line), Scaffold-GS's rule for ``voxel_size <= 0``:
     the median spacing of the SfM points (:func:`cusgs_jax.model.anchors.auto_voxel_size`;
     for random initial points :func:`cusgs_jax.data.random_points.random_voxel_size`),
-    resolved in setup by :func:`cusgs_jax.training.state.resolve_voxel_size`.
+    resolved in setup by :func:`cusgs_jax.app.resolve.resolve_voxel_size`.
     """
 
     voxel_size: Optional[float] = None  # None: auto

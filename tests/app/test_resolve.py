@@ -36,3 +36,30 @@ def test_a_random_start_without_alpha_gets_early_culling_and_scene_points_never_
     cfg, facts = _resolved(demo, "model.voxel_size=0.02")
     assert not facts.random_start and cfg.grow.early_cull == "off" and cfg.model.voxel_size == 0.02
     assert cfg.splat.background == (0.0, 0.0, 0.0) and facts.points == len(load_scene(demo, DataConfig()).points)
+
+
+def test_the_voxel_size_comes_from_the_points_spacing_or_for_random_points_from_the_cameras():
+    """``model.voxel_size=auto``: the SfM points' median spacing (model.anchors.auto_voxel_size); for random points the
+    cameras' pixel footprint (data.random_points.random_voxel_size), finer than the random points' spacing; a set
+    size is kept as it is."""
+    import numpy as np
+    import pytest
+
+    from cusgs_jax.app.resolve import resolve_voxel_size
+    from cusgs_jax.config import Config
+    from cusgs_jax.data.random_points import random_points, random_voxel_size
+    from cusgs_jax.model.anchors import auto_voxel_size
+
+    angles = np.linspace(0, 2 * np.pi, 12, endpoint=False)  # a ring of cameras at radius 4 looking at the origin
+    views = np.stack([np.linalg.inv(np.array([[np.cos(a), 0, -np.sin(a), 4 * np.sin(a)], [0, -1, 0, 0],
+                                              [-np.sin(a), 0, -np.cos(a), 4 * np.cos(a)], [0, 0, 0, 1]]))
+                      for a in angles])
+    width = height = 40
+    Ks = np.tile(np.array([[40.0, 0, 20], [0, 40.0, 20], [0, 0, 1]]), (12, 1, 1))
+    points, _ = random_points(views, Ks, width, height, num=5000)
+    auto = Config()  # model.voxel_size=None: auto
+    assert resolve_voxel_size(auto, points).model.voxel_size == pytest.approx(auto_voxel_size(points))
+    rule = resolve_voxel_size(auto, points, (views, Ks, width, height)).model.voxel_size
+    assert rule == pytest.approx(random_voxel_size(views, Ks, width, height)) and rule < 0.5 * auto_voxel_size(points)
+    explicit = auto.replace(model=dict(voxel_size=0.05))
+    assert resolve_voxel_size(explicit, points) is explicit

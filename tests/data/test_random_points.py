@@ -162,16 +162,3 @@ def test_random_voxel_size_is_half_a_pixel_footprint():
     assert random_voxel_size(big, Ks, W, H) == pytest.approx(10 * 0.5 * 4.0311 / f, rel=1e-6)
     twice = _K(20, width=2 * W)  # twice the pixels across the same field of view: half the footprint
     assert random_voxel_size(views, twice, 2 * W, 2 * H) == pytest.approx(0.25 * 4.0311 / f, rel=1e-6)
-
-
-def test_resolve_voxel_size_uses_the_camera_rule_for_random_points():
-    from cusgs_jax.config import Config
-    from cusgs_jax.training.state import resolve_voxel_size
-
-    views, Ks = _ring(), _K(20)
-    points, _ = random_points(views, Ks, W, H, num=5000)
-    cfg = Config()  # model.voxel_size=None: auto
-    assert resolve_voxel_size(cfg, points).model.voxel_size == pytest.approx(auto_voxel_size(points))
-    rule = resolve_voxel_size(cfg, points, (views, Ks, W, H)).model.voxel_size
-    assert rule == pytest.approx(random_voxel_size(views, Ks, W, H))
-    assert rule < 0.5 * auto_voxel_size(points)

@@ -188,7 +188,7 @@ def test_a_step_on_the_shrunk_state_updates_every_alive_anchor_as_before(tmp_pat
     from cusgs_jax.data.normalize import normalize_scene
     from cusgs_jax.data.demo import generate_demo_scene
     from cusgs_jax.training.capacity import Capacities
-    from cusgs_jax.training.state import resolve_voxel_size
+    from cusgs_jax.app.resolve import resolve_voxel_size
     from cusgs_jax.training.step import make_train_step
     from cusgs_jax.types import Camera
 

@@ -121,15 +121,11 @@ def test_a_scaffold_of_a_few_anchors_is_refused_and_a_coarse_one_warned_about(ca
 
 def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():
     from cusgs_jax.model.anchors import auto_voxel_size
-    from cusgs_jax.training.state import resolve_voxel_size
 
     points = sfm_points()
-    cfg = resolve_voxel_size(CFG.replace(model=dict(voxel_size=None)), points)
-    assert cfg.model.voxel_size == pytest.approx(auto_voxel_size(points))
     assert auto_voxel_size(1000.0 * points + 7.0) == pytest.approx(1000.0 * auto_voxel_size(points), rel=1e-9)
     grid = np.stack(np.meshgrid(*[np.arange(5.0)] * 3), -1).reshape(-1, 3) * 0.3  # spacing 0.3
     assert auto_voxel_size(np.concatenate([grid, grid])) == pytest.approx(0.3)  # duplicates ignored
-    assert resolve_voxel_size(CFG, points) is CFG  # an explicit size is kept
 
 
 @pytest.mark.parametrize("granularity, adapter", [("per_anchor", "affine"), ("per_gaussian", "lowrank")])

@@ -16,7 +16,6 @@ import numpy as np
 import optax
 
 from cusgs_jax.config import Config, require
-from cusgs_jax.data.random_points import random_voxel_size
 from cusgs_jax.densify.base import Strategy
 from cusgs_jax.model.anchors import AnchorState, anchor_layout, anchors_of_layout, auto_voxel_size
 from cusgs_jax.model.decode import init_decoder
@@ -27,25 +26,6 @@ from cusgs_jax.training.optim import make_optimizer
 log = logging.getLogger("cusgs_jax")
 MIN_ANCHORS = 4  # fewer cannot represent a scene: refused
 FEW_ANCHORS = 64  # fewer is allowed but warned about
-
-
-def resolve_voxel_size(cfg: Config, points: np.ndarray, random_cameras: tuple | None = None) -> Config:
-    """``cfg`` with ``model.voxel_size=None`` (auto) replaced by :func:`auto_voxel_size` of ``points`` [P, 3] —
-    or, when ``random_cameras`` = (viewmats [V, 4, 4], Ks [V, 3, 3], width, height) is given (the points are
-    random, not SfM: a layout without points), by
-    :func:`cusgs_jax.data.random_points.random_voxel_size` of those cameras, since the spacing of
-    uniform random points says how many there are, not how fine the scene is. A set size is kept."""
-    if cfg.model.voxel_size is not None:
-        return cfg
-    if random_cameras is not None:
-        size = random_voxel_size(*random_cameras)
-        log.info("model.voxel_size=auto: %.5g (half a pixel's footprint at the distance the cameras look at; "
-                 "the %d initial points are random)", size, len(points))
-    else:
-        size = auto_voxel_size(points)
-        log.info("model.voxel_size=auto: %.5g (median nearest-neighbour spacing of the %d initial points)", size,
-                 len(points))
-    return cfg.replace(model=dict(voxel_size=size))
 
 
 def _check_scaffold(count: int, voxel_size: float, points: np.ndarray) -> None:
@@ -140,7 +120,7 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     """
     model = cfg.model
     require(model.voxel_size is not None, "model.voxel_size", "auto",
-            "is resolved from the points first", "call resolve_voxel_size(cfg, points)")
+            "is resolved from the points first", "resolve it first: cusgs_jax.app.resolve.resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
     layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor,
                            ladder=model.capacity_ladder)
