@@ -22,10 +22,12 @@ import time
 
 
 def child(src: str) -> dict:
-    from cusgs_jax.app import run as run_loop
+    from cusgs_jax.app import loop as run_loop
+    from cusgs_jax.app.session import setup
     from cusgs_jax.compose import compose_config
 
-    session, loop = run_loop.setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
+    session = setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
+    loop = run_loop.start(session)
     batch = session.batches
     for step in range(5):
         run_loop._exact_step(session, loop, batch(step))

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.training.inputs import view_order
-from cusgs_jax.app.run import setup
+from cusgs_jax.app.run import setup, start
 from cusgs_jax.compose import compose_config
 from cusgs_jax.densify.feature_prune import FeaturePruneStrategy, prune_pass
 from cusgs_jax.eval.views import count_parameters, evaluate_views
@@ -51,19 +51,21 @@ def _copy(tree):
 
 
 def _restore(run: pathlib.Path, scratch: str):
-    """The run's final state, restored through :func:`cusgs_jax.app.run.setup` (its logs untouched)."""
+    """The run's final state, ``(session, loop)`` restored through :func:`cusgs_jax.app.run.setup` and
+    :func:`~cusgs_jax.app.run.start` (its logs untouched)."""
     overrides = [line.strip()[2:] for line in (run / HYDRA_DIR / "overrides.yaml").read_text().splitlines()
                  if line.strip().startswith("- ")]
     cfg = compose_config(overrides)
     cfg = cfg.replace(train=dict(resume=True, checkpoint_dir=str(run / CHECKPOINTS_DIR), progress=False),
                       prune=dict(strategy="feature_aware"))
-    return setup(cfg, scratch)
+    session = setup(cfg, scratch)
+    return session, start(session)
 
 
 def _prune_statistics(session, loop) -> tuple[object, float]:
     """PruneStats over every training view once, from the trained parameters (which stay untouched)."""
     cfg, scene, idx = session.cfg, session.scene, session.train_idx
-    step = make_train_step(cfg, session.tx, session.strategies, loop.capacities)
+    step = make_train_step(cfg, loop.tx, session.strategies, loop.capacities)
     images = jnp.asarray(scene.images[idx].astype(np.float32) / 255.0)
     start = time.perf_counter()
     stats_state = loop.state.replace(step=jnp.int32(cfg.prune.start))  # inside the statistics window
@@ -109,7 +111,7 @@ def main(argv=None) -> None:
             variants["random"] = state.anchors.replace(alive=jnp.asarray(random_alive))
         for selection, anchors in variants.items():
             compacted = compact(anchors)
-            quality = evaluate_views(session.render, compacted, state.nets, scene, test_idx)  # also compiles
+            quality = evaluate_views(loop.render, compacted, state.nets, scene, test_idx)  # also compiles
             rows.append({"ratio": ratio, "selection": selection, "pruned": removed,
                          "alive_anchors": int(np.sum(np.asarray(anchors.alive))), "capacity": compacted.capacity,
                          "params": count_parameters(anchors, state.nets, session.banks)["total"],
@@ -118,7 +120,7 @@ def main(argv=None) -> None:
     # timing round-robin over all models, best of --repeats medians, so load changes hit all alike
     for _ in range(args.repeats):
         for row, anchors in zip(rows, models):
-            ms = evaluate_views(session.render, anchors, state.nets, scene, test_idx,
+            ms = evaluate_views(loop.render, anchors, state.nets, scene, test_idx,
                                 time_renders=True)["render_ms_per_view"]
             row["render_ms_per_view"] = min(ms, row.get("render_ms_per_view", np.inf))
     base = rows[0]["render_ms_per_view"]

@@ -13,7 +13,7 @@ A scene on both axes (160×120 with 25k points) is measured once. Every grid
 point runs in a fresh subprocess (the script calls itself with
 ``--one SPEC``), so its peak RSS is its own. A point:
 
-1. trains a short run through the app (``app.run.setup`` → ``train`` →
+1. trains a short run through the app (``app.run.setup`` → ``start`` → ``train`` →
    ``finalise``, RGB only, ``--run-steps`` steps with the growing and pruning
    schedules compressed into the run so anchors grow and capacity changes are
    counted) and reads ``eval.json``'s ``alive_anchors``,
@@ -351,13 +351,14 @@ def short_run(spec: dict, workdir: str):
         **({"model": dict(voxel_size=float(spec["voxel_size"]))} if spec.get("voxel_size") else {}),
         grow=dict(stats_start=0, start=2 * every, interval=every, stop=n),
         prune=dict(start=3 * every, interval=every, stop=n))
-    session, loop = app_run.setup(cfg, workdir)
+    session = app_run.setup(cfg, workdir)
+    loop = app_run.start(session)
     info = dict(initial_anchors=int(np.sum(loop.state.anchors.alive)),
                 initial_capacity=int(loop.state.anchors.capacity), kept_points=int(len(session.scene.points)),
                 train_views=int(len(session.train_idx)), held_out_views=int(len(session.test_idx)))
     app_run.train(session, loop)
     result = app_run.finalise(session, loop).to_json()
-    step_fn = train_step.make_train_step(session.cfg, session.tx, session.strategies, loop.capacities)
+    step_fn = train_step.make_train_step(session.cfg, loop.tx, session.strategies, loop.capacities)
     return (session, loop), result, info, step_fn, session.batches
 
 

@@ -15,15 +15,17 @@ import sys
 import tempfile
 import time
 
-from cusgs_jax.app import run as run_loop
+from cusgs_jax.app import loop as run_loop
+from cusgs_jax.app.session import setup
 from cusgs_jax.compose import compose_config
 from cusgs_jax.training.step import make_train_step
 
 
 def main(overrides: list[str]) -> dict:
-    session, loop = run_loop.setup(compose_config(["train.progress=false", *overrides]), tempfile.mkdtemp())
+    session = setup(compose_config(["train.progress=false", *overrides]), tempfile.mkdtemp())
+    loop = run_loop.start(session)
     batch = session.batches(0)
-    step = make_train_step(session.cfg, session.tx, session.strategies, loop.capacities)
+    step = make_train_step(session.cfg, loop.tx, session.strategies, loop.capacities)
     t0 = time.perf_counter()
     lowered = step.lower(loop.state, batch)
     t1 = time.perf_counter()

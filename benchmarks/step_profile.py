@@ -31,8 +31,9 @@ def build_with_features(features: str):
     from cusgs_jax.training.step import make_train_step
 
     cfg = from_dict(dict(train=dict(progress=False), features=dict(models=features)))  # the YAML spellings
-    session, loop = run.setup(cfg, tempfile.mkdtemp())
-    step = make_train_step(session.cfg, session.tx, session.strategies, loop.capacities)
+    session = run.setup(cfg, tempfile.mkdtemp())
+    loop = run.start(session)
+    step = make_train_step(session.cfg, loop.tx, session.strategies, loop.capacities)
     return loop.state, step, session.batches
 
 
