@@ -237,13 +237,13 @@ def test_the_scale_and_origin_of_the_colmap_model_do_not_change_training(tiny_sc
 @pytest.mark.slow  # 38 s on 2 cores: kept out of the default run; .ci/run's -m slow pass runs it
 def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_path, monkeypatch):
     """360° case: every anchor is in every view. Tiny first capacities grow, steps replay, nothing is dropped."""
-    from cusgs_jax.app import run as run_module
+    from cusgs_jax.app import loop as loop_module
     from cusgs_jax.testing.scenes import object_scene
     from cusgs_jax.training import capacity
 
     monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # else the fixed slack alone holds this tiny scene's pairs
     tiny = capacity.Capacities(visible_fraction=0.05, active_fraction=0.05, pairs_per_active=0.05)
-    monkeypatch.setattr(run_module, "_fitted_capacities", lambda session, state: tiny)  # start far below the need
+    monkeypatch.setattr(loop_module, "_fitted_capacities", lambda session, state: tiny)  # start far below the need
     scene = object_scene(tmp_path / "object", views=6, width=32, height=24, num_points=300)
     out = tmp_path / "run"
     result = run(_cfg(scene, "train.iterations=6", "train.log_every=1", "train.checkpoint_every=0", "eval.every=0",
