@@ -40,7 +40,7 @@ from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.compose import from_omegaconf, register_configs
 from cusgs_jax.errors import UserError
-from cusgs_jax.run_folder import EVAL_FILE, FAILED_FILE
+from cusgs_jax.run_folder import EVAL_FILE, FAILED_FILE, HYDRA_DIR
 from cusgs_jax.sweep.pareto import result_objectives
 
 log = logging.getLogger("cusgs_jax")
@@ -85,10 +85,11 @@ def record_lost_jobs(sweep_dir: pathlib.Path) -> list[pathlib.Path]:
     """Write ``failed.json`` (:data:`LOST`) into every job folder under ``sweep_dir`` that Hydra started
     (``.hydra/``) and that holds neither ``eval.json`` nor ``failed.json``: a sweep whose launcher broke (a worker
     killed: joblib's pool then stops every other job too) says which jobs it lost. Returns the files written."""
+    from cusgs_jax.app.report import find_jobs  # the job-folder search cusgs-report uses (lazy: --help stays light)
+
     written = []
-    for record in sorted(pathlib.Path(sweep_dir).rglob(".hydra")):
-        job = record.parent
-        if record.is_dir() and not (job / EVAL_FILE).exists() and not (job / FAILED_FILE).exists():
+    for job in find_jobs(sweep_dir):
+        if (job / HYDRA_DIR).is_dir() and not (job / EVAL_FILE).exists() and not (job / FAILED_FILE).exists():
             (job / FAILED_FILE).write_text(json.dumps({"error": LOST, "user_error": False, "traceback": ""}, indent=1))
             written.append(job / FAILED_FILE)
     return written
