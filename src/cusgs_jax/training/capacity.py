@@ -164,8 +164,9 @@ class Capacities:
               headroom: float = GROWTH_HEADROOM) -> bool:
         """Whether every view of ``needs`` (:func:`cusgs_jax.training.render.view_work`) fits these capacities
         ``headroom`` times over: visible slots, active Gaussians and tile pairs."""
-        return all(self.shortfall({key: headroom * need[key] for key in ("visible_anchors", "active_gaussians", "pairs")},
-                                  anchor_capacity, n_offsets) is None for need in needs)
+        keys = ("visible_anchors", "active_gaussians", "pairs")
+        return all(self.shortfall({key: headroom * need[key] for key in keys}, anchor_capacity, n_offsets) is None
+                   for need in needs)
 
     def replayed(self, needs: list[dict], anchor_capacity: int, n_offsets: int) -> list[Capacities]:
         """The capacities a run starting from these would pass through on steps whose views need ``needs``,

@@ -120,7 +120,8 @@ def init_train_state(cfg: Config, points: np.ndarray, num_train_views: int, exte
     """
     model = cfg.model
     require(model.voxel_size is not None, "model.voxel_size", "auto",
-            "is resolved from the points first", "resolve it first: cusgs_jax.app.resolve.resolve_voxel_size(cfg, points)")
+            "is resolved from the points first",
+            "call cusgs_jax.app.resolve.resolve_voxel_size(cfg, points)")
     table = cfg.features.enabled and model.query_granularity == "per_gaussian"
     layout = anchor_layout(points, model.voxel_size, capacity_factor=model.capacity_factor,
                            ladder=model.capacity_ladder)
