@@ -70,7 +70,7 @@ def test_a_wait_for_a_background_compile_is_compile_wait_and_its_seconds_are_not
     release = threading.Event()
     with CompileLog() as log:
         budget = TimeBudget(log)
-        with Ahead(on_wait=budget.waited) as ahead:
+        with Ahead(on_wait=budget.waited, workers=1) as ahead:
             blocker = ahead._pool.submit(release.wait)  # the thread is busy: the compile queues behind it
             program = Program(jax.jit(lambda x: jnp.cos(x) * 3.0), ahead)
             program.prepare(jnp.ones(11))
@@ -96,7 +96,7 @@ def test_disabled_compiles_nothing_ahead():
 def test_settle_waits_for_every_compile_submitted_and_charges_one_wait():
     release = threading.Event()
     waits = []
-    with Ahead(on_wait=waits.append) as ahead:
+    with Ahead(on_wait=waits.append, workers=1) as ahead:
         blocker = ahead._pool.submit(release.wait)  # the thread is busy: both compiles queue behind it
         first, second = Program(jax.jit(jnp.sin), ahead), Program(jax.jit(jnp.cos), ahead)
         assert first.prepare(jnp.ones(4)) and second.prepare(jnp.ones(4))
@@ -108,3 +108,25 @@ def test_settle_waits_for_every_compile_submitted_and_charges_one_wait():
         ahead.settle()  # nothing left: no wait
         blocker.result()
     assert len(waits) == 1 and ahead.waits == 1
+
+
+def test_two_compiles_run_side_by_side_until_settle_narrows_them_to_one():
+    """The start's step and evaluation render compile at once; after ``settle(workers=1)`` (the loop on a CPU)
+    one compile at a time, and a program prepared then still gives the jitted numbers."""
+    with Ahead() as ahead:
+        assert ahead.workers == 2
+        both = threading.Barrier(2, timeout=10)  # passes only when two tasks wait at once
+        for future in [ahead._pool.submit(both.wait) for _ in range(2)]:
+            future.result()
+        ahead.settle(workers=1)
+        assert ahead.workers == 1
+        one = threading.Barrier(2, timeout=0.3)
+        first, second = (ahead._pool.submit(one.wait) for _ in range(2))
+        with pytest.raises(threading.BrokenBarrierError):  # the second never started beside the first
+            first.result()
+        with pytest.raises(threading.BrokenBarrierError):
+            second.result()
+        program = Program(jax.jit(jnp.sin), ahead)
+        assert program.prepare(jnp.ones(4))
+        np.testing.assert_array_equal(program(jnp.ones(4)), jnp.sin(jnp.ones(4)))
+    assert ahead.submitted == 1 and program.fallbacks == 0

@@ -73,3 +73,62 @@ def test_scaffold_announces_its_next_capacity_once_the_slots_fill_up_while_it_st
     alive[: int(NEXT_CAPACITY_USE * 1000)] = True
     assert strategy.next_capacity(state, 500) == 1500  # ceil(A · grow.capacity_growth), what update grows to
     assert strategy.next_capacity(state, 1000) is None  # no growth after grow.stop
+
+
+def test_the_work_bound_is_the_recent_most_plus_what_the_grown_anchors_can_add():
+    foresight = Foresight([], iterations=100, step_program=None, prepare_render=None)
+    assert foresight.work_bound(alive=100, grown=5, n_offsets=4) is None  # no step seen yet
+    foresight.stepped(0.1, dict(visible_anchors=40, active_gaussians=120, pairs=600, loss=1.0))
+    foresight.stepped(0.1, dict(visible_anchors=50, active_gaussians=100, pairs=480))
+    # visible 50 + 5, active 120 + 5·4, pairs 600 · 140 / 120
+    assert foresight.work_bound(alive=100, grown=5, n_offsets=4) == dict(visible_anchors=55, active_gaussians=140,
+                                                                         pairs=700)
+    # never more than the alive anchors can give
+    assert foresight.work_bound(alive=52, grown=5, n_offsets=2) == dict(visible_anchors=52, active_gaussians=104,
+                                                                        pairs=520)
+
+
+def _preview_case(monkeypatch, visible: int, grown: int):
+    """A foresight one step before an update that grows ``grown`` anchors, after a step that needed ``visible``
+    visible anchors; returns (whether it asks for a second look, the views it measured, the programs prepared)."""
+    import cusgs_jax.app.foresight as foresight_module
+    from cusgs_jax.densify.base import UpdateInfo
+    from cusgs_jax.training.capacity import Capacities
+
+    capacities, capacity, n_offsets = Capacities(0.5, 0.25, 3.0), 1000, 4
+    alive = np.zeros(capacity, bool)
+    alive[:600] = True
+    state = types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=capacity, alive=alive), nets={})
+
+    class Grower(_Every):
+        def update(self, state, tx, step):
+            grown_alive = state.anchors.alive.copy()
+            grown_alive[600:600 + grown] = True
+            return types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=capacity, alive=grown_alive),
+                                         nets={}), UpdateInfo(grown=grown)
+
+    measured, prepared = [], []
+    monkeypatch.setattr(foresight_module, "_copy", lambda s: s)
+    monkeypatch.setattr(foresight_module, "view_needs", lambda anchors, nets, views, cfg: measured.extend(views) or [
+        dict(visible_anchors=visible + grown, active_gaussians=100, pairs=300) for _ in views])
+    program = types.SimpleNamespace(prepare=lambda *args: prepared.append(args) or True)
+    foresight = Foresight([Grower(400, 100)], iterations=1000, step_program=lambda caps: program,
+                          prepare_render=None)
+    foresight.stepped(0.1, dict(visible_anchors=visible, active_gaussians=100, pairs=300))
+    session = types.SimpleNamespace(cfg=types.SimpleNamespace(model=types.SimpleNamespace(n_offsets=n_offsets),
+                                                              train=types.SimpleNamespace(batch_size=1)),
+                                    batches=lambda step: dict(camera=step, index=step))
+    loop = types.SimpleNamespace(state=state, capacities=capacities, tx=None)
+    assert capacities.visible_slots(capacity) == 500
+    near = foresight._preview(session, loop, 399, 400)
+    return near, measured, prepared
+
+
+def test_a_preview_whose_bound_leaves_room_measures_no_views(monkeypatch):
+    near, measured, prepared = _preview_case(monkeypatch, visible=300, grown=20)  # 320 · 1.1 fits 500 slots
+    assert not near and measured == [] and prepared == []
+
+
+def test_a_preview_near_the_capacities_measures_the_next_views(monkeypatch):
+    near, measured, prepared = _preview_case(monkeypatch, visible=440, grown=20)  # 460 · 1.1 does not fit 500
+    assert near and len(measured) == 8 and prepared  # PREVIEW_STEPS views; the step prepared at least once

@@ -3,7 +3,7 @@
 A jitted function's program is fixed by the shapes, dtypes and shardings of its arguments; the
 run knows them before the call that would compile it (the first step's once the state and the
 first batch exist, the next anchor capacity's before a growth makes it). :meth:`Program.prepare`
-lowers and compiles the program for such arguments on one background thread (JAX's
+lowers and compiles the program for such arguments on a background thread (JAX's
 ahead-of-time API, ``jax.jit(f).lower(*types).compile()``; XLA's compile runs in C++ without the
 interpreter lock, so the loop goes on), and the call with arguments of those types runs the ready
 executable. The executable is the one the jitted call would have built — the same function, the
@@ -27,6 +27,7 @@ import jax
 
 log = logging.getLogger("cusgs_jax")
 
+WORKERS = 2  # compiles at once by default: the start's step and evaluation render side by side
 THREAD_PREFIX = "cusgs-compile-ahead"  # the background thread's name (CompileLog tells its compiles apart by it)
 
 
@@ -59,16 +60,20 @@ def signature(args) -> tuple:
 
 
 class Ahead:
-    """One background compile thread for a run (``with Ahead(on_wait) as ahead:``): compiles run one at a time.
+    """Background compile threads for a run (``with Ahead(on_wait) as ahead:``): up to ``workers`` compiles at
+    once (XLA compiles a program mostly on one core), until :meth:`settle` says otherwise.
 
     Args:
       on_wait: told the seconds of every wait for a program still compiling.
       enabled: False compiles nothing ahead (every program compiles on its first call, as a plain jit).
+      workers: compile threads (default :data:`WORKERS`).
     """
 
-    def __init__(self, on_wait: Callable[[float], None] | None = None, enabled: bool = True):
+    def __init__(self, on_wait: Callable[[float], None] | None = None, enabled: bool = True,
+                 workers: int | None = None):
         self.enabled = enabled
-        self._pool = concurrent.futures.ThreadPoolExecutor(max_workers=1, thread_name_prefix=THREAD_PREFIX)
+        self.workers = max(1, WORKERS if workers is None else int(workers))
+        self._pool = _pool(self.workers)
         self._on_wait = on_wait or (lambda seconds: None)
         self.submitted = 0  # programs compiled ahead
         self.waits = 0  # calls that waited for one
@@ -97,9 +102,10 @@ class Ahead:
         self._futures = [f for f in self._futures if not f.done()] + [future]
         return future
 
-    def settle(self) -> None:
-        """Wait for every compile submitted so far (the wait reported as one): where a compile would share the
-        cores with the steps (a CPU backend), the loop starts after the start-up's programs, not beside them."""
+    def settle(self, workers: int | None = None) -> None:
+        """Wait for every compile submitted so far (the wait reported as one), then compile on ``workers`` threads
+        (None: as before): where a compile would share the cores with the steps (a CPU backend), the loop starts
+        after the start-up's programs, not beside them, and later compiles take one core at a time."""
         pending = [future for future in self._futures if not future.done()]
         if pending:
             start = time.perf_counter()
@@ -107,6 +113,9 @@ class Ahead:
             self.waits += 1
             self._on_wait(time.perf_counter() - start)
         self._futures = []
+        if workers is not None and workers != self.workers:
+            self._pool.shutdown(wait=True)  # idle: everything it was given is done
+            self.workers, self._pool = workers, _pool(workers)
 
     def result(self, future: concurrent.futures.Future):
         """The executable of ``future`` (waiting, and reporting the wait, if it is not ready), or None when its
@@ -131,6 +140,10 @@ class Ahead:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _pool(workers: int) -> concurrent.futures.ThreadPoolExecutor:
+    return concurrent.futures.ThreadPoolExecutor(max_workers=workers, thread_name_prefix=THREAD_PREFIX)
 
 
 class Program:

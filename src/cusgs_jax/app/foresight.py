@@ -14,7 +14,11 @@ happen:
   a copy of the state; the views of the :data:`PREVIEW_STEPS` steps after it are measured on the
   preview (:func:`cusgs_jax.training.render.view_needs`), and the step is compiled for the preview's
   anchor capacity at every capacities those views would grow the run to
-  (:meth:`~cusgs_jax.training.capacity.Capacities.replayed`);
+  (:meth:`~cusgs_jax.training.capacity.Capacities.replayed`). Measuring those views costs about two
+  steps; it is skipped when the update keeps the anchor capacity and a bound on what any view will need
+  after it (:meth:`Foresight.work_bound`: the most the recent steps needed, plus what the grown anchors
+  can add) leaves every capacity a first fit's headroom: nothing is then compiled, as the measurement
+  would have found;
 * **a strategy's next capacity** (:meth:`cusgs_jax.densify.base.Strategy.next_capacity`): the
   anchor capacity a strategy says its next growth would move to, with today's work capacities.
 
@@ -33,6 +37,7 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.densify import ops
 from cusgs_jax.training.capacity import FIT_HEADROOM
@@ -44,7 +49,8 @@ LEAD = 1.5  # the preview comes this many compile times before the update it pre
 MIN_LEAD_STEPS = 10  # and at least this many steps before it
 PREVIEW_STEPS = 8  # the steps after an update whose views say which capacities to compile ahead
 PREVIEWS = 2  # previews of one update: at the lead and at half of it (each may start a compile)
-RECENT_STEPS = 50  # the step time is the median of this many recent steps
+RECENT_STEPS = 50  # the step time is the median of this many recent steps, and their work bounds the next ones'
+WORK_KEYS = ("visible_anchors", "active_gaussians", "pairs")  # a step's work, as view_work measures it
 CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
 
 
@@ -61,13 +67,31 @@ class Foresight:
         self.strategies, self.iterations = tuple(strategies), iterations
         self.step_program, self.prepare_render = step_program, prepare_render
         self._recent: list[float] = []
+        self._needs: list[dict] = []  # the recent steps' work (visible anchors, active Gaussians, tile pairs)
         self._next_due: int | None = None
         self._previewed: set[int] = set()
         self._asked: set[int] = set()  # anchor capacities already prepared from next_capacity
 
-    def stepped(self, seconds: float) -> None:
-        """One step's wall seconds (for the lead in steps)."""
+    def stepped(self, seconds: float, metrics: dict | None = None) -> None:
+        """One step's wall seconds (for the lead in steps) and its ``metrics`` (host values of a step that dropped
+        nothing: ``visible_anchors``, ``active_gaussians``, ``pairs``, what its views needed)."""
         self._recent = (self._recent + [seconds])[-RECENT_STEPS:]
+        if metrics is not None:
+            self._needs = (self._needs + [{key: int(metrics[key]) for key in WORK_KEYS}])[-RECENT_STEPS:]
+
+    def work_bound(self, alive: int, grown: int, n_offsets: int) -> dict | None:
+        """What a view may need after an update that placed ``grown`` anchors and left ``alive`` alive: the most
+        the last :data:`RECENT_STEPS` steps needed, plus one visible anchor and ``n_offsets`` active Gaussians for
+        each grown anchor (never more than ``alive`` has), tile pairs in proportion to the active Gaussians.
+        None before any step was seen. A bound on the recent views, an estimate for others: a wrong one costs a
+        compile on the loop's path, never a result."""
+        if not self._needs:
+            return None
+        recent = {key: max(need[key] for need in self._needs) for key in WORK_KEYS}
+        visible = min(alive, recent["visible_anchors"] + grown)
+        active = min(alive * n_offsets, recent["active_gaussians"] + grown * n_offsets)
+        pairs = math.ceil(recent["pairs"] * active / max(recent["active_gaussians"], 1))
+        return dict(visible_anchors=visible, active_gaussians=active, pairs=pairs)
 
     def _due_after(self, done: int) -> int | None:
         """The next update after ``done`` steps that may need new programs: one that can add anchors or
@@ -120,11 +144,19 @@ class Foresight:
         they come near the run's capacities: an anchor capacity of its own, or a view needing more than
         1/:data:`~cusgs_jax.training.capacity.FIT_HEADROOM` of a work capacity."""
         cfg = session.cfg
-        preview = _copy(loop.state)  # an update may donate the arrays it is given
+        preview, grown = _copy(loop.state), 0  # an update may donate the arrays it is given
         with _quiet():
             for strategy in self.strategies:
                 if strategy.due(due):
-                    preview, _ = strategy.update(preview, loop.tx, due)
+                    preview, info = strategy.update(preview, loop.tx, due)
+                    grown += info.grown
+        capacity = preview.anchors.capacity
+        if capacity == loop.state.anchors.capacity:
+            bound = self.work_bound(int(np.sum(np.asarray(preview.anchors.alive))), grown, cfg.model.n_offsets)
+            if bound is not None and loop.capacities.roomy([bound], capacity, cfg.model.n_offsets,
+                                                           headroom=FIT_HEADROOM):
+                log.debug("step %d: the update at %d leaves room to spare (%s): no views measured", done, due, bound)
+                return False
         steps = range(due, min(due + PREVIEW_STEPS, self.iterations))
         batches = [session.batches(step) for step in steps]
         if not batches:
@@ -134,7 +166,6 @@ class Foresight:
             (jax.tree_util.tree_map(lambda x, v=v: x[v], b["camera"]), b["index"][v]) for b in batches
             for v in range(size)]
         needs = view_needs(preview.anchors, preview.nets, views, cfg)
-        capacity = preview.anchors.capacity
         for caps in (loop.capacities, *loop.capacities.replayed(needs, capacity, cfg.model.n_offsets)):
             if self.step_program(caps).prepare(preview, batches[0]):
                 log.debug("step %d: compiling ahead the step after the update at %d: %d anchor slots, %s",

@@ -175,7 +175,8 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
         loop.step_fn = _step_program(session, loop, loop.capacities)
         loop.step_fn.wait(loop.state, batches(start))
         if session.ahead is not None and jax.default_backend() == "cpu":
-            session.ahead.settle()  # the evaluation render too: on a CPU its compile would share the steps' cores
+            # the evaluation render too: on a CPU a compile shares the steps' cores (and later ones take one at a time)
+            session.ahead.settle(workers=1)
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
@@ -183,7 +184,7 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
                 with session.budget.stage("train_steps"):
                     started = time.perf_counter()
                     metrics = _exact_step(session, loop, batches(step))
-                    foresight.stepped(time.perf_counter() - started)
+                    foresight.stepped(time.perf_counter() - started, metrics)
                 with session.budget.stage("densify"):
                     _densify(session, loop, step + 1)
                     foresight.after(session, loop, step + 1)
