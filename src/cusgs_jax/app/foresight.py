@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.densify import ops
-from cusgs_jax.training.capacity import FIT_HEADROOM
+from cusgs_jax.training.capacity import FIT_HEADROOM, WORK_KEYS
 from cusgs_jax.training.render import view_needs
 
 log = logging.getLogger("cusgs_jax")
@@ -50,7 +50,6 @@ MIN_LEAD_STEPS = 10  # and at least this many steps before it
 PREVIEW_STEPS = 8  # the steps after an update whose views say which capacities to compile ahead
 PREVIEWS = 2  # previews of one update: at the lead and at half of it (each may start a compile)
 RECENT_STEPS = 50  # the step time is the median of this many recent steps, and their work bounds the next ones'
-WORK_KEYS = ("visible_anchors", "active_gaussians", "pairs")  # a step's work, as view_work measures it
 CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
 
 

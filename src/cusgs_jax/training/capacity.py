@@ -42,6 +42,7 @@ ACTIVE_BUCKET = 16  # active_fraction grows in steps of 1/16
 # cost a few per cent of a step; the first fit (Capacities.fitted) uses the tighter 1.1 / 1.15.
 GROWTH_HEADROOM = 1.25
 FIT_HEADROOM = 1.1  # the least headroom a first fit leaves (its visible slots; Capacities.fitted)
+WORK_KEYS = ("visible_anchors", "active_gaussians", "pairs")  # a view's work, as training/render.view_work measures it
 EVAL_HEADROOM = 1.5  # visible slots of an evaluation render over the step's (Capacities.for_evaluation)
 
 
@@ -164,9 +165,8 @@ class Capacities:
               headroom: float = GROWTH_HEADROOM) -> bool:
         """Whether every view of ``needs`` (:func:`cusgs_jax.training.render.view_work`) fits these capacities
         ``headroom`` times over: visible slots, active Gaussians and tile pairs."""
-        keys = ("visible_anchors", "active_gaussians", "pairs")
-        return all(self.shortfall({key: headroom * need[key] for key in keys}, anchor_capacity, n_offsets) is None
-                   for need in needs)
+        return all(self.shortfall({key: headroom * need[key] for key in WORK_KEYS}, anchor_capacity, n_offsets)
+                   is None for need in needs)
 
     def replayed(self, needs: list[dict], anchor_capacity: int, n_offsets: int) -> list[Capacities]:
         """The capacities a run starting from these would pass through on steps whose views need ``needs``,
