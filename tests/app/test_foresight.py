@@ -75,6 +75,30 @@ def test_scaffold_announces_its_next_capacity_once_the_slots_fill_up_while_it_st
     assert strategy.next_capacity(state, 1000) is None  # no growth after grow.stop
 
 
+def test_the_next_capacitys_step_is_prepared_for_the_work_capacities_the_growth_will_give(monkeypatch):
+    from cusgs_jax.app import foresight as foresight_module
+    from cusgs_jax.training.capacity import Capacities
+
+    class Next(_Every):
+        def next_capacity(self, state, step):
+            return 1500
+
+    asked, rendered = [], []
+    monkeypatch.setattr(foresight_module.jax, "eval_shape", lambda fn, state: types.SimpleNamespace(anchors="grown"))
+    program = types.SimpleNamespace(prepare=lambda *args: True)
+    foresight = Foresight([Next(400, 100)], iterations=1000, step_program=lambda caps: asked.append(caps) or program,
+                          prepare_render=rendered.append)
+    caps = Capacities(visible_fraction=0.5, active_fraction=0.5, pairs_per_active=4.0)
+    session = types.SimpleNamespace(cfg=types.SimpleNamespace(model=types.SimpleNamespace(n_offsets=10)),
+                                    batches=lambda step: {})
+    loop = types.SimpleNamespace(state=types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=1000), step=0),
+                                 capacities=caps, tx=None)
+    foresight._next_capacities(session, loop, 10)
+    foresight._next_capacities(session, loop, 20)  # asked once per anchor capacity
+    assert asked == [caps.regrown(1000, 1500, 10)] and rendered == ["grown"]  # what the loop's growth will run
+    assert asked[0].active_fraction < caps.active_fraction
+
+
 def test_the_work_bound_is_the_recent_most_plus_what_the_grown_anchors_can_add():
     foresight = Foresight([], iterations=100, step_program=None, prepare_render=None)
     assert foresight.work_bound(alive=100, grown=5, n_offsets=4) is None  # no step seen yet

@@ -45,6 +45,41 @@ def test_the_first_capacities_are_fitted_to_what_the_views_need(tiny_scene, tmp_
         assert caps.pairs(state.anchors.capacity, n) >= work["pairs"]
 
 
+def test_a_strategy_growing_the_anchor_capacity_regrows_the_work_capacities_and_rebuilds_the_step(tiny_scene, tmp_path):
+    """After a growth the step runs at Capacities.regrown (the visible fraction kept, no more active Gaussians than
+    before) — the capacities the foresight prepared the step for — and the step's program is the new one."""
+    import dataclasses
+
+    from cusgs_jax.app.loop import _densify
+    from cusgs_jax.densify import ops
+    from cusgs_jax.densify.base import Tally, UpdateInfo
+
+    class Grow:
+        name = "grow"
+
+        def due(self, step):
+            return True
+
+        def before_first_update(self, probe):
+            return {}
+
+        def update(self, state, tx, step):
+            return ops.grow_capacity(state, tx, 2 * state.anchors.capacity), UpdateInfo(capacity_changed=True)
+
+    session = setup(_cfg(tiny_scene), tmp_path / "run")
+    loop = start(session)
+    session = dataclasses.replace(session, strategies=(Grow(),))
+    loop.tallies, loop.step_fn = {"grow": Tally()}, object()
+    before, capacity, n = loop.capacities, loop.state.anchors.capacity, session.cfg.model.n_offsets
+    _densify(session, loop, 1)
+    assert loop.state.anchors.capacity == 2 * capacity and loop.step_fn is None and loop.recompilations == 1
+    assert loop.capacities == before.regrown(capacity, 2 * capacity, n)
+    assert loop.capacities.visible_fraction == before.visible_fraction
+    assert before.active_gaussians(capacity, n) <= loop.capacities.active_gaussians(2 * capacity, n) < \
+        before.active_gaussians(2 * capacity, n)
+    session.ckpt.close()
+
+
 def test_a_scene_whose_points_no_training_view_sees_is_refused_at_the_start(tmp_path):
     """Points behind every camera would train the background alone to a black image (exit 0); refused instead."""
     from cusgs_jax.data.errors import SceneError

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+
+import numpy as np
 import pytest
 
 from cusgs_jax.config import Config
@@ -41,6 +44,30 @@ def test_capacities_give_static_sizes_that_follow_the_anchor_capacity():
     assert capacity.Capacities(1.0, 1.0, 1.0).active_gaussians(3, 2) == 6  # never more than S·N
     assert capacity.Capacities.from_config(Config()) == capacity.Capacities(
         Config().model.visible_fraction, Config().splat.active_fraction, Config().splat.max_pairs_per_gaussian)
+
+
+def test_a_grown_anchor_capacity_widens_the_visible_slots_but_keeps_the_active_gaussians_and_pairs_it_had():
+    caps = capacity.Capacities(visible_fraction=0.625, active_fraction=0.4375, pairs_per_active=4.0)
+    grown = caps.regrown(10_404, 15_606, 10)  # the README main job's growth
+    assert (grown.visible_fraction, grown.pairs_per_active) == (0.625, 4.0)
+    assert grown.visible_slots(15_606) > caps.visible_slots(10_404)
+    # G_act 28,451 of S·N = 97,540 decoded: 4.67 sixteenths -> 5/16 (30,482), not 7/16 (42,674) as before
+    assert grown.active_fraction == 0.3125 and grown.active_gaussians(15_606, 10) == 30_482
+    rng = np.random.default_rng(0)
+    for _ in range(500):
+        old = int(rng.integers(1, 50_000))
+        new = old + int(rng.integers(1, 3 * old + 2))
+        caps = capacity.Capacities(float(rng.integers(1, 9)) / 8, float(rng.integers(1, 17)) / 16, float(rng.integers(1, 20)) / 2)
+        n = int(rng.integers(1, 12))
+        grown = caps.regrown(old, new, n)
+        held = caps.active_gaussians(old, n)
+        assert grown.active_gaussians(new, n) >= held and grown.pairs(new, n) >= caps.pairs(old, n)
+        assert grown.active_fraction <= caps.active_fraction and (grown.visible_fraction, grown.pairs_per_active) == (
+            caps.visible_fraction, caps.pairs_per_active)
+        assert grown.active_fraction * capacity.ACTIVE_BUCKET == int(grown.active_fraction * capacity.ACTIVE_BUCKET)
+        tighter = dataclasses.replace(grown, active_fraction=grown.active_fraction - 1 / capacity.ACTIVE_BUCKET)
+        assert tighter.active_fraction <= 0 or tighter.active_gaussians(new, n) < held  # the least sixteenth
+    assert caps.regrown(2000, 1000, 10) == caps and caps.regrown(1000, 1000, 10) == caps  # only a growth
 
 
 def test_capacities_grow_the_slots_first_then_the_active_gaussians_then_the_pairs():

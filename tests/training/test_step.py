@@ -347,6 +347,27 @@ def test_strategy_none_keeps_every_anchor_and_collects_nothing():
     np.testing.assert_array_equal(np.asarray(state.anchors.alive), alive)
 
 
+@pytest.mark.slow  # three step compiles (~30 s): in .ci/run's -m slow pass
+def test_the_tile_pairs_capacity_changes_nothing_and_the_active_one_only_an_order_of_summation():
+    """What Capacities.regrown relies on. With the visible slots fixed, a step whose capacities hold its view gives,
+    bit for bit, the state of one with room for 50 tile pairs per active Gaussian (the splatter sorts the valid
+    pairs alike); with more active-Gaussian slots (arrays of another length) it agrees to float rounding only."""
+    cfg = _cfg()
+    strategies, state, tx = _init(cfg)
+    tight = Capacities(visible_fraction=1.0, active_fraction=0.5, pairs_per_active=6.0)
+    results = []
+    for caps in (tight, dataclasses.replace(tight, pairs_per_active=50.0), dataclasses.replace(tight, active_fraction=0.875)):
+        step, current = make_train_step(cfg, tx, strategies, caps), _copy(state)
+        for seed in range(3):
+            current, metrics = step(current, _batch(seed))
+            assert not (int(metrics["dropped_anchors"]) or int(metrics["dropped_gaussians"]) or int(metrics["dropped_pairs"]))
+        assert 0 < int(metrics["active_gaussians"])
+        results.append(jax.tree_util.tree_leaves(current))
+    for a, more_pairs, more_active in zip(*results):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(more_pairs))
+        np.testing.assert_allclose(np.asarray(a, np.float64), np.asarray(more_active, np.float64), rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.slow  # ~36 s (seven step compiles): in .ci/run's -m slow pass; the default run keeps the
 # batched overflow test below and test_view_render's pair-growth test
 def test_a_step_that_would_drop_work_changes_nothing_and_the_grown_replay_is_exact(monkeypatch):

@@ -20,7 +20,8 @@ happen:
   can add) leaves every capacity a first fit's headroom: nothing is then compiled, as the measurement
   would have found;
 * **a strategy's next capacity** (:meth:`cusgs_jax.densify.base.Strategy.next_capacity`): the
-  anchor capacity a strategy says its next growth would move to, with today's work capacities.
+  anchor capacity a strategy says its next growth would move to, with the work capacities a growth gives
+  (:meth:`~cusgs_jax.training.capacity.Capacities.regrown`).
 
 The evaluation render is prepared for a new anchor capacity too. A forecast that misses costs what
 it cost without one (a compile on the loop's path); a forecast never changes a capacity, so the
@@ -135,7 +136,8 @@ class Foresight:
             self._asked.add(capacity)
             grown = jax.eval_shape(lambda s, c=capacity: ops.grow_capacity(s, loop.tx, c), state)
             log.debug("compiling ahead the step for %d anchor slots (%s's next capacity)", capacity, strategy.name)
-            self.step_program(loop.capacities).prepare(grown, session.batches(int(state.step)))
+            caps = loop.capacities.regrown(state.anchors.capacity, capacity, session.cfg.model.n_offsets)
+            self.step_program(caps).prepare(grown, session.batches(int(state.step)))
             self.prepare_render(grown.anchors)
 
     def _preview(self, session, loop, done: int, due: int) -> bool:
@@ -165,14 +167,15 @@ class Foresight:
             (jax.tree_util.tree_map(lambda x, v=v: x[v], b["camera"]), b["index"][v]) for b in batches
             for v in range(size)]
         needs = view_needs(preview.anchors, preview.nets, views, cfg)
-        for caps in (loop.capacities, *loop.capacities.replayed(needs, capacity, cfg.model.n_offsets)):
+        after = loop.capacities.regrown(loop.state.anchors.capacity, capacity, cfg.model.n_offsets)
+        for caps in (after, *after.replayed(needs, capacity, cfg.model.n_offsets)):
             if self.step_program(caps).prepare(preview, batches[0]):
                 log.debug("step %d: compiling ahead the step after the update at %d: %d anchor slots, %s",
                           done, due, capacity, caps)
         if capacity != loop.state.anchors.capacity:
             self.prepare_render(preview.anchors)
             return True
-        return not loop.capacities.roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM)
+        return not after.roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM)
 
 
 def _only_removes(strategy, step: int) -> bool:

@@ -255,9 +255,11 @@ def _densify(session: Session, loop: Loop, step: int) -> None:
         tally = loop.tallies[strategy.name]
         if tally.updates == 0:
             tally = dataclasses.replace(tally, values=dict(strategy.before_first_update(_probe(session, loop, step))))
+        before = loop.state.anchors.capacity
         loop.state, info = strategy.update(loop.state, loop.tx, step)
-        if info.capacity_changed:
-            loop.recompilations += 1  # new shapes: the jitted step retraces
+        if info.capacity_changed:  # new shapes: the step compiles again (for work capacities that follow A)
+            loop.capacities = loop.capacities.regrown(before, loop.state.anchors.capacity, session.cfg.model.n_offsets)
+            loop.step_fn, loop.recompilations = None, loop.recompilations + 1
         loop.tallies[strategy.name] = tally.add(info)
         log.debug("step %d: %s grew %d, pruned %d anchors%s %s", step, strategy.name, info.grown, info.pruned,
                   " (capacity changed)" if info.capacity_changed else "", dict(info.extra))

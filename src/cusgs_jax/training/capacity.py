@@ -201,6 +201,25 @@ class Capacities:
         per = max(1.25 * (int(needs["pairs"]) - PAIR_SLACK) / max(num_active, 1), 0.5)
         return cls(visible, active, math.ceil(per * 2.0) / 2.0)
 
+    def regrown(self, old_capacity: int, new_capacity: int, n_offsets: int) -> Capacities:
+        """These capacities for a model whose anchor capacity grew from ``old_capacity`` to ``new_capacity``.
+
+        The visible slots widen with A (the fraction is kept: the grown anchors will be seen). The active
+        Gaussians do not: the active fraction becomes the least multiple of 1/16 of the wider S·N that still
+        holds the G_act the step had, and P (``pairs_per_active`` per active Gaussian) holds its pairs too. A
+        growth adds anchors, not active Gaussians per view in proportion to the slots; keeping the fraction
+        made every step after it pay for 1.5× the active Gaussians and pairs it used. A view that needs more
+        is replayed as ever (:meth:`grown`). The pair capacity changes no number of a step that fits it; the
+        active one changes the length of arrays XLA sums over, so the numbers move by float rounding from the
+        growth on. A shrink or an unchanged A gives these capacities back.
+        """
+        if new_capacity <= old_capacity:
+            return self
+        held = self.active_gaussians(old_capacity, n_offsets)
+        decoded = self.visible_slots(new_capacity) * n_offsets
+        fraction = ((held - 1) * ACTIVE_BUCKET // decoded + 1) / ACTIVE_BUCKET  # least k: ceil(k·S·N/16) ≥ G_act
+        return dataclasses.replace(self, active_fraction=min(self.active_fraction, max(fraction, 1.0 / ACTIVE_BUCKET)))
+
     def for_evaluation(self) -> Capacities:
         """The capacities an evaluation render starts from: these with :data:`EVAL_HEADROOM` × the visible
         slots (in buckets of 1/8 of A; the active Gaussians and tile pairs scale with them).
