@@ -56,6 +56,19 @@ def build_once(tmp_path_factory):
     return lambda name, build: built_once(tmp_path_factory, name, build)
 
 
+@pytest.fixture(scope="module")
+def tiny_scene(build_once):
+    """The 9-view 40×30 demo scene of the shell's end-to-end tests (app/, benchmarks/), generated once per session
+    (built_once; the runs of tests/app/test_run record its path, so every xdist worker resumes them on the same
+    folder). The feature tests extract into its features/ folder, which the library serialises across processes
+    (extract.scene.ensure_extracted)."""
+    from cusgs_jax.data.demo import generate_demo_scene
+
+    _, scene = build_once("run_scene", lambda root: generate_demo_scene(
+        root / "demo", num_views=9, width=40, height=30, num_points=1500))
+    return scene
+
+
 @pytest.fixture
 def two_devices():
     """Skip, saying why, unless the default backend has two devices: the views of a sharded step go to
