@@ -210,8 +210,8 @@ class Capacities:
         growth adds anchors, not active Gaussians per view in proportion to the slots; keeping the fraction
         made every step after it pay for 1.5× the active Gaussians and pairs it used. A view that needs more
         is replayed as ever (:meth:`grown`). The pair capacity changes no number of a step that fits it; the
-        active one changes the length of arrays XLA sums over, so the numbers move by float rounding from the
-        growth on. A shrink or an unchanged A gives these capacities back.
+        active one changes the length of arrays XLA sums over, so the numbers may move by float rounding from the
+        growth on (the README's main job did not). A shrink or an unchanged A gives these capacities back.
         """
         if new_capacity <= old_capacity:
             return self
