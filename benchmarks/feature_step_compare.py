@@ -30,11 +30,11 @@ def child(src: str) -> dict:
     loop = run_loop.start(session)
     batch = session.batches
     for step in range(5):
-        run_loop._exact_step(session, loop, batch(step))
+        (getattr(run_loop, "exact_step", None) or run_loop._exact_step)(session, loop, batch(step))
     times = []
     for step in range(5, 45):
         start = time.perf_counter()
-        run_loop._exact_step(session, loop, batch(step))
+        (getattr(run_loop, "exact_step", None) or run_loop._exact_step)(session, loop, batch(step))
         times.append(time.perf_counter() - start)
     return dict(src=src, median_step_s=statistics.median(times))
 

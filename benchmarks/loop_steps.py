@@ -2,7 +2,7 @@
 prints JSON.
 
 The loop of ``cusgs-train`` without evaluations, checkpoints or compiling ahead: each step replayed until it drops no
-work (``_exact_step``), then the strategies that are due (``_densify``). Run it once per revision, alternately, with
+work (``exact_step``), then the strategies that are due (``run_strategies``). Run it once per revision, alternately, with
 that revision's ``src/`` on ``PYTHONPATH`` (a ``git worktree`` of the older one); revisions up to 0bdb18c (whose
 ``setup`` returned one mutable session) are driven through their own API.
 
@@ -33,8 +33,10 @@ def _driver(cfg):
                 lambda s: run_loop._densify(session, s), lambda: session.state, lambda: session.capacities)
     session = setup(cfg, tempfile.mkdtemp())
     loop = run_loop.start(session)
-    return (session.budget.clock, session.batches, lambda b: run_loop._exact_step(session, loop, b),
-            lambda s: run_loop._densify(session, loop, s), lambda: loop.state, lambda: loop.capacities)
+    step = getattr(run_loop, "exact_step", None) or run_loop._exact_step  # public since the library API
+    densify = getattr(run_loop, "run_strategies", None) or run_loop._densify
+    return (session.budget.clock, session.batches, lambda b: step(session, loop, b),
+            lambda s: densify(session, loop, s), lambda: loop.state, lambda: loop.capacities)
 
 
 def main() -> None:

@@ -48,7 +48,17 @@ _EXPORTS = {
     "FeaturePruneStrategy": "densify.feature_prune",
     # training
     "TrainState": "training.state", "init_train_state": "training.state",
-    "make_train_step": "training.step",
+    "make_train_step": "training.step", "loss_weights": "training.step", "LossTerm": "training.loss_terms",
+    "TermRender": "training.loss_terms", "Capacities": "training.capacity", "make_batches": "training.inputs",
+    # training from Python: the CLI's run as a function, and the pieces of a loop of one's own (docs/api.md)
+    "train": "app.api", "TrainResult": "app.api", "setup": "app.session", "Session": "app.session",
+    "start": "app.loop", "Loop": "app.loop", "exact_step": "app.loop", "run_strategies": "app.loop",
+    "curve_point": "app.loop", "save_checkpoint": "app.loop", "finalise": "app.run",
+    # rendering a trained model, cameras and camera paths
+    "render": "rendering", "fit_render": "rendering", "Rendered": "rendering",
+    "RenderCapacityError": "rendering", "look_at": "cameras", "orbit": "cameras",
+    "interpolate_path": "cameras", "pinhole_K": "cameras", "camera_path": "cameras", "from_colmap": "cameras",
+    "from_blender": "cameras", "stack_cameras": "cameras",
 }
 _MODULES = ("losses", "config", "types")
 

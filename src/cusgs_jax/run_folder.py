@@ -40,8 +40,9 @@ __all__ = ["VERSION", "EVAL_FILE", "METRICS_FILE", "CURVE_FILE", "PLOT_FILE", "R
            "CheckpointMeta", "accept_hydra_record", "read_eval", "restore_hydra_record", "write_eval"]
 
 #: The run-folder version this code writes; it reads every version up to it (1: unversioned records;
-#: 3: every key typed, a research strategy's own ``eval.json`` keys under ``strategies``).
-VERSION = 3
+#: 3: every key typed, a research strategy's own ``eval.json`` keys under ``strategies``; 4: ``loss_terms`` and
+#: ``appearance``).
+VERSION = 4
 
 EVAL_FILE = "eval.json"
 METRICS_FILE = "metrics.jsonl"
@@ -198,6 +199,9 @@ class EvalRecord(_Record):
     densify: dict | None = None  # {strategy name: tally} (densify/base.Tally)
     # version 3
     strategies: dict | None = None  # keys a research strategy's ``results`` adds that are none of these fields
+    # version 4
+    loss_terms: dict | None = None  # every weighted loss term summed over the steps (training/loss_terms.py)
+    appearance: str | None = None  # the held-out protocol's appearance embedding (render.py's ``appearance``)
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 
@@ -256,6 +260,8 @@ class CheckpointMeta(_Record):
     held_out_cameras: dict | None = None
     # version 2
     scene_digest: str | None = None
+    # version 4
+    loss_terms: dict | None = None  # LossTally.as_dict() at the checkpoint's step
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 

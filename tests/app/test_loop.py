@@ -50,7 +50,7 @@ def test_a_strategy_growing_the_anchor_capacity_regrows_the_work_capacities_and_
     before) — the capacities the foresight prepared the step for — and the step's program is the new one."""
     import dataclasses
 
-    from cusgs_jax.app.loop import _densify
+    from cusgs_jax.app.loop import run_strategies
     from cusgs_jax.densify import ops
     from cusgs_jax.densify.base import Tally, UpdateInfo
 
@@ -71,7 +71,7 @@ def test_a_strategy_growing_the_anchor_capacity_regrows_the_work_capacities_and_
     session = dataclasses.replace(session, strategies=(Grow(),))
     loop.tallies, loop.step_fn = {"grow": Tally()}, object()
     before, capacity, n = loop.capacities, loop.state.anchors.capacity, session.cfg.model.n_offsets
-    _densify(session, loop, 1)
+    run_strategies(session, loop, 1)
     assert loop.state.anchors.capacity == 2 * capacity and loop.step_fn is None and loop.recompilations == 1
     assert loop.capacities == before.regrown(capacity, 2 * capacity, n)
     assert loop.capacities.visible_fraction == before.visible_fraction

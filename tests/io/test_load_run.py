@@ -89,19 +89,19 @@ def test_banks_and_held_out_cameras_come_from_the_run_folder(small_run, feature_
         load_trained(copy)
 
 
-def test_stored_cameras_keep_a_lens_run_s_lenses():
+def teststored_cameras_keep_a_lens_run_s_lenses():
     """A data.undistort=lens run records its cameras' lenses with them (app/run.py _cameras); they come back as
     the batched Camera's Lens, and a lens table of the wrong size is not trusted."""
-    from cusgs_jax.io.load_run import _stored_cameras
+    from cusgs_jax.io.load_run import stored_cameras
 
     stored = dict(viewmats=np.tile(np.eye(4), (2, 1, 1)).tolist(), Ks=np.tile(np.eye(3), (2, 1, 1)).tolist(),
                   width=8, height=6)
-    assert _stored_cameras(stored).lens is None
+    assert stored_cameras(stored).lens is None
     lens = dict(coeffs=[[0.1, 0, 0, 0, 0, 0], [0.2, 0, 0, 0, 0, 0]], bounds=[[-1, 1, -1, 1]] * 2, fisheye=False)
-    cameras = _stored_cameras(dict(stored, lens=lens))
+    cameras = stored_cameras(dict(stored, lens=lens))
     np.testing.assert_allclose(cameras.lens.coeffs[:, 0], [0.1, 0.2])
     assert cameras.lens.bounds.shape == (2, 4) and cameras.lens.fisheye is False
-    assert _stored_cameras(dict(stored, lens=dict(lens, coeffs=[[0.1, 0, 0, 0, 0, 0]]))) is None
+    assert stored_cameras(dict(stored, lens=dict(lens, coeffs=[[0.1, 0, 0, 0, 0, 0]]))) is None
 
 
 def test_a_step_that_is_not_an_int_is_a_type_error_naming_it(tmp_path):

@@ -45,6 +45,7 @@ from cusgs_jax.model.anchors import compact
 from cusgs_jax.run_folder import BANKS_FILE, CURVE_FILE, METRICS_FILE, CheckpointMeta, accept_hydra_record, \
     restore_hydra_record
 from cusgs_jax.training import capacity
+from cusgs_jax.training.loss_terms import LossTally
 from cusgs_jax.training.render import RgbOfFeatureRender, make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state
 from cusgs_jax.training.step import make_train_step
@@ -71,6 +72,7 @@ class Loop:
     alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (loss_alarms)
     step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
     programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
+    loss_tally: LossTally = dataclasses.field(default_factory=LossTally)  # every loss term summed over the steps
 
 
 def start(session: Session) -> Loop:
@@ -119,7 +121,7 @@ def _step_program(session: Session, loop: Loop, capacities: capacity.Capacities)
     are those of each anchor capacity it was prepared or called for)."""
     if capacities not in loop.programs:
         loop.programs[capacities] = Program(make_train_step(session.cfg, loop.tx, session.strategies,
-                                                               capacities), session.ahead)
+                                                               capacities, session.loss_terms), session.ahead)
     return loop.programs[capacities]
 
 
@@ -183,10 +185,10 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
             with session.budget.clock:
                 with session.budget.stage("train_steps"):
                     started = time.perf_counter()
-                    metrics = _exact_step(session, loop, batches(step))
+                    metrics = exact_step(session, loop, batches(step))
                     foresight.stepped(time.perf_counter() - started, metrics)
                 with session.budget.stage("densify"):
-                    _densify(session, loop, step + 1)
+                    run_strategies(session, loop, step + 1)
                     foresight.after(session, loop, step + 1)
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
                 live.after_step()
@@ -200,17 +202,17 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
                                 anchors=row["alive_anchors"], step_s=row["step_s"])
             if cfg.eval.every and (done % cfg.eval.every == 0 or done == iterations):
                 with session.budget.stage("evaluation"):
-                    point = _curve_point(session, loop, done)
+                    point = curve_point(session, loop, done)
                 curve_file.write(json.dumps(point) + "\n")
                 curve_file.flush()
                 bar.write(f"step {done}: {session.psnr_label} {point['psnr']:.2f} dB at {point['wall_s']:.0f} s")
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 with session.budget.stage("checkpoints"):
-                    _save(session, loop, done)
+                    save_checkpoint(session, loop, done)
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
         with session.budget.stage("checkpoints"):
-            _save(session, loop, iterations)
+            save_checkpoint(session, loop, iterations)
 
 
 def _snapshot(session: Session, loop: Loop, cameras: list[ViewCamera]) -> ViewModel:
@@ -223,7 +225,7 @@ def _snapshot(session: Session, loop: Loop, cameras: list[ViewCamera]) -> ViewMo
     return view_model(session.cfg, compact(loop.state.anchors), nets, session.banks, cameras)
 
 
-def _exact_step(session: Session, loop: Loop, batch: dict) -> dict:
+def exact_step(session: Session, loop: Loop, batch: dict) -> dict:
     """One training step on ``batch`` that dropped no work; returns its metrics (host values).
 
     A step that reported dropped anchors or tile pairs changed nothing; the
@@ -236,13 +238,14 @@ def _exact_step(session: Session, loop: Loop, batch: dict) -> dict:
         loop.state, metrics = loop.step_fn(loop.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
         if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
+            loop.loss_tally.add(metrics["terms"])
             return metrics
         loop.capacities = loop.capacities.grown(metrics, loop.state.anchors.capacity,
                                                       session.cfg.model.n_offsets)
         loop.step_fn, loop.replays, loop.recompilations = None, loop.replays + 1, loop.recompilations + 1
 
 
-def _densify(session: Session, loop: Loop, step: int) -> None:
+def run_strategies(session: Session, loop: Loop, step: int) -> None:
     """Run every strategy due after ``step`` completed steps (host side, between steps).
 
     Before a strategy's first update its :meth:`~cusgs_jax.densify.base.Strategy.before_first_update`
@@ -293,6 +296,7 @@ def _log_row(session: Session, loop: Loop, step: int, metrics: dict, step_s: flo
     state = loop.state
     row = dict(step=step, wall_s=round(session.budget.clock.total, 3), loss=float(metrics["loss"]),
                **({"feature_loss": float(metrics["loss_feature"])} if session.banks is not None else {}),
+               terms={name: round(float(value), 7) for name, value in metrics.get("terms", {}).items()},
                train_psnr=float(metrics["psnr"]), alive_anchors=int(np.sum(np.asarray(state.anchors.alive))),
                visible_anchors=int(metrics["visible_anchors"]), active_gaussians=int(metrics["active_gaussians"]),
                pairs=int(metrics["pairs"]), **strategy_row(session.strategies, loop.tallies, session.cfg),
@@ -315,7 +319,7 @@ def evaluate_model_features(session: Session, loop: Loop, anchors, **kwargs) -> 
                              session.banks, session.feature_sets, **kwargs)
 
 
-def _curve_point(session: Session, loop: Loop, step: int) -> dict:
+def curve_point(session: Session, loop: Loop, step: int) -> dict:
     anchors = loop.state.anchors  # padded, with its alive mask: the shapes the step has (no new program)
     result = evaluate_model(session, loop, anchors)
     point = dict(step=step, wall_s=session.budget.clock.total, psnr=result["psnr"], ssim=result["ssim"],
@@ -328,11 +332,11 @@ def _curve_point(session: Session, loop: Loop, step: int) -> dict:
     return point
 
 
-def _save(session: Session, loop: Loop, step: int) -> None:
+def save_checkpoint(session: Session, loop: Loop, step: int) -> None:
     meta = CheckpointMeta(
         step=step, capacity=loop.state.anchors.capacity, wall_s=session.budget.clock.total, curve=loop.curve,
         densify={name: tally.as_dict() for name, tally in loop.tallies.items()},
-        recompilations=loop.recompilations, replays=loop.replays,
+        recompilations=loop.recompilations, replays=loop.replays, loss_terms=loop.loss_tally.as_dict(),
         capacities=loop.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
         # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
         world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),

@@ -19,6 +19,7 @@ from cusgs_jax.data.identity import same_cameras
 from cusgs_jax.densify import ops
 from cusgs_jax.densify.base import Tally
 from cusgs_jax.run_folder import CURVE_FILE, METRICS_FILE, CheckpointMeta
+from cusgs_jax.training.loss_terms import LossTally
 
 log = logging.getLogger("cusgs_jax")
 
@@ -48,6 +49,7 @@ def resume(session, loop) -> None:
                     "passes, pruned anchors, render_ms_before_prune) restart from zero", step)
     loop.recompilations = int(meta.recompilations or 0)
     loop.replays = int(meta.replays or 0)
+    loop.loss_tally = LossTally.restored(meta.loss_terms)
     trim_jsonl(session.out / METRICS_FILE, step)
     trim_jsonl(session.out / CURVE_FILE, step)
     log.info("resumed from step %d (capacity %d)", step, loop.state.anchors.capacity)

@@ -36,10 +36,11 @@ from cusgs_jax.densify.base import Strategy, strategy_results
 from cusgs_jax.eval.lpips import lpips_metrics
 from cusgs_jax.eval.plots import CLOCK, plot_error_vs_time
 from cusgs_jax.eval.views import count_parameters, model_bytes
+from cusgs_jax.rendering import APPEARANCE_PROTOCOL
 from cusgs_jax.run_folder import EVAL_FILE, FEATURES_DIR, FEATURES_MD, PLOT_FILE, RENDERS_DIR, EvalRecord, write_eval
 from cusgs_jax.training.checkpoint import quiet_orbax
 
-__all__ = ["run", "setup", "start", "train", "finalise", "Session", "Loop"]
+__all__ = ["run", "run_session", "setup", "start", "train", "finalise", "Session", "Loop"]
 
 log = logging.getLogger("cusgs_jax")
 
@@ -72,6 +73,7 @@ def finalise(session: Session, loop: Loop) -> EvalRecord:
         checkpoint_bytes=session.ckpt.step_bytes(cfg.train.iterations), train_wall_s=session.budget.clock.total,
         render_ms_per_view=final["render_ms_per_view"],
         **strategy_results(session.strategies, loop.tallies, session.cfg),  # render_ms_before_prune, prune, densify
+        loss_terms=loop.loss_tally.as_dict(), appearance=APPEARANCE_PROTOCOL,
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
         replayed_steps=loop.replays,
         recompilations=loop.recompilations + loop.render.growths
@@ -118,11 +120,23 @@ def _compilations(session: Session, loop: Loop) -> dict | None:
 
 
 def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies: tuple[Strategy, ...] = (),
-        started: float | None = None) -> EvalRecord:
+        started: float | None = None, loss_terms=()) -> EvalRecord:
     """Train, checkpoint and evaluate; returns the run's record (``eval.json``: :class:`~cusgs_jax.run_folder.EvalRecord`).
 
-    ``progress_label`` names the progress bar (a sweep labels each job's bar); ``extra_strategies``
-    are research code's own densification strategies (see :func:`setup`); ``started``: the
+    :func:`run_session` without the session and loop; :func:`cusgs_jax.train` (``app/api.py``) is the library's
+    entry, which returns the model too.
+    """
+    return run_session(cfg, output_dir, progress_label=progress_label, strategies=extra_strategies,
+                       started=started, loss_terms=loss_terms)[2]
+
+
+def run_session(cfg: Config, output_dir, *, progress_label: str = "train", strategies: tuple[Strategy, ...] = (),
+                started: float | None = None, loss_terms=()) -> tuple[Session, Loop, EvalRecord]:
+    """Train, checkpoint and evaluate: setup → start → train → finalise; returns the session, the loop as it
+    ended and the run's record (``eval.json``: :class:`~cusgs_jax.run_folder.EvalRecord`).
+
+    ``progress_label`` names the progress bar (a sweep labels each job's bar); ``strategies`` and ``loss_terms``
+    are research code's own densification strategies and loss terms (see :func:`setup`); ``started``: the
     ``time.perf_counter()`` at which the process began, so the ``time`` budget covers the imports and
     Hydra's composition too (its ``startup``; ``cusgs-train`` passes it to a process's first run). The
     programs the loop will need are compiled on a background thread (``train.compile_ahead``,
@@ -136,11 +150,11 @@ def run(cfg: Config, output_dir, progress_label: str = "train", extra_strategies
             cache = use_compilation_cache(cfg.train.compilation_cache)
         log.debug("persistent compilation cache: %s", cache or "off")
         with Ahead(on_wait=budget.waited, enabled=cfg.train.compile_ahead) as ahead:
-            session = setup(cfg, output_dir, extra_strategies, budget, ahead)
+            session = setup(cfg, output_dir, strategies, budget, ahead, loss_terms=loss_terms)
             loop = start(session)
             try:
                 train(session, loop, progress_label)
-                return finalise(session, loop)
+                return session, loop, finalise(session, loop)
             except BaseException:
                 session.ckpt.close_after_error()
                 raise

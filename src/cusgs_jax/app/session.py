@@ -33,6 +33,7 @@ from cusgs_jax.run_folder import CHECKPOINTS_DIR, read_eval, restore_hydra_recor
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training.distributed import require_single_process
 from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, make_batches
+from cusgs_jax.training.loss_terms import LossTerm, check_loss_terms
 from cusgs_jax.training.parallel import resolve_devices
 
 log = logging.getLogger("cusgs_jax")
@@ -61,6 +62,7 @@ class Session:
     ckpt: Checkpointer
     budget: TimeBudget  # seconds per stage (eval.json's time) and the training clock
     ahead: Ahead | None = None  # the background compiles (app/ahead.py); None: every program compiles on its call
+    loss_terms: tuple[LossTerm, ...] = ()  # research code's own loss terms (training/loss_terms.py)
 
     @property
     def evaluated_on(self) -> str:
@@ -92,17 +94,19 @@ class Session:
 
 
 def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
-          budget: TimeBudget | None = None, ahead: Ahead | None = None) -> Session:
+          budget: TimeBudget | None = None, ahead: Ahead | None = None, *, loss_terms=()) -> Session:
     """The :class:`Session` a run of ``cfg`` in ``output_dir`` starts from.
 
     ``extra_strategies``: research code's own densification strategies
     (:class:`cusgs_jax.densify.base.Strategy`, unique names), run after the configured ones
     (:func:`~cusgs_jax.densify.factory.make_strategies`); a resume must pass the same ones.
-    ``budget``: where the setup's stages are charged (:func:`cusgs_jax.app.run.run` passes the run's; default a
+    ``loss_terms``: research code's own loss terms (:class:`~cusgs_jax.training.loss_terms.LossTerm`); a
+    resume passes the same ones. ``budget``: where the setup's stages are charged (:func:`cusgs_jax.app.run.run` passes the run's; default a
     new one). ``ahead``: the run's background compiles (:mod:`cusgs_jax.app.ahead`; default none).
     A refused setup puts the folder's accepted Hydra record back (:func:`~cusgs_jax.run_folder.restore_hydra_record`).
     """
     budget = budget or TimeBudget()
+    loss_terms = check_loss_terms(loss_terms)
     require_single_process()
     devices = resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer: refused first
     if cfg.train.batch_size > 1:
@@ -110,14 +114,14 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
                  jax.device_count())
     out = _output_folder(output_dir)
     try:
-        return _setup(cfg, out, tuple(extra_strategies), budget, ahead)
+        return _setup(cfg, out, tuple(extra_strategies), budget, ahead, loss_terms)
     except UserError:  # refused: the folder's Hydra record goes back to the run it holds
         restore_hydra_record(out)
         raise
 
 
 def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget,
-           ahead: Ahead | None) -> Session:
+           ahead: Ahead | None, loss_terms: tuple[LossTerm, ...] = ()) -> Session:
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
     _require_resumable(cfg, ckpt, out)
     with budget.stage("load"):
@@ -144,8 +148,8 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
         raise ValueError(f"densification strategies need unique names (TrainState.densify is keyed by them): {names}")
     return Session(cfg=cfg, out=out, scene=scene, world=world, train_idx=train_idx, test_idx=test_idx,
                    feature_sets=feature_sets, banks=banks, targets=targets, strategies=strategies,
-                   batches=make_batches(scene, train_idx, cfg, targets, banks), ckpt=ckpt, budget=budget,
-                   ahead=ahead)
+                   batches=make_batches(scene, train_idx, cfg, targets, banks, loss_terms), ckpt=ckpt, budget=budget,
+                   ahead=ahead, loss_terms=loss_terms)
 
 
 def _require_resumable(cfg: Config, ckpt: Checkpointer, out: pathlib.Path) -> None:

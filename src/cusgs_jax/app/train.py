@@ -111,7 +111,7 @@ def _objectives(hydra_cfg) -> list[str]:
 @hydra.main(version_base="1.3", config_path="pkg://cusgs_jax.conf", config_name="config")
 def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     """One run; returns held-out PSNR, or the sweeper's ``objectives`` (e.g. PSNR and parameter count)."""
-    from cusgs_jax.app.run import run  # lazy: app.run imports JAX (keeps --help free of it)
+    from cusgs_jax.app.api import train  # lazy: the run imports JAX (keeps --help free of it)
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax is chatty at INFO
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)  # "no TPU" at INFO in every job log
@@ -126,8 +126,8 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
         if shared:
             log.info("job %s: %s", hydra_cfg.job.num, ", ".join(f"{k}={v}" for k, v in shared.items()))
     try:
-        result = run(from_omegaconf(cfg), output_dir,
-                     progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train", started=started)
+        result = train(from_omegaconf(cfg), output_dir, log=False,  # Hydra set the logging up
+                       progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train", started=started).record
     except UserError as error:
         record_failure(output_dir, error)
         if sweeping:

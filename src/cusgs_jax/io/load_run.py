@@ -173,7 +173,7 @@ def load_trained(run_dir: str | os.PathLike, *, step: int | None = None) -> Trai
     return TrainedModel(cfg=cfg, anchors=compact(anchors), nets=nets, world=world, step=int(step), run_dir=run,
                         checkpoint_dir=ckpt_dir, checkpoint_bytes=int(size), evaluation=evaluation,
                         cameras=cameras, cameras_from=cameras_from,
-                        held_out_cameras=_stored_cameras(meta.get("held_out_cameras")), banks=_banks(run))
+                        held_out_cameras=stored_cameras(meta.get("held_out_cameras")), banks=_banks(run))
 
 
 # --- helpers ---------------------------------------------------------------------------------
@@ -254,7 +254,7 @@ def _train_cameras(meta: CheckpointMeta, cfg: Config,
     """(batched Camera of the training views in the normalised frame, where from) or (None, None)."""
     stored = meta.get("train_cameras")
     if isinstance(stored, dict):
-        cameras = _stored_cameras(stored)
+        cameras = stored_cameras(stored)
         if cameras is not None:
             return cameras, "checkpoint"
         log.warning("the checkpoint's train_cameras cannot be read; looking for the scene instead")
@@ -275,7 +275,7 @@ def _train_cameras(meta: CheckpointMeta, cfg: Config,
     return Camera(jnp.asarray(scene.Ks[train]), jnp.asarray(viewmats), scene.width, scene.height, lens), str(path)
 
 
-def _stored_cameras(stored: Any) -> Camera | None:
+def stored_cameras(stored: Any) -> Camera | None:
     """A batched Camera from the checkpoint metadata's {"viewmats", "Ks", "width", "height"} (and "lens":
     {"coeffs", "bounds", "fisheye"} for a ``data.undistort=lens`` run), or None."""
     if not isinstance(stored, dict):

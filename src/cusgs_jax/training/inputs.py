@@ -187,10 +187,12 @@ def view_order(seed: int, num_train: int, step: int) -> int:
     return int(np.random.default_rng([seed, epoch]).permutation(num_train)[position])
 
 
-def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: dict, banks: dict | None):
+def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: dict, banks: dict | None,
+                 loss_terms=()):
     """``batch(step)``: the training views (``train_idx``, [V]) of ``step`` as the step's input
     (:func:`cusgs_jax.training.step.make_train_step`'s batch), with the feature ``targets`` ({model: [V, h, w, D]})
-    and the memory ``banks`` when there are feature models (``banks`` not None).
+    and the memory ``banks`` when there are feature models (``banks`` not None). ``loss_terms``: research code's own
+    terms (:class:`~cusgs_jax.training.loss_terms.LossTerm`), whose weights join ``"loss_weights"``.
 
     One view per step (:func:`view_order` at position ``step``) for ``train.batch_size = 1``; B > 1
     stacks the views at positions ``step·B … step·B + B − 1`` of the same epoch-wise permutation
@@ -208,7 +210,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
     pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
     # arguments of the step, not constants: a sweep over the loss weights, the learning rates or the seed shares
     # its program
-    weights, seed_key = jax.device_put(loss_weights(cfg)), jax.random.PRNGKey(cfg.train.seed)
+    weights, seed_key = jax.device_put(loss_weights(cfg, loss_terms)), jax.random.PRNGKey(cfg.train.seed)
     rates = rate_arguments(group_rates(cfg.optim, scene.extent, size))
 
     def batch(step: int) -> dict:

@@ -34,38 +34,42 @@ from cusgs_jax.model.anchors import is_per_anchor, map_rows
 from cusgs_jax.model.decode import gather_visible, to_slots, view_inputs, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training.loss_terms import TermRender, check_loss_terms, term_weights
 from cusgs_jax.training import parallel
 from cusgs_jax.training.render import decode_view_inputs, render_gaussians, work_metrics
 from cusgs_jax.training.state import TrainState
 
 
-def loss_weights(cfg: Config) -> dict[str, np.float32]:
-    """The loss terms' weights as arrays: ``{"l1", "ssim", "volume", "feature"}`` ([] float32).
+def loss_weights(cfg: Config, loss_terms=()) -> dict[str, np.float32]:
+    """The loss terms' weights as arrays: ``{"l1", "ssim", "volume", "feature"}`` ([] float32) and one per user
+    term of ``loss_terms`` (:class:`~cusgs_jax.training.loss_terms.LossTerm`, by its name).
 
     :func:`~cusgs_jax.training.inputs.make_batches` puts them in every batch (``"loss_weights"``), so they
     are arguments of the step's program, not constants: jobs of a sweep over ``loss.*_weight`` or
     ``features.weight`` share one compiled step. A batch without them uses these values as constants
     (the same numbers)."""
     return dict(l1=np.float32(cfg.loss.l1_weight), ssim=np.float32(cfg.loss.ssim_weight),
-                volume=np.float32(cfg.loss.volume_weight), feature=np.float32(cfg.features.weight))
+                volume=np.float32(cfg.loss.volume_weight), feature=np.float32(cfg.features.weight),
+                **term_weights(loss_terms))
 
 
-def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
-    """``one(trainable, anchors, batch, key) -> (loss, grads, parts)`` for one view.
+def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_terms=()):
+    """``one(trainable, anchors, batch, key, state) -> (loss, grads, parts)`` for one view.
 
     ``grads``: the trainable tree's gradient with the anchor rows of the view's S visible
     slots only ({"anchor": AnchorParams [S, …], networks dense}). ``parts``: what the record,
     the metrics and the update need (the visible slots, decoded Gaussians, the render with its
-    per-Gaussian fields in decoded order, ∂L/∂μ_2D [G, 2], the loss terms, the work counts).
+    per-Gaussian fields in decoded order, ∂L/∂μ_2D [G, 2], the loss terms, the work counts). ``parts["weighted"]``:
+    every term's weighted value ({"l1", "ssim", "volume"[, "feature"], user terms}: they sum to the loss).
     """
     model, features = cfg.model, cfg.features
     num_slots = capacities.visible_slots(anchor_capacity)
     active_capacity = capacities.active_gaussians(anchor_capacity, model.n_offsets)
     pair_capacity = capacities.pairs(anchor_capacity, model.n_offsets)
 
-    def loss_fn(local, delta, centers, decoded, batch, key):
+    def loss_fn(local, delta, centers, decoded, batch, key, state):
         camera = batch["camera"]
-        weights = batch["loss_weights"] if "loss_weights" in batch else loss_weights(cfg)
+        weights = batch["loss_weights"] if "loss_weights" in batch else loss_weights(cfg, loss_terms)
         # differentiated with respect to the S gathered rows (local["anchor"]), not the [A] arrays;
         # a scene without feature models (static) traces no query head
         inputs = view_inputs(local, local["anchor"], centers, decoded, camera, batch["index"], model)
@@ -75,24 +79,35 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int):
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
                                         pixel_mask=batch.get("valid"), l1_weight=weights["l1"],
                                         ssim_weight=weights["ssim"], volume_weight=weights["volume"])
+        weighted = dict(l1=weights["l1"] * terms["l1"], ssim=weights["ssim"] * terms["ssim_loss"],
+                        volume=weights["volume"] * terms["volume"])
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
                                                                 local["memory"], batch["banks"], key, features)
             loss = loss + weights["feature"] * feature_total
             terms.update(feature_terms, feature=feature_total)
-        return loss, (out, gaussians, chosen, terms)
+            weighted["feature"] = weights["feature"] * feature_total
+        if loss_terms:  # research code's own terms (training/loss_terms.py), after the built-in ones
+            seen = TermRender(out.image[..., :3], out.alpha, out.depth, gaussians)
+            for term in loss_terms:
+                value = jnp.asarray(term.fn(seen, batch, state), jnp.float32).reshape(())
+                weighted[term.name] = weights[term.name] * value
+                terms[term.name] = value
+                loss = loss + weighted[term.name]
+        return loss, (out, gaussians, chosen, terms, weighted)
 
-    def one(trainable, anchors, batch, key):
+    def one(trainable, anchors, batch, key, state):
         camera = batch["camera"]
         view = visible_slots(anchors, camera, num_slots=num_slots, margin=model.frustum_margin)
         rows, centers, decoded = gather_visible(anchors.replace(params=trainable["anchor"]), view)
         local = dict(trainable, anchor=rows)
         delta = jnp.zeros((active_capacity, 2), jnp.float32)
-        (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
-            loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key)
+        (loss, (out, gaussians, chosen, terms, weighted)), (grads, grad2d) = jax.value_and_grad(
+            loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key, state)
         mse = losses.masked_mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2, batch.get("valid"))
         parts = dict(view=view, gaussians=gaussians, render=expand_render(out, chosen),
-                     grad2d=scatter_back(grad2d, chosen), terms=terms, work=work_metrics(view, chosen, out), mse=mse)
+                     grad2d=scatter_back(grad2d, chosen), terms=terms, weighted=weighted,
+                     work=work_metrics(view, chosen, out), mse=mse)
         return loss, grads, parts
 
     return one
@@ -112,10 +127,12 @@ def _metrics(loss, finite, parts: dict, reduce) -> dict:
     return dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
                 **{k: reduce(v, jnp.max) for k, v in work.items()},
                 loss_image=reduce(terms["loss"], jnp.mean),
-                **{f"loss_{k}": reduce(v, jnp.mean) for k, v in terms.items() if k != "loss"})
+                **{f"loss_{k}": reduce(v, jnp.mean) for k, v in terms.items() if k != "loss"},
+                terms={k: reduce(v, jnp.mean) for k, v in parts["weighted"].items()})
 
 
-def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None):
+def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None,
+                    loss_terms=()):
     """One jitted, state-donating training step.
 
     The returned ``step(state, batch)`` takes ``batch = {"image": [H, W, 3]
@@ -132,7 +149,10 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     strategy's ``accumulate`` hook sees the view (:class:`ViewRecord`).
 
     ``capacities``: the static work capacities (:class:`~cusgs_jax.training.capacity.Capacities`,
-    owned and grown by the caller; default: the config's first guesses).
+    owned and grown by the caller; default: the config's first guesses). ``loss_terms``: research code's own
+    terms (:class:`~cusgs_jax.training.loss_terms.LossTerm`), added to the loss with their weights from
+    ``batch["loss_weights"]`` (:func:`loss_weights`). ``metrics["terms"]`` holds every term's weighted value
+    (built-in and the user's; they sum to ``metrics["loss"]``).
 
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
@@ -149,12 +169,13 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     """
     require_config(cfg, "make_train_step")
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
+    loss_terms = check_loss_terms(loss_terms)
     if cfg.train.batch_size > 1:
-        return make_batched_step(cfg, tx, strategies, capacities)
-    return jax.jit(_step_body(cfg, tx, strategies, capacities, mesh=None), donate_argnums=0)
+        return make_batched_step(cfg, tx, strategies, capacities, loss_terms)
+    return jax.jit(_step_body(cfg, tx, strategies, capacities, mesh=None, loss_terms=loss_terms), donate_argnums=0)
 
 
-def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities, mesh):
+def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities, mesh, loss_terms=()):
     """``step(state, batch) -> (state, metrics)`` for B = ``train.batch_size`` views (not jitted).
 
     B = 1 (``mesh`` None): the batch has no view axis; the view's S anchor rows are updated
@@ -172,20 +193,20 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
     def train_step(state: TrainState, batch):  # its name: the run's compile log counts jit(train_step)
         camera = batch["camera"]
         capacity = state.anchors.capacity
-        one = _view_pass(cfg, capacities, capacity)
+        one = _view_pass(cfg, capacities, capacity, loss_terms)
         seed_key = batch["seed_key"] if "seed_key" in batch else jax.random.PRNGKey(cfg.train.seed)
         key = jax.random.fold_in(seed_key, state.step)
         if batch_size == 1:
-            loss, grads, parts = one(state.trainable, state.anchors, batch, key)
+            loss, grads, parts = one(state.trainable, state.anchors, batch, key, state)
             latent_grads = [grads["anchor"].latent]
             views = [parts]
             reduce = lambda v, _: v  # noqa: E731
         else:
-            def local_views(trainable, anchors, views, shared, keys):
+            def local_views(trainable, anchors, views, shared, keys, whole):
                 """On one device: its B/D views' losses, parts and row gradients, and the dense gradient sum."""
                 def visit(args):
                     view, view_key = args
-                    loss, grads, parts = one(trainable, anchors, dict(view, **shared), view_key)
+                    loss, grads, parts = one(trainable, anchors, dict(view, **shared), view_key, whole)
                     return loss, grads, parts, _dense(grads, parts["view"], capacity)
 
                 loss, grads, parts, dense = jax.lax.map(visit, (views, keys))
@@ -193,13 +214,13 @@ def _step_body(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Ca
                 return loss, grads["anchor"].latent, parts, total
 
             sharded = jax.shard_map(local_views, mesh=mesh,
-                                    in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS)),
+                                    in_specs=(P(), P(), P(parallel.AXIS), P(), P(parallel.AXIS), P()),
                                     out_specs=(P(parallel.AXIS),) * 3 + (P(),),
                                     check_vma=False)  # the splatter's scans carry values that vary over views
             keys = jax.vmap(lambda b: jax.random.fold_in(key, b))(jnp.arange(batch_size))
             per_view = {k: v for k, v in batch.items() if k not in parallel.SHARED_INPUTS}
             shared = {k: v for k, v in batch.items() if k in parallel.SHARED_INPUTS}
-            losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, per_view, shared, keys)
+            losses_b, latent_grad, parts, total = sharded(state.trainable, state.anchors, per_view, shared, keys, state)
             loss = jnp.mean(losses_b)
             grads = jax.tree_util.tree_map(lambda g: g / batch_size, total)
             pick = lambda tree, b: jax.tree_util.tree_map(lambda x: x[b], tree)  # noqa: E731
@@ -293,7 +314,8 @@ def _finish(state: TrainState, finite, complete, densify) -> TrainState:
                          skipped=state.skipped + (complete & ~finite).astype(jnp.int32))
 
 
-def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None):
+def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None,
+                      loss_terms=()):
     """The step on B = ``train.batch_size`` views, sharded over the views mesh (B > 1).
 
     ``step(state, batch)`` with the batch of :func:`make_train_step` (leading view axis B).
@@ -316,7 +338,8 @@ def make_batched_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacit
     """
     capacities = Capacities.from_config(cfg) if capacities is None else capacities
     mesh = parallel.view_mesh(cfg)
-    jitted = jax.jit(_step_body(cfg, tx, strategies, capacities, mesh), donate_argnums=0)
+    jitted = jax.jit(_step_body(cfg, tx, strategies, capacities, mesh, check_loss_terms(loss_terms)),
+                     donate_argnums=0)
 
     def placed_step(state: TrainState, batch):
         state, batch = parallel.place_step_inputs(mesh, state, batch)
