@@ -51,7 +51,7 @@ _EXPORTS = {
     "make_train_step": "training.step", "loss_weights": "training.step", "LossTerm": "training.loss_terms",
     "TermRender": "training.loss_terms", "Capacities": "training.capacity", "make_batches": "training.inputs",
     # training from Python: the CLI's run as a function, and the pieces of a loop of one's own (docs/api.md)
-    "train": "app.api", "TrainResult": "app.api", "setup": "app.session", "Session": "app.session",
+    "train": "app.api", "TrainResult": "app.api", "EvalRecord": "run_folder", "read_eval": "run_folder", "setup": "app.session", "Session": "app.session",
     "start": "app.loop", "Loop": "app.loop", "exact_step": "app.loop", "run_strategies": "app.loop",
     "curve_point": "app.loop", "save_checkpoint": "app.loop", "finalise": "app.run",
     # rendering a trained model, cameras and camera paths

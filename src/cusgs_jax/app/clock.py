@@ -19,12 +19,14 @@ class Clock:
 
     def __exit__(self, *exc):
         self.total += time.perf_counter() - self._start
+        self._start = None
 
     @contextlib.contextmanager
     def paused(self):
-        """Inside a ``with clock:`` block: the time spent here is not charged."""
+        """Inside a ``with clock:`` block: the time spent here is not charged (outside one nothing is)."""
         start = time.perf_counter()
         try:
             yield
         finally:
-            self._start += time.perf_counter() - start
+            if self._start is not None:
+                self._start += time.perf_counter() - start
