@@ -96,3 +96,21 @@ def test_data_that_is_not_a_data_config_is_a_type_error_saying_what_to_pass(tmp_
         load_scene(tmp_path, data={"downscale": 2})
     with pytest.raises(TypeError, match="got Config: pass cfg.data"):
         load_scene(tmp_path, data=Config())
+
+
+@pytest.mark.parametrize("seed, error, match", [
+    ("a", TypeError, r"seed must be a non-negative int \(train.seed.*got str 'a'"),
+    (1.5, TypeError, r"seed must be a non-negative int .*got float 1.5"),
+    (True, TypeError, r"seed must be a non-negative int .*got bool"),
+    (-1, ValueError, r"seed must be a non-negative int \(train.seed\), got -1"),
+])
+def test_a_seed_that_is_not_a_non_negative_int_is_named(scenes, seed, error, match):
+    with pytest.raises(error, match=match):
+        load_scene(scenes["pinhole"], seed=seed)
+
+
+def test_a_numpy_integer_seed_loads_as_the_int_would(scenes):
+    data = DataConfig(random_points=50)
+    three = load_scene(scenes["blender"], data, seed=3)
+    _same(load_scene(scenes["blender"], data, seed=np.int64(3)), three)
+    assert not np.array_equal(load_scene(scenes["blender"], data, seed=4).points, three.points)  # the seed counts

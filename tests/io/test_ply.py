@@ -222,3 +222,15 @@ def test_write_errors(tmp_path):
     with pytest.raises(PlyError, match="cannot write") as e:
         write_ply(tmp_path / "missing folder" / "a.ply", m)
     assert "missing folder" in str(e.value)
+
+
+def test_rendering_something_that_is_not_a_model_names_the_argument_and_the_type():
+    camera = Camera(jnp.asarray(np.diag([30.0, 30.0, 1.0]), jnp.float32), jnp.eye(4), 16, 12)
+    for fn in (render_splats, render_splats_exact):
+        with pytest.raises(TypeError, match=rf"{fn.__name__}\(\): model must be a cusgs_jax.io.SplatModel "
+                                            r"\(e.g. from cusgs_jax.io.read_ply.*got NoneType"):
+            fn(None, camera, background=np.zeros(3, np.float32))
+        with pytest.raises(TypeError, match=r"camera must be a cusgs_jax.types.Camera.*got dict"):
+            fn(_model(num=4, degree=0), {"K": camera.K}, background=np.zeros(3, np.float32))
+    with pytest.raises(TypeError, match=r"splat_colors\(\): model must be a cusgs_jax.io.SplatModel"):
+        splat_colors({"means": np.zeros((1, 3))}, camera.center)

@@ -292,3 +292,149 @@ def test_rasterize_names_a_wrong_argument_instead_of_rendering_a_wrong_image(cha
     with pytest.raises(ValueError, match=message):
         rasterize(*(args[k] for k in (*KEYS, "viewmat", "K")), sizes["width"], sizes["height"],
                   tile_size=sizes["tile_size"])
+
+
+# --------------------------------------------------------------------------- research code: batch, jit, checks
+
+
+def _small():
+    """A 12-Gaussian scene, float32: the arrays as NumPy (host) and as JAX arrays."""
+    scene = as_dtype(make_scene(12, num=12), np.float32)
+    host = [scene[k] for k in (*KEYS, "viewmat", "K")]
+    return scene, host, [jnp.asarray(a) for a in host]
+
+
+def _assert_same(a, b):
+    for field, x, y in zip(a._fields, a, b):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=field)
+
+
+def test_batch_broadcasts_a_shared_K_and_refuses_one_unbatched_view():
+    scene, _, args = _small()
+    views = np.stack([scene["viewmat"], scene["viewmat"]])
+    views[1, :3, 3] += np.array([0.05, -0.03, 0.1], np.float32)
+    K = scene["K"]
+    shared = rasterize_batch(*args[:5], jnp.asarray(views), jnp.asarray(K), scene["width"], scene["height"])
+    stacked = rasterize_batch(*args[:5], jnp.asarray(views), jnp.asarray(np.stack([K, K])), scene["width"],
+                              scene["height"])
+    _assert_same(shared, stacked)
+    assert shared.image.shape == (2, scene["height"], scene["width"], 3)
+    assert not np.array_equal(np.asarray(shared.image[0]), np.asarray(shared.image[1]))  # two views, two images
+    with pytest.raises(ValueError, match=r"viewmats must have shape \[B, 4, 4\].*use rasterize\(") as info:
+        rasterize_batch(*args[:5], jnp.asarray(views[0]), jnp.asarray(K), scene["width"], scene["height"])
+    assert "stack" in str(info.value)
+    with pytest.raises(ValueError, match=r"Ks must have shape \[3, 3\] .* or \[2, 3, 3\]"):
+        rasterize_batch(*args[:5], jnp.asarray(views), jnp.asarray(np.stack([K, K, K])), scene["width"],
+                        scene["height"])
+
+
+def test_rasterize_jit_is_rasterize_bit_for_bit_and_the_documented_recipe_jits():
+    import re
+
+    from cusgs_jax.splat import RASTERIZE_STATIC_ARGNAMES, rasterize_batch_jit, rasterize_jit
+
+    scene, _, args = _small()
+    size = (scene["width"], scene["height"])
+    eager = rasterize(*args, *size, background=jnp.asarray(scene["background"]), tile_size=8)
+    _assert_same(rasterize_jit(*args, *size, background=jnp.asarray(scene["background"]), tile_size=8), eager)
+    # the tuple written in rasterize's docstring is the one exported, and jitting with it works
+    documented = re.search(r"is\s+#\s+(\(.*?\))\n\n", rasterize.__doc__, re.S).group(1)
+    assert eval(documented.replace("#", "")) == RASTERIZE_STATIC_ARGNAMES
+    recipe = jax.jit(rasterize, static_argnames=RASTERIZE_STATIC_ARGNAMES)
+    _assert_same(recipe(*args, *size, background=jnp.asarray(scene["background"]), tile_size=8), eager)
+    # without it: a TypeError saying what to do, not JAX's tracer error
+    with pytest.raises(TypeError, match=r"width is a traced value.*rasterize_jit.*RASTERIZE_STATIC_ARGNAMES"):
+        jax.jit(rasterize)(*args, *size)
+    views, Ks = jnp.stack([args[5], args[5]]), args[6]
+    _assert_same(rasterize_batch_jit(*args[:5], views, Ks, *size, tile_size=8),
+                 rasterize_batch(*args[:5], views, Ks, *size, tile_size=8))
+
+
+@pytest.mark.parametrize("host", [True, False], ids=["numpy", "jax"])
+@pytest.mark.parametrize("name, index, value, message", [
+    ("means", (3, 1), np.nan, r"means has 1 non-finite value\(s\).*index \(3, 1\)"),
+    ("means", (0, 2), np.inf, r"means has 1 non-finite"),
+    ("scales", (2, 0), -1e-3, r"scales must be non-negative.*index \(2, 0\)"),
+    ("scales", (4, 2), np.inf, r"scales has 1 non-finite"),
+    ("opacities", (5,), 1.5, r"opacities must lie in \[0, 1\].*1\.5 at index \(5,\)"),
+    ("opacities", (0,), -0.01, r"opacities must lie in \[0, 1\]"),
+    ("opacities", (7,), np.nan, r"opacities has 1 non-finite"),
+])
+def test_rasterize_checks_values_outside_jit_naming_the_argument(host, name, index, value, message):
+    from cusgs_jax.splat import rasterize_jit
+
+    scene, arrays, _ = _small()
+    arrays = [a.copy() for a in arrays]
+    arrays[(*KEYS, "viewmat", "K").index(name)][index] = value
+    args = arrays if host else [jnp.asarray(a) for a in arrays]
+    size = (scene["width"], scene["height"])
+    with pytest.raises(ValueError, match=message):
+        rasterize(*args, *size)
+    with pytest.raises(ValueError, match=message):  # the batch checks the scene once
+        rasterize_batch(*args[:5], np.stack([args[5]] * 2), args[6], *size)
+    # inside jit the values are traced: nothing checked, the render runs (it is the caller's to check there)
+    assert rasterize_jit(*args, *size).image.shape == (scene["height"], scene["width"], 3)
+    rasterize(*args, *size, validate=False)
+
+
+def test_opacities_of_exactly_zero_and_one_and_zero_scales_are_valid():
+    scene, arrays, _ = _small()
+    arrays = [a.copy() for a in arrays]
+    arrays[3][:4], arrays[3][4:8] = 0.0, 1.0
+    arrays[2][0] = 0.0
+    for args in (arrays, [jnp.asarray(a) for a in arrays]):
+        out = rasterize(*args, scene["width"], scene["height"])
+        assert np.isfinite(np.asarray(out.image)).all()
+
+
+def test_means_as_a_python_list_renders_as_the_array_would():
+    scene, arrays, args = _small()
+    size = (scene["width"], scene["height"])
+    _assert_same(rasterize(arrays[0].tolist(), *args[1:], *size), rasterize(*args, *size))
+    with pytest.raises(ValueError, match=r"means must have shape \[G, 3\]"):
+        rasterize([[0.0, 1.0]], *args[1:], *size)
+
+
+@pytest.mark.parametrize("max_pairs", [0, -1, 2.5, True])
+def test_max_pairs_must_be_a_positive_int(max_pairs):
+    from cusgs_jax.splat import rasterize_jit
+
+    scene, _, args = _small()
+    for fn in (rasterize, rasterize_jit):  # a static argument: checked under jit too
+        with pytest.raises(ValueError, match="max_pairs must be a positive int or None"):
+            fn(*args, scene["width"], scene["height"], max_pairs=max_pairs)
+
+
+@pytest.mark.parametrize("keyword, value", [("backend", "pallas"), ("chunk_size", 8), ("lanes", 2)])
+def test_a_removed_keyword_names_its_replacement(keyword, value):
+    scene, _, args = _small()
+    replacement = rf"compositor=Compositor\({keyword}=\.\.\.\)"
+    with pytest.raises(TypeError, match=rf"rasterize\(\) no longer takes {keyword}=; pass {replacement}"):
+        rasterize(*args, scene["width"], scene["height"], **{keyword: value})
+    with pytest.raises(TypeError, match=rf"rasterize_batch\(\) no longer takes {keyword}="):
+        rasterize_batch(*args[:5], args[5][None], args[6], scene["width"], scene["height"], **{keyword: value})
+    with pytest.raises(TypeError, match="unexpected keyword argument 'antialias'"):
+        rasterize(*args, scene["width"], scene["height"], antialias=True)
+
+
+def test_the_documented_checkify_recipe_reports_bad_values_inside_jit():
+    from jax.experimental import checkify
+
+    scene, _, args = _small()
+
+    def render(means, quats, scales, opacities, colors, viewmat, K):
+        checkify.check(jnp.all((opacities >= 0) & (opacities <= 1)), "opacities outside [0, 1]")
+        return rasterize(means, quats, scales, opacities, colors, viewmat, K, scene["width"], scene["height"]).image
+
+    checked = jax.jit(checkify.checkify(render, errors=checkify.user_checks | checkify.float_checks))
+    err, image = checked(*args)
+    err.throw()  # valid inputs: nothing to report
+    # checkify's instrumented program is another program: the same image to rounding
+    np.testing.assert_allclose(np.asarray(image), np.asarray(rasterize(*args, scene["width"], scene["height"]).image),
+                               atol=1e-6)
+    err, _ = checked(*args[:3], args[3].at[5].set(1.5), *args[4:])
+    with pytest.raises(checkify.JaxRuntimeError, match=r"opacities outside \[0, 1\]"):
+        err.throw()
+    err, _ = checked(args[0].at[3, 1].set(jnp.nan), *args[1:])
+    with pytest.raises(checkify.JaxRuntimeError, match="nan generated"):
+        err.throw()

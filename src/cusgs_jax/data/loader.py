@@ -54,12 +54,24 @@ def load_scene(path: str | os.PathLike | None = None, data: DataConfig | None = 
       :class:`~cusgs_jax.data.scene_data.SceneData` in the scene's own frame.
     Raises:
       SceneError: anything wrong with the files or these settings, naming the file or option.
+      TypeError, ValueError: a ``seed`` that is not a non-negative int (naming ``seed``).
     """
+    seed = _check_seed(seed)
     data = check_settings(DataConfig() if data is None else data)
     folder = scene_folder(data.path if path is None else path, data)
     scene = finish_scene(read_scene(folder, data), data, background=background, seed=seed)
     require_ssim_size(scene, data.downscale, downscale_option)
     return scene
+
+
+def _check_seed(seed) -> int:
+    """``seed`` as an int: a TypeError unless it is an int (``train.seed``), a ValueError if it is negative."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)):
+        raise TypeError(f"seed must be a non-negative int (train.seed, which draws the random initial points), "
+                        f"got {type(seed).__name__} {seed!r}")
+    if seed < 0:
+        raise ValueError(f"seed must be a non-negative int (train.seed), got {seed}")
+    return int(seed)
 
 
 class SceneCameras(NamedTuple):

@@ -40,8 +40,22 @@ def _degree(model: SplatModel, sh_degree: int | None) -> int:
     return degree
 
 
+def _require_model(model, function: str) -> None:
+    """TypeError naming ``model`` unless it is a :class:`SplatModel` (a pytree: also true under jit)."""
+    if not isinstance(model, SplatModel):
+        raise TypeError(f"{function}(): model must be a cusgs_jax.io.SplatModel (e.g. from cusgs_jax.io.read_ply "
+                        f"or a run's model), got {type(model).__name__}")
+
+
+def _require_camera(camera, function: str) -> None:
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{function}(): camera must be a cusgs_jax.types.Camera (e.g. from "
+                        f"cusgs_jax.io.scene_camera), got {type(camera).__name__}")
+
+
 def splat_colors(model: SplatModel, camera_center: jax.Array, sh_degree: int | None = None) -> jax.Array:
     """[G, 3] RGB of every Gaussian seen from ``camera_center`` [3] (dirs = mean − centre, as gsplat)."""
+    _require_model(model, "splat_colors")
     degree = _degree(model, sh_degree)
     sh = jnp.asarray(model.sh)[:, : (degree + 1) ** 2]
     return sh_to_rgb(sh, jnp.asarray(model.means) - camera_center)
@@ -63,7 +77,12 @@ def render_splats(model: SplatModel, camera: Camera, *, background, sh_degree: i
     Returns:
       :class:`cusgs_jax.splat.RenderOutput`; ``image`` [H, W, 3] is not clipped.
       ``overflow > 0`` means tile pairs were dropped (see :func:`render_splats_exact`).
+    Raises:
+      TypeError: ``model`` not a :class:`~cusgs_jax.io.ply.SplatModel` or ``camera`` not a
+        :class:`~cusgs_jax.types.Camera`.
     """
+    _require_model(model, "render_splats")
+    _require_camera(camera, "render_splats")
     defaults = SplatConfig()
     kwargs = dict(tile_size=defaults.tile_size, compositor=Compositor(defaults.backend, defaults.chunk_size),
                   max_pairs=max_pairs(defaults.max_pairs_per_gaussian, model.num_gaussians))
@@ -90,6 +109,8 @@ def render_splats_exact(model: SplatModel, camera: Camera, *, background, sh_deg
     """
     if "max_pairs" in rasterize_kwargs:
         raise TypeError("render_splats_exact chooses max_pairs itself; pass pairs_per_gaussian instead")
+    _require_model(model, "render_splats_exact")
+    _require_camera(camera, "render_splats_exact")
     degree = _degree(model, sh_degree)
     per = SplatConfig().max_pairs_per_gaussian if pairs_per_gaussian is None else float(pairs_per_gaussian)
     num = model.num_gaussians

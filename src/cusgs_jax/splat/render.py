@@ -6,9 +6,9 @@ Naming: G Gaussians, C channels, H×W image, B cameras.
 from __future__ import annotations
 
 import functools
+import inspect
 import logging
 import math
-from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -146,13 +146,49 @@ def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
     return img[: grid.height, : grid.width]
 
 
-@partial(
-    jax.jit,
-    static_argnames=(
-        "width", "height", "near", "far", "antialiased", "eps2d", "tile_size",
-        "max_pairs", "compositor",
-    ),
+RASTERIZE_STATIC_ARGNAMES = (
+    "width", "height", "near", "far", "antialiased", "eps2d", "tile_size", "max_pairs", "compositor", "validate",
 )
+"""The arguments of :func:`rasterize` and :func:`rasterize_batch` that must be static under ``jax.jit``:
+``jax.jit(rasterize, static_argnames=RASTERIZE_STATIC_ARGNAMES)`` is :data:`rasterize_jit`."""
+
+# Keywords rasterize() once took, and what replaced them (a caller still passing one gets a TypeError saying so).
+_REMOVED_KEYWORDS = {
+    "backend": "compositor=Compositor(backend=...)",
+    "chunk_size": "compositor=Compositor(chunk_size=...)",
+    "lanes": "compositor=Compositor(lanes=...)",
+}
+
+
+def _refuse_keywords(function: str, keywords: dict) -> None:
+    """TypeError for keywords :func:`rasterize` does not take, naming the replacement of a removed one."""
+    for name in keywords:
+        if name in _REMOVED_KEYWORDS:
+            raise TypeError(f"{function}() no longer takes {name}=; pass {_REMOVED_KEYWORDS[name]} instead "
+                            "(cusgs_jax.splat.Compositor: backend, chunk_size, lanes)")
+        raise TypeError(f"{function}() got an unexpected keyword argument {name!r}")
+
+
+def _is_traced(*values) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(values))
+
+
+def _as_array(value):
+    """A NumPy or JAX array (or tracer) as it is; anything else (a list, a tuple, a scalar) through jnp.asarray."""
+    if value is None or isinstance(value, (np.ndarray, jax.Array, jax.core.Tracer)):
+        return value
+    return jnp.asarray(value)
+
+
+def _require_static(function: str, **values) -> None:
+    """TypeError when a static argument arrives traced (``jax.jit(rasterize)`` without ``static_argnames``)."""
+    for name, value in values.items():
+        if _is_traced(value):
+            raise TypeError(f"{function}(): {name} is a traced value, but {name} must be static (it fixes the shapes "
+                            "or the program): jit with cusgs_jax.splat.rasterize_jit / rasterize_batch_jit, or "
+                            "jax.jit(f, static_argnames=cusgs_jax.splat.RASTERIZE_STATIC_ARGNAMES)")
+
+
 def rasterize(
     means: jax.Array,
     quats: jax.Array,
@@ -174,26 +210,45 @@ def rasterize(
     means2d_delta: jax.Array | None = None,
     lens: Lens | None = None,
     compositor: Compositor = Compositor(),
+    validate: bool = True,
+    **removed,
 ) -> RenderOutput:
     """Render 3D Gaussians with gsplat 1.5.3's conventions (docs/rasterizer.md).
 
+    Called on concrete arrays it checks them, then runs one jitted program per static configuration (new
+    values, same shapes: no recompile). Inside your own ``jax.jit`` the static arguments must be static::
+
+        fast = jax.jit(rasterize, static_argnames=cusgs_jax.splat.RASTERIZE_STATIC_ARGNAMES)
+        # = cusgs_jax.splat.rasterize_jit; RASTERIZE_STATIC_ARGNAMES is
+        # ("width", "height", "near", "far", "antialiased", "eps2d", "tile_size", "max_pairs", "compositor",
+        #  "validate")
+
+    Input checks: outside jit (no argument is a tracer) the inputs are checked before rendering —
+    shapes and dtypes (:func:`check_shapes`), finite values, ``scales ≥ 0``, ``opacities`` in [0, 1] — and a
+    bad one is a ValueError naming the argument (one pass over the arrays; on a device, one transfer of a few
+    reductions). Under ``jax.jit``, ``jax.grad`` or ``jax.vmap`` only shapes and static arguments are
+    checked (the values are traced): call :func:`check_inputs` on the concrete inputs first, or use
+    ``jax.experimental.checkify`` — ``checkify.check(jnp.all(opacities <= 1), "...")`` in your function, and
+    ``jax.jit(checkify.checkify(f, errors=checkify.user_checks | checkify.float_checks))`` reports a failed check
+    or the first NaN an operation produces (docs/rasterizer.md#calling-it-from-research-code).
+
     Args:
-      means: [G, 3] world centres.
+      means: [G, 3] world centres (a list or tuple is converted with ``jnp.asarray``; so are the other arrays).
       quats: [G, 4] wxyz rotations, need not be normalised.
-      scales: [G, 3] linear standard deviations.
+      scales: [G, 3] linear standard deviations (≥ 0).
       opacities: [G] in [0, 1].
       colors: [G, C] any C ≥ 1 (RGB and feature channels in one pass).
       viewmat: [4, 4] world→camera, OpenCV axes (+z forward, +y down).
       K: [3, 3] pinhole intrinsics.
       width, height: static image size.
-      near, far: depth culling planes.
+      near, far: depth culling planes (static).
       background: [C] or None (black).
       antialiased: gsplat's "antialiased" mode (opacity compensation).
       eps2d: low-pass variance added to every 2D covariance.
       tile_size: static tile edge in pixels (16 as gsplat; 8 is 1.3–1.7x
         faster on CPU, see benchmarks/splat_bench.py). The image does not
         depend on it.
-      max_pairs: static tile–Gaussian pair capacity; ``None`` uses
+      max_pairs: static tile–Gaussian pair capacity, a positive int; ``None`` uses
         :func:`default_max_pairs`. Exceeding it drops the farthest pairs and is
         reported in ``overflow``.
       means2d_delta: [G, 2] or None, added to the projected centres. Pass
@@ -202,14 +257,58 @@ def rasterize(
       lens: the camera's lens distortion (:class:`~cusgs_jax.splat.lens.Lens`, one camera), or
         None for a pinhole camera; the image is then the distorted camera's picture.
       compositor: static; how the tiles are composited (:class:`Compositor`: backend, the JAX compositor's
-        chunk size and lanes). Projection, sorting and binning are the same for all; the image agrees
-        to rounding.
+        chunk size and lanes; the former ``backend=``, ``chunk_size=`` and ``lanes=`` keywords). Projection,
+        sorting and binning are the same for all; the image agrees to rounding.
+      validate: static; False skips the value checks outside jit (shapes are always checked).
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
       scales, opacities, colors, background (and viewmat, K).
+    Raises:
+      ValueError: a wrong shape, dtype, size or ``max_pairs``, or (outside jit) a non-finite value, a negative
+        scale or an opacity outside [0, 1], naming the argument.
+      TypeError: a traced static argument (jit without ``static_argnames``) or a removed keyword.
     """
+    _refuse_keywords("rasterize", removed)
+    _require_static("rasterize", width=width, height=height, tile_size=tile_size, max_pairs=max_pairs, near=near,
+                    far=far, eps2d=eps2d, antialiased=antialiased, compositor=compositor, validate=validate)
+    means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta = (
+        _as_array(a) for a in (means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta))
+    if validate and not _is_traced(means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta,
+                                   lens):
+        check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, background=background,
+                     tile_size=tile_size, means2d_delta=means2d_delta, max_pairs=max_pairs)
+        check_values(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmat=viewmat,
+                     K=K, background=background, means2d_delta=means2d_delta)
+    return _rasterize_jit(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near, far=far,
+                          background=background, antialiased=antialiased, eps2d=eps2d, tile_size=tile_size,
+                          max_pairs=max_pairs, means2d_delta=means2d_delta, lens=lens, compositor=compositor)
+
+
+def _rasterize(
+    means: jax.Array,
+    quats: jax.Array,
+    scales: jax.Array,
+    opacities: jax.Array,
+    colors: jax.Array,
+    viewmat: jax.Array,
+    K: jax.Array,
+    width: int,
+    height: int,
+    *,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: jax.Array | None = None,
+    antialiased: bool = False,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+    max_pairs: int | None = None,
+    means2d_delta: jax.Array | None = None,
+    lens: Lens | None = None,
+    compositor: Compositor = Compositor(),
+) -> RenderOutput:
+    """:func:`rasterize` without its host-side checks (traced once per static configuration)."""
     check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, background=background,
-                 tile_size=tile_size, means2d_delta=means2d_delta)
+                 tile_size=tile_size, means2d_delta=means2d_delta, max_pairs=max_pairs)
     num_gaussians, channels = colors.shape
     if num_gaussians == 0:  # nothing to draw: the background (one invisible Gaussian keeps every shape non-empty)
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
@@ -264,6 +363,13 @@ def rasterize(
     )
 
 
+_rasterize.__name__ = _rasterize.__qualname__ = "rasterize"  # compile logs and profiles say jit(rasterize)
+_rasterize_jit = jax.jit(
+    _rasterize,
+    static_argnames=tuple(name for name in RASTERIZE_STATIC_ARGNAMES if name != "validate"),
+)
+
+
 def _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, *, means2d_delta,
                        **kwargs) -> RenderOutput:
     """:func:`rasterize` of G = 0 Gaussians: one fully transparent Gaussian is drawn, and the
@@ -272,33 +378,86 @@ def _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, widt
         return jnp.concatenate([x, jnp.full((1,) + x.shape[1:], value, x.dtype)])
 
     delta = None if means2d_delta is None else one_more(means2d_delta, 0.0)
-    out = rasterize(one_more(means, 0.0), one_more(quats, 1.0), one_more(scales, 1e-3), one_more(opacities, 0.0),
-                    one_more(colors, 0.0), viewmat, K, width, height, means2d_delta=delta, **kwargs)
+    out = _rasterize_jit(one_more(means, 0.0), one_more(quats, 1.0), one_more(scales, 1e-3),
+                         one_more(opacities, 0.0), one_more(colors, 0.0), viewmat, K, width, height,
+                         means2d_delta=delta, **kwargs)
     return out._replace(means2d=out.means2d[:0], radii=out.radii[:0], visible=out.visible[:0],
                         significance=out.significance[:0], hits=out.hits[:0])
 
 
 def rasterize_batch(
-    means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, **kwargs
+    means, quats, scales, opacities, colors, viewmats, Ks, width: int, height: int, *, validate: bool = True,
+    **kwargs,
 ) -> RenderOutput:
-    """Render one scene from B cameras (``jax.vmap`` of :func:`rasterize`).
+    """Render one scene from B cameras in one call (``jax.vmap`` of :func:`rasterize`), as gsplat's
+    ``rasterization(..., viewmats [B, 4, 4], Ks, ...)``.
+
+    Under ``jax.jit`` the static arguments must be static as for :func:`rasterize`: use
+    :data:`rasterize_batch_jit` or ``jax.jit(rasterize_batch, static_argnames=RASTERIZE_STATIC_ARGNAMES)``.
 
     Args:
-      viewmats: [B, 4, 4]; Ks: [B, 3, 3]; other arguments as :func:`rasterize`.
+      viewmats: [B, 4, 4] world→camera matrices, one per view (for one view, :func:`rasterize`).
+      Ks: [3, 3] intrinsics shared by every view (broadcast, as gsplat does), or [B, 3, 3] one per view.
+      validate: outside jit, check the inputs' values once for the whole batch (as :func:`rasterize`).
+      kwargs: :func:`rasterize`'s keywords, shared by every view (``background`` [C], ``lens``, ...).
+      other arguments as :func:`rasterize`.
     Returns:
       :class:`RenderOutput` with a leading batch axis B on every field.
+    Raises:
+      ValueError: as :func:`rasterize`, and ``viewmats`` or ``Ks`` of the wrong shape (e.g. one [4, 4] view).
     """
-    background = kwargs.pop("background", None)
+    _refuse_keywords("rasterize_batch", {k: v for k, v in kwargs.items() if k not in _RASTERIZE_KEYWORDS})
+    _require_static("rasterize_batch", width=width, height=height, validate=validate,
+                    **{k: v for k, v in kwargs.items() if k in RASTERIZE_STATIC_ARGNAMES})
+    means, quats, scales, opacities, colors, viewmats, Ks = (
+        _as_array(a) for a in (means, quats, scales, opacities, colors, viewmats, Ks))
+    for name in ("background", "means2d_delta"):
+        if name in kwargs:
+            kwargs[name] = _as_array(kwargs[name])
+    if tuple(viewmats.shape) == (4, 4):
+        raise ValueError("viewmats must have shape [B, 4, 4] (one world→camera matrix per view), got one [4, 4] "
+                         "matrix: use rasterize(...) for one view, or stack the views into [B, 4, 4] "
+                         "(viewmat[None] for a batch of one)")
+    if len(viewmats.shape) != 3 or tuple(viewmats.shape[1:]) != (4, 4):
+        raise ValueError(f"viewmats must have shape [B, 4, 4], got {list(viewmats.shape)}")
+    views = viewmats.shape[0]
+    if tuple(Ks.shape) == (3, 3):
+        k_axis = None  # one K for every view
+    elif tuple(Ks.shape) == (views, 3, 3):
+        k_axis = 0
+    else:
+        raise ValueError(f"Ks must have shape [3, 3] (shared by all {views} views) or [{views}, 3, 3] (one per "
+                         f"view), got {list(Ks.shape)}")
+    if validate and not _is_traced(means, quats, scales, opacities, colors, viewmats, Ks, kwargs):
+        one_view, one_K = jax.ShapeDtypeStruct((4, 4), viewmats.dtype), jax.ShapeDtypeStruct((3, 3), Ks.dtype)
+        check_shapes(means, quats, scales, opacities, colors, one_view, one_K, width, height,
+                     background=kwargs.get("background"), tile_size=kwargs.get("tile_size", 16),
+                     means2d_delta=kwargs.get("means2d_delta"), max_pairs=kwargs.get("max_pairs"))
+        check_values(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors, viewmats=viewmats,
+                     Ks=Ks, background=kwargs.get("background"), means2d_delta=kwargs.get("means2d_delta"))
 
     def one(viewmat, K):
-        return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height,
-                         background=background, **kwargs)
+        return rasterize(means, quats, scales, opacities, colors, viewmat, K, width, height, validate=False,
+                         **kwargs)
 
-    return jax.vmap(one)(viewmats, Ks)
+    return jax.vmap(one, in_axes=(0, k_axis))(viewmats, Ks)
+
+
+_RASTERIZE_KEYWORDS = frozenset(
+    name for name, parameter in inspect.signature(rasterize).parameters.items()
+    if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name != "validate"
+)
+
+rasterize_jit = jax.jit(rasterize, static_argnames=RASTERIZE_STATIC_ARGNAMES)
+"""``jax.jit(rasterize, static_argnames=RASTERIZE_STATIC_ARGNAMES)``: :func:`rasterize` for your own jitted code
+(the same image bit for bit; inside jit the values are not checked — see :func:`rasterize`)."""
+
+rasterize_batch_jit = jax.jit(rasterize_batch, static_argnames=RASTERIZE_STATIC_ARGNAMES)
+"""``jax.jit(rasterize_batch, static_argnames=RASTERIZE_STATIC_ARGNAMES)``."""
 
 
 def check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, *, background=None,
-                 tile_size: int = 16, means2d_delta=None) -> None:
+                 tile_size: int = 16, means2d_delta=None, max_pairs: int | None = None) -> None:
     """Check the rasteriser inputs' shapes, dtypes and static sizes (arrays or tracers: :func:`rasterize`
     runs it while tracing, so a wrong shape is a ValueError naming the argument, not a wrong image).
 
@@ -325,11 +484,70 @@ def check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, hei
     for name, value in (("width", width), ("height", height), ("tile_size", tile_size)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or int(value) <= 0:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    if max_pairs is not None and (isinstance(max_pairs, bool) or not isinstance(max_pairs, (int, np.integer))
+                                  or int(max_pairs) <= 0):
+        raise ValueError(f"max_pairs must be a positive int or None (None: default_max_pairs), got {max_pairs!r}")
+
+
+@jax.jit
+def _values_ok(arrays: dict) -> jax.Array:
+    """[] bool: every array finite, scales ≥ 0, opacities in [0, 1] (one scalar to bring back)."""
+    flags = [jnp.all(jnp.isfinite(a)) for a in arrays.values()]
+    if "scales" in arrays:
+        flags.append(jnp.all(arrays["scales"] >= 0))
+    if "opacities" in arrays:
+        flags.append(jnp.all((arrays["opacities"] >= 0) & (arrays["opacities"] <= 1)))
+    return jnp.all(jnp.stack(flags))
+
+
+def _first_index(bad: np.ndarray) -> tuple[int, ...]:
+    return tuple(int(i) for i in np.argwhere(bad)[0])
+
+
+def _check_values_host(arrays: dict) -> None:
+    """:func:`check_values` on NumPy arrays (None entries skipped)."""
+    for name, arr in arrays.items():
+        if arr is None:
+            continue
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s) (NaN or Inf), "
+                             f"first at index {_first_index(bad)}; fix or drop those entries before rendering")
+    scales, opacities = arrays.get("scales"), arrays.get("opacities")
+    if scales is not None and (bad := scales < 0).any():
+        raise ValueError(f"scales must be non-negative linear standard deviations, got {int(bad.sum())} negative "
+                         f"value(s), first at index {_first_index(bad)} "
+                         "(pass exp(log_scales) if you store logarithms)")
+    if opacities is not None and (bad := (opacities < 0) | (opacities > 1)).any():
+        raise ValueError(f"opacities must lie in [0, 1], got {int(bad.sum())} value(s) outside, first "
+                         f"{float(opacities[_first_index(bad)])} at index {_first_index(bad)} "
+                         "(apply a sigmoid to logits first)")
+
+
+def check_values(**arrays) -> None:
+    """Check concrete rasteriser inputs' values: every array finite, ``scales`` ≥ 0, ``opacities`` in [0, 1].
+
+    Arrays are passed by name (None skipped). NumPy arrays are checked on the host in one pass; when any is a
+    JAX array, a few reductions run where the arrays are and one bool comes back (the details are read only
+    when something is wrong). :func:`rasterize` runs it outside jit.
+
+    Raises:
+      ValueError: naming the argument, how many entries are wrong and the first one's index.
+    """
+    arrays = {name: arr for name, arr in arrays.items() if arr is not None}
+    if not arrays:
+        return
+    if any(isinstance(arr, jax.Array) for arr in arrays.values()):
+        if bool(jax.device_get(_values_ok(arrays))):
+            return
+    _check_values_host({name: np.asarray(arr) for name, arr in arrays.items()})
 
 
 def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, height,
                  background=None) -> None:
-    """Validate rasteriser inputs on the host (outside jit) with clear messages.
+    """Validate rasteriser inputs on the host with clear messages: what :func:`rasterize` checks outside jit,
+    and that ``viewmat``'s last row is [0, 0, 0, 1] and ``K``'s focal lengths are positive. Call it on the
+    concrete inputs before (or instead of) checking inside jit.
 
     Raises:
       ValueError: naming the offending argument, its shape or how many
@@ -342,17 +560,7 @@ def check_inputs(means, quats, scales, opacities, colors, viewmat, K, width, hei
     arrays = {k: np.asarray(v) for k, v in arrays.items()}
     check_shapes(*(arrays[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")),
                  width, height, background=arrays.get("background"))
-    for name, arr in arrays.items():
-        bad = ~np.isfinite(arr)
-        if bad.any():
-            raise ValueError(f"{name} has {int(bad.sum())} non-finite value(s) (NaN or Inf), "
-                             f"first at index {tuple(int(i) for i in np.argwhere(bad)[0])}; "
-                             "fix or drop those entries before rendering")
-    if (arrays["scales"] < 0).any():
-        raise ValueError("scales must be non-negative linear standard deviations "
-                         "(pass exp(log_scales) if you store logarithms)")
-    if ((arrays["opacities"] < 0) | (arrays["opacities"] > 1)).any():
-        raise ValueError("opacities must lie in [0, 1] (apply a sigmoid to logits first)")
+    _check_values_host(arrays)
     if not np.allclose(arrays["viewmat"][3], [0, 0, 0, 1]):
         raise ValueError(f"viewmat's last row must be [0, 0, 0, 1], got {arrays['viewmat'][3]}")
     if arrays["K"][0, 0] <= 0 or arrays["K"][1, 1] <= 0:
