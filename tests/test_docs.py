@@ -13,6 +13,7 @@ import pathlib
 import re
 import unicodedata
 
+import numpy as np
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -97,3 +98,35 @@ def test_no_citation_of_the_out_of_tree_design_file():
     stale = [f"{path.relative_to(ROOT)}:{n}" for path in (ROOT / "src").rglob("*.py")
              for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1) if "DESIGN.md" in line]
     assert not stale, f"cite docs/<page>.md#<section> instead of DESIGN.md: {stale}"
+
+
+API_PAGE = DOCS / "api.md"
+#: what the page's first snippet's ``overrides`` becomes here: a 40x30 demo scene, 6 steps, growth and pruning
+QUICK = ["train.iterations=6", "train.progress=false", "eval.every=3", "train.checkpoint_every=0",
+         "grow.stats_start=1", "grow.start=4", "grow.stop=6", "grow.interval=2", "prune.start=2", "prune.interval=2",
+         "eval.save_renders=false", "model.n_offsets=4", "model.latent_dim=8", "model.hidden=16",
+         "model.appearance_dim=8", "features=none"]
+
+
+def api_snippets() -> list[str]:
+    """The ```python blocks of docs/api.md, in order."""
+    return re.findall(r"^```python\n(.*?)^```", API_PAGE.read_text(encoding="utf-8"), flags=re.S | re.M)
+
+
+@pytest.mark.slow  # four short trainings (about 2-4 min on 2 cores): .ci/run runs it with -m slow
+def test_every_snippet_of_the_api_page_runs_as_written(tmp_path, tiny_scene, monkeypatch):
+    """docs/api.md's how-to, executed in order in one namespace (in a fresh folder), with only its ``overrides``
+    swapped for a short run on the tiny demo scene: a snippet that went stale fails here."""
+    snippets = api_snippets()
+    assert len(snippets) >= 7 and snippets[0].count("overrides = [") == 1
+    first = re.sub(r"^overrides = \[[^\]]*\]", f"overrides = {[f'data.path={tiny_scene}', *QUICK]!r}", snippets[0],
+                   count=1, flags=re.M)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    for index, code in enumerate([first, *snippets[1:]]):
+        exec(compile(code, f"docs/api.md snippet {index + 1}", "exec"), namespace)  # noqa: S102 - our own page
+    record, own = namespace["record"], namespace["record_own"]
+    assert set(namespace["record_tv"].loss_terms["mean"]) == {"l1", "ssim", "volume", "depth_tv"}
+    assert namespace["record_pruned"].densify["prune_unseen"]["updates"] == 1
+    assert float(np.max(np.abs(namespace["out"].image - namespace["same"].image))) == 0.0
+    assert own.loss_terms["steps"] == record.iterations and (tmp_path / "outputs" / "own_loop" / "eval.json").is_file()

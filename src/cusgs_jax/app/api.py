@@ -11,7 +11,6 @@ import contextlib
 import datetime
 import logging
 import pathlib
-import sys
 from collections.abc import Sequence
 from typing import NamedTuple
 
@@ -54,7 +53,7 @@ def as_config(config: Config | Sequence[str] | None) -> Config:
         return config
     if config is None:
         config = ()
-    if isinstance(config, str) or not all(isinstance(item, str) for item in config):
+    if not isinstance(config, (list, tuple)) or not all(isinstance(item, str) for item in config):
         raise ConfigError(f"config: give a cusgs_jax.Config, a list of overrides such as ['train.iterations=500'], "
                           f"or None (the defaults), not {config!r}")
     from cusgs_jax.compose import compose_config  # Hydra's compose API (lazy: a Config needs none of it)
@@ -92,10 +91,9 @@ def console_log(enabled: bool = True):
 
 
 def _bare_default(handler: logging.Handler) -> bool:
-    """Whether ``handler`` is what a bare ``logging.basicConfig()`` installs (stderr, the default format)."""
+    """Whether ``handler`` is what a bare ``logging.basicConfig()`` installs (a stream, the default format)."""
     formatter = handler.formatter
-    return (type(handler) is logging.StreamHandler and getattr(handler, "stream", None) is sys.stderr
-            and (formatter is None or formatter._fmt == logging.BASIC_FORMAT))
+    return type(handler) is logging.StreamHandler and formatter is not None and formatter._fmt == logging.BASIC_FORMAT
 
 
 def train(config: Config | Sequence[str] | None = None, out_dir=None, *, loss_terms: Sequence[LossTerm] = (),
