@@ -144,3 +144,14 @@ def test_roomy_means_every_view_fits_each_capacity_with_a_growths_headroom():
     assert caps.roomy([near], A, N, headroom=capacity.FIT_HEADROOM) and not caps.roomy([near], A, N)
     tight = dict(near, pairs=int(pairs / 1.05))
     assert not caps.roomy([near, tight], A, N, headroom=capacity.FIT_HEADROOM)
+
+
+def test_the_host_side_render_under_vmap_names_the_traceable_one():
+    import jax
+    import jax.numpy as jnp
+
+    from cusgs_jax.training.capacity import ExactRender
+
+    render = ExactRender(build=lambda capacities: None, capacities=None, n_offsets=4)
+    with pytest.raises(TypeError, match=r"host-side.*cusgs_jax\.render\(model, cameras"):
+        jax.vmap(lambda x: render(x))(jnp.zeros((2, 3)))

@@ -29,6 +29,8 @@ import logging
 import math
 from typing import Callable
 
+import jax
+
 from cusgs_jax.config import Config
 from cusgs_jax.model.decode import num_visible_slots
 
@@ -279,6 +281,11 @@ class ExactRender:
         return self.fn
 
     def __call__(self, anchors, *args):
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves((anchors, args))):
+            raise TypeError("this render is host-side (it reads what each view needed and grows its capacities "
+                            "between calls), so it cannot run under jax.jit, jax.vmap or jax.grad: use "
+                            "cusgs_jax.render(model, cameras, capacities=cusgs_jax.fit_render(model, cameras)), "
+                            "which is traceable (docs/api.md#render-a-trained-model)")
         if self.capacities is None:
             self.capacities = Capacities.fitted(self.fit(anchors, *args), anchors.capacity, self.n_offsets)
         while True:
