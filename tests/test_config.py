@@ -6,6 +6,7 @@ import ast
 import dataclasses
 import pathlib
 import pickle
+import re
 import typing
 
 import pytest
@@ -375,3 +376,100 @@ def test_a_config_that_is_not_a_config_is_a_type_error_naming_the_caller():
         run({"train": {}}, "unused")
     with pytest.raises(TypeError, match="make_train_step: cfg must be .* got NoneType"):
         make_train_step(None, None, ())
+
+
+@pytest.mark.parametrize("override", ["train.iteration=5", "+train.iteration=5"])
+def test_an_unknown_key_names_the_nearest_option_and_never_suggests_plus(override):
+    with pytest.raises(ConfigError) as info:
+        compose_config([override])
+    message = str(info.value)
+    assert message.startswith("train.iteration=5: no such option; did you mean train.iterations?"), message
+    assert "+" not in message and "\n" not in message and "train holds iterations, seed" in message
+
+
+@pytest.mark.parametrize("override, nearest", [("trian.iterations=5", "train.iterations"),
+                                               ("prune.ratoi=0.1", "prune.ratio"),
+                                               ("data.demo.veiws=3", "data.demo.views"),
+                                               ("train.voxel_size=0.1", "model.voxel_size")])
+def test_composition_names_the_nearest_option_at_any_level(override, nearest):
+    with pytest.raises(ConfigError, match=rf"^{re.escape(override)}: no such option; did you mean {nearest}\?"):
+        compose_config([override])
+
+
+def test_replace_refuses_an_unknown_field_at_any_level_naming_the_fields_and_the_nearest():
+    with pytest.raises(ConfigError, match=r"^train\.iteration=5: no such option; did you mean train\.iterations\? "
+                                          r"\(train holds iterations, seed, resume"):
+        Config().replace(train=dict(iteration=5))
+    with pytest.raises(ConfigError, match=r"^trian=\{'iterations': 5\}: no such option; did you mean train\? "
+                                          r"\(the groups are data, train, eval"):
+        Config().replace(trian=dict(iterations=5))
+    with pytest.raises(ConfigError, match=r"^data\.demo\.veiws=9: .*did you mean data\.demo\.views\? "
+                                          r"\(data\.demo holds views, width"):
+        Config().replace(data=dict(demo=dict(veiws=9)))
+    # nested dicts update nested groups; instances still replace whole groups
+    assert Config().replace(data=dict(demo=dict(views=9))).data.demo.views == 9
+    assert Config().replace(data=dict(demo=dict(views=9))).data.demo.width == Config().data.demo.width
+    assert Config().replace(model=ModelConfig(n_offsets=4)).model == ModelConfig(n_offsets=4)
+    with pytest.raises(ConfigError, match=r"^model\.foo=1: no such option"):
+        from_dict({"model": {"foo": 1}})
+
+
+@pytest.mark.parametrize("rates, why", [("[0.01]", "must be two finite learning rates >= 0"),
+                                        ("[-1,1]", "must be two finite learning rates >= 0"),
+                                        ("[nan,1]", "must be two finite learning rates >= 0"),
+                                        ("[inf,1]", "must be two finite learning rates >= 0"),
+                                        ("[0.01,0.01,0.01]", "must be two finite learning rates >= 0"),
+                                        ("[0.01,0]", "a decaying rate .* must be > 0 at both ends")])
+def test_bad_learning_rates_are_refused_at_the_setting(rates, why):
+    with pytest.raises(ConfigError, match=rf"^optim\.offsets=.*: {why}.*; e\.g\. optim\.offsets=\[0\.01,0\.0001\]"):
+        compose_config([f"optim.offsets={rates}"])
+    with pytest.raises(ConfigError, match=r"^optim\.mlp_color="):
+        Config().replace(optim=dict(mlp_color=ast.literal_eval(rates.replace("nan", "1e999").replace("inf", "1e999"))))
+
+
+def test_good_learning_rates_pass():
+    assert compose_config(["optim.offsets=[0.02,0.0002]"]).optim.offsets == (0.02, 0.0002)
+    assert Config().replace(optim=dict(latent=(0.0, 0.0))).optim.latent == (0.0, 0.0)  # a frozen group
+    with pytest.raises(ConfigError, match=r"^optim\.eps=0: must be a number > 0"):
+        Config().replace(optim=dict(eps=0))
+
+
+def _fixed(line: str) -> dict:
+    """The ``e.g. group.key=value ...`` settings a warning proposes: {"prune": {"start": 100}, ...}."""
+    changes: dict = {}
+    for item in line.split("e.g. ", 1)[1].split():
+        key, value = item.split("=")
+        group, name = key.split(".")
+        changes.setdefault(group, {})[name] = int(value)
+    return changes
+
+
+def test_schedules_that_never_run_are_named_with_a_value_that_runs():
+    from cusgs_jax.config import idle_schedules, schedule_warnings
+
+    assert schedule_warnings(Config()) == []
+    short = Config().replace(train=dict(iterations=300))
+    idle = idle_schedules(short)
+    assert set(idle) == {"prune", "grow", "train.checkpoint_every"}
+    assert idle["prune"] == "prune.start=500 is past train.iterations=300: no pruning pass runs; e.g. prune.start=100"
+    assert idle["grow"].startswith("grow.start=400 is past train.iterations=300: no growing")
+    assert idle["train.checkpoint_every"].startswith("train.checkpoint_every=1000 is not before train.iterations=300")
+    for key, line in idle.items():  # the proposed values run
+        assert key not in idle_schedules(short.replace(**_fixed(line))), line
+    assert "prune" not in idle_schedules(short.replace(prune=dict(strategy="none")))  # no pruning asked for
+    gap = Config().replace(prune=dict(start=250, stop=260))  # no multiple of the interval within [start, stop]
+    assert idle_schedules(gap)["prune"].startswith("no multiple of prune.interval=100 falls in [prune.start=250")
+    assert "prune" not in idle_schedules(gap.replace(**_fixed(idle_schedules(gap)["prune"])))
+    curve = Config().replace(eval=dict(every=5000))
+    assert schedule_warnings(curve) == ["eval.every=5000 is past train.iterations=3000: the held-out curve gets only "
+                                        "its final point; e.g. eval.every=300"]
+    assert schedule_warnings(Config().replace(eval=dict(every=0), train=dict(iterations=300, checkpoint_every=0),
+                                              grow=dict(start=100), prune=dict(start=100))) == []
+
+
+def test_schedule_warnings_are_logged_once_each(caplog):
+    from cusgs_jax.config import warn_schedules
+
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        lines = warn_schedules(Config().replace(train=dict(iterations=300)))
+    assert [r.getMessage() for r in caplog.records if r.name == "cusgs_jax"] == lines and len(lines) == 3

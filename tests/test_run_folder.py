@@ -38,7 +38,8 @@ def test_an_unknown_key_is_refused_in_a_current_record_and_kept_in_an_older_one(
     (tmp_path / "eval.json").write_text(json.dumps({"version": VERSION, "psnr": 30.0, "psnrr": 1}))
     with pytest.raises(UserError, match="'psnrr' is not a key"):
         read_eval(tmp_path)  # every reader goes through read_eval
-    older = EvalRecord.from_json({"version": 2, "psnr": 30.0, "counted_views": 4}, "x.json")  # a v2 strategy's key
+    older = EvalRecord.from_json({"version": 2, "psnr": 30.0, "time": {"total": 9.0}, "counted_views": 4},
+                                 "x.json")  # a v2 strategy's key
     assert older.extra == {"counted_views": 4} and older.get("counted_views") == 4
     assert older.to_json()["counted_views"] == 4  # written back flat, as version 2 wrote it
 
@@ -82,3 +83,22 @@ def test_a_refused_runs_hydra_record_is_replaced_by_the_accepted_one(tmp_path):
     (record / "overrides.yaml").write_text("- a=2\n")
     assert restore_hydra_record(tmp_path)
     assert (record / "config.yaml").read_text() == "a: 1\n" and (record / "overrides.yaml").read_text() == "- a=1\n"
+
+
+@pytest.mark.parametrize("time, message", [
+    (None, rf"'time' is missing \(run-folder version {VERSION} records hold the run's time budget from version 2 on\)"),
+    ({"total": 9.0, "compile_wait": -5.0}, r"time\.compile_wait=-5\.0 is not a number of seconds >= 0"),
+    ({"total": float("nan")}, r"time\.total=nan is not a number of seconds >= 0"),
+    ({"total": "9"}, r"time\.total='9' is not a number of seconds >= 0"),
+    ({"total": 9.0, "load": True}, r"time\.load=True is not a number of seconds >= 0"),
+    ({"total": 9.0, "other": None}, r"time\.other=None is not a number of seconds >= 0"),
+    ([9.0], r"time=\[9\.0\] is not a JSON object of seconds per stage"),
+])
+def test_eval_json_time_entries_are_seconds_and_present_from_version_2(tmp_path, time, message):
+    data = {"version": VERSION, "psnr": 30.0, **({} if time is None else {"time": time})}
+    (tmp_path / "eval.json").write_text(json.dumps(data))
+    with pytest.raises(UserError, match=rf"^{tmp_path / 'eval.json'}: {message}: the file was edited"):
+        read_eval(tmp_path)
+    good = {"total": 9.0, "compile_wait": 0, "train_steps": 5.5, "compile": None}  # compile: compiles not told apart
+    assert EvalRecord.from_json(dict(data, time=good)).time == good
+    assert EvalRecord.from_json({"psnr": 30.0}).time is None  # version 1 (unversioned) records predate it

@@ -15,11 +15,11 @@ import typing
 from typing import Any, Optional
 
 from cusgs_jax.checks import finite_number as _number, require
-from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, FeatureModelConfig
+from cusgs_jax.config import DEMO_FEATURE_MODELS, Config, FeatureModelConfig, unknown_option
 from cusgs_jax.errors import ConfigError
 
-__all__ = ["HydraSchema", "YAML_SPELLINGS", "compose_config", "compose_node", "from_dict", "from_omegaconf",
-           "register_configs"]
+__all__ = ["HydraSchema", "YAML_SPELLINGS", "compose_config", "compose_node", "composition_error", "from_dict",
+           "from_omegaconf", "register_configs"]
 
 
 def _feature_model(values) -> FeatureModelConfig:
@@ -109,7 +109,7 @@ def from_omegaconf(cfg) -> Config:
 def from_dict(values: dict) -> Config:
     """:class:`Config` from a nested dict of plain values (a composed Hydra config, a run's
     ``.hydra/config.yaml``, a checkpoint's record), the :data:`YAML_SPELLINGS` converted;
-    unknown keys raise ``ValueError``."""
+    an unknown key raises :class:`~cusgs_jax.errors.ConfigError` naming the nearest option."""
     return _build(Config, values, "")
 
 
@@ -126,9 +126,9 @@ def _build(cls, values: dict, prefix: str):
         elif prefix + field.name in YAML_SPELLINGS:
             value = YAML_SPELLINGS[prefix + field.name][0](value)
         kwargs[field.name] = value
-    if values:
-        raise ConfigError(f"unknown option(s) {sorted(prefix + k for k in values)}; "
-                         f"valid: {[prefix + f.name for f in dataclasses.fields(cls)]}")
+    if values:  # the first unknown key, with the nearest option (a '+key=value' override, a hand-edited record)
+        key = sorted(values)[0]
+        raise unknown_option(prefix + key, values[key])
     return cls(**kwargs)
 
 
@@ -146,5 +146,59 @@ def compose_node(overrides: tuple[str, ...] | list[str] = (), return_hydra_confi
 
 
 def compose_config(overrides: tuple[str, ...] | list[str] = ()) -> Config:
-    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API)."""
-    return from_omegaconf(compose_node(overrides))
+    """The :class:`Config` that ``cusgs-train <overrides>`` would run (Hydra's compose API).
+
+    Raises:
+      ConfigError: an override that cannot compose, in one line as the command line says it: an unknown key
+        names the nearest option (:func:`~cusgs_jax.config.unknown_option`; never Hydra's ``+key`` advice, which
+        only moves the refusal), an unknown group option lists the options there are.
+    """
+    from hydra.errors import ConfigCompositionException
+
+    try:
+        node = compose_node(overrides)
+    except ConfigCompositionException as error:
+        raise composition_error(error, overrides) from None
+    return from_omegaconf(node)
+
+
+#: The Hydra plugin each optional launcher needs, and the extra that installs it.
+LAUNCHER_EXTRAS = {"hydra/launcher/ray": "ray", "hydra/launcher/submitit": "slurm"}
+
+
+def composition_error(error: Exception, overrides=()) -> ConfigError:
+    """One-line :class:`ConfigError` for Hydra's composition ``error`` of ``overrides``, with the fix."""
+    from hydra.errors import MissingConfigException
+
+    if isinstance(error, MissingConfigException):  # an unknown group option (experiment=nope, hydra/launcher=ray)
+        first = str(error).split("\n\n")[0]
+        options = _listed_options(str(error))
+        extra = next((name for key, name in LAUNCHER_EXTRAS.items() if f"'{key}" in first), None)
+        hint = f"; the plugin comes with the {extra} extra: pip install -e \".[{extra}]\"" if extra else ""
+        return ConfigError((f"{first}; choose one of {options}" if options else first) + hint)
+    cause = error.__cause__
+    head = str(error).splitlines()[0]
+    if cause is None:
+        return ConfigError(head)
+    detail = str(cause).splitlines()[0]
+    full_key = str(getattr(cause, "full_key", "") or "")
+    if type(cause).__name__ in ("ConfigAttributeError", "ConfigKeyError"):
+        if full_key and not full_key.startswith("hydra."):
+            given = [o.split("=", 1) for o in overrides if "=" in o]  # the override naming it (trian: trian.iterations)
+            given = [(key.lstrip("+~"), value) for key, value in given
+                     if key.lstrip("+~") == full_key or key.lstrip("+~").startswith(full_key + ".")]
+            return unknown_option(*given[-1][:1], shown=given[-1][1]) if given else unknown_option(full_key)
+        return ConfigError(f"unknown option {full_key or head}: {detail}; `cusgs-train --cfg hydra` lists Hydra's "
+                           "options")
+    return ConfigError(f"{head}: {detail}" + (f" (option {full_key})" if full_key else ""))
+
+
+def _listed_options(message: str) -> list[str]:
+    """The tab-indented names under Hydra's "Available options in 'group':" line."""
+    lines = message.split("Available options", 1)[-1].splitlines()[1:] if "Available options" in message else []
+    options = []
+    for line in lines:
+        if not line.startswith("\t"):
+            break
+        options.append(line.strip())
+    return options

@@ -15,9 +15,11 @@ or composes them like the CLI does (:func:`cusgs_jax.compose.compose_config`).
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from typing import Optional
 
 from cusgs_jax.checks import at_least as _at_least, finite_number as _number, lists_to_tuples as _tuples
+from cusgs_jax.errors import ConfigError
 from cusgs_jax.checks import require, require_config  # noqa: F401  (re-exported: the shell imports them from here)
 
 # M3's split of its 160 query channels when all six models are present (docs/method.md#hierarchical-queries).
@@ -285,11 +287,28 @@ class OptimConfig:
 
     def __post_init__(self):
         _tuples(self)
+        for group, rates in self.groups().items():
+            _require_rates(f"optim.{group}", rates)
+        require(_number(self.eps) and self.eps > 0, "optim.eps", self.eps, "must be a number > 0 (Adam's epsilon)",
+                "e.g. optim.eps=1e-15")
         require(isinstance(self.sparse, bool), "optim.sparse", self.sparse, "must be true or false")
 
     def groups(self) -> dict[str, tuple[float, float]]:
         """{group: (initial, final)} for every learning-rate group."""
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name not in ("eps", "sparse")}
+
+
+def _require_rates(option: str, rates) -> None:
+    """An ``optim.<group>`` setting: (initial, final) learning rates, finite and >= 0; a decaying pair (initial !=
+    final) > 0 both, since the decay is log-linear (training/optim.py::log_linear_schedule)."""
+    pair = isinstance(rates, tuple) and len(rates) == 2
+    example = f"e.g. {option}=[{OptimConfig.offsets[0]},{OptimConfig.offsets[1]}] (initial, final), or the same " \
+              "number twice for a constant rate"
+    require(pair and all(_number(rate) and rate >= 0 for rate in rates), option,
+            list(rates) if isinstance(rates, tuple) else rates,
+            "must be two finite learning rates >= 0, (initial, final)", example)
+    require(rates[0] == rates[1] or min(rates) > 0, option, list(rates),
+            "a decaying rate (initial != final) must be > 0 at both ends: the decay is log-linear", example)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -465,9 +484,131 @@ class Config:
     prune: PruneConfig = dataclasses.field(default_factory=PruneConfig)
 
     def replace(self, **groups) -> Config:
-        """``cfg.replace(model=dict(voxel_size=0.1), train=dict(iterations=50))``: nested partial update."""
-        changes = {}
-        for name, values in groups.items():
-            current = getattr(self, name)
-            changes[name] = (dataclasses.replace(current, **values) if isinstance(values, dict) else values)
-        return dataclasses.replace(self, **changes)
+        """``cfg.replace(model=dict(voxel_size=0.1), train=dict(iterations=50))``: nested partial update (a dict
+        for a group updates its fields, ``data=dict(demo=dict(views=9))`` nested ones). A name that is no field,
+        at any level, raises :class:`~cusgs_jax.errors.ConfigError` naming the nearest option
+        (:func:`unknown_option`)."""
+        return _replaced(self, groups, "")
+
+
+def _replaced(obj, changes: dict, prefix: str):
+    """``dataclasses.replace(obj, **changes)``, dict values of dataclass fields replaced into them recursively."""
+    names = [f.name for f in dataclasses.fields(obj)]
+    new = {}
+    for name, value in changes.items():
+        if name not in names:
+            raise unknown_option(prefix + name, value)
+        current = getattr(obj, name)
+        if isinstance(value, dict) and dataclasses.is_dataclass(current):
+            value = _replaced(current, value, f"{prefix}{name}.")
+        new[name] = value
+    return dataclasses.replace(obj, **new)
+
+
+def _option_groups(cls: type = Config, prefix: str = "") -> dict[str, list[str]]:
+    """{group ("" for the top level, "train", "data.demo"): its field names}."""
+    hints = {f.name: f.default_factory for f in dataclasses.fields(cls)}
+    groups = {prefix.rstrip("."): list(hints)}
+    for name, factory in hints.items():
+        if isinstance(factory, type) and dataclasses.is_dataclass(factory):
+            groups.update(_option_groups(factory, f"{prefix}{name}."))
+    return groups
+
+
+def option_names() -> list[str]:
+    """Every option's dotted name, as overrides write it: ``data.path``, …, ``data.demo.views``, …,
+    ``prune.min_visits``."""
+    groups = _option_groups()
+    dotted = (f"{group}.{name}" if group else name for group, names in groups.items() for name in names)
+    return [option for option in dotted if option not in groups]
+
+
+def unknown_option(option: str, value=dataclasses.MISSING, shown: Optional[str] = None) -> ConfigError:
+    """The :class:`~cusgs_jax.errors.ConfigError` for ``option`` (dotted, e.g. ``train.iteration``) that is no
+    field of :class:`Config`: it names the nearest option (:mod:`difflib`) and the options of its group.
+    ``value`` is shown as its repr, ``shown`` as it is (a command line's text)."""
+    groups = _option_groups()
+    group, _, leaf = option.rpartition(".")
+    siblings = groups.get(group)
+    options = option_names() + ([g for g in groups if g] if not group else [])  # a group for a top-level name
+    nearest = [o for o in options if o.rpartition(".")[2] == leaf]  # the right name in another group
+    close = difflib.get_close_matches(leaf, siblings or [], 1, 0.6)
+    nearest = nearest or [f"{group}.{n}" if group else n for n in close]
+    nearest = nearest or difflib.get_close_matches(option, options, 1, 0.6)
+    text = shown if shown is not None else ("" if value is dataclasses.MISSING else repr(value))
+    where = (f"{group} holds {', '.join(siblings)}" if group else f"the groups are {', '.join(siblings)}") \
+        if siblings is not None else f"the groups are {', '.join(groups[''])}"
+    hint = f"did you mean {nearest[0]}? ({where})" if nearest else where
+    return ConfigError(f"{option}{'=' + text if text else ''}: no such option; {hint}")
+
+
+def _first_due(start: int, stop: int, interval: int, iterations: int) -> Optional[int]:
+    """The first step ``s`` in ``1..iterations`` with ``start <= s <= stop`` and ``s % interval == 0`` (the
+    densification schedules, densify/scaffold.py and densify/feature_prune.py), or None."""
+    first = -(-max(start, 1) // interval) * interval
+    return first if first <= min(stop, iterations) else None
+
+
+def _schedule_warning(name: str, what: str, start: int, stop: int, interval: int, iterations: int) -> Optional[str]:
+    """The warning for the densification schedule ``name`` (``grow``, ``prune``) that runs no update, or None: it
+    names the setting at fault and values that would run (the first of a few changes that :func:`_first_due` runs)."""
+    if _first_due(start, stop, interval, iterations) is not None:
+        return None
+    at = max(interval, iterations // 6 // interval * interval)  # about a sixth into the run, as 500 of 3000
+    half = max(1, iterations // 2)
+    if start > iterations:
+        why = f"{name}.start={start} is past train.iterations={iterations}"
+    elif stop < max(start, 1):
+        why = f"{name}.stop={stop} is before {name}.start={start}" if stop < start else f"{name}.stop={stop} < 1"
+    else:
+        why = (f"no multiple of {name}.interval={interval} falls in [{name}.start={start}, "
+               f"min({name}.stop={stop}, train.iterations={iterations})]")
+    for change in (dict(start=at), dict(stop=max(start, iterations)), dict(interval=max(start, 1)),
+                   dict(start=at, stop=max(at, stop)), dict(start=half, stop=max(half, stop), interval=half)):
+        settings = dict(dict(start=start, stop=stop, interval=interval), **change)
+        if _first_due(settings["start"], settings["stop"], settings["interval"], iterations) is not None:
+            break
+    current = dict(start=start, stop=stop, interval=interval)
+    return f"{why}: {what} runs; e.g. " + " ".join(f"{name}.{key}={value}" for key, value in change.items()
+                                                   if value != current[key])
+
+
+def idle_schedules(cfg: Config) -> dict[str, str]:
+    """The schedules of ``cfg`` that never run within ``train.iterations``: {what they schedule: a warning naming
+    the setting and a value that would run}. Keys: ``prune`` (feature-aware pruning passes, with
+    ``prune.strategy=feature_aware``: ``prune.start`` / ``stop`` / ``interval``), ``grow`` (growing steps:
+    ``grow.start`` / ``stop`` / ``interval``), ``eval.every`` (past the end: the held-out curve holds only its final
+    point) and ``train.checkpoint_every`` (at or past the end: no checkpoint before the final one)."""
+    iterations, idle = cfg.train.iterations, {}
+    if cfg.prune.strategy == "feature_aware":
+        p = cfg.prune
+        idle["prune"] = _schedule_warning("prune", "no pruning pass", p.start, p.stop, p.interval, iterations)
+    g = cfg.grow
+    idle["grow"] = _schedule_warning("grow", "no growing (nor Scaffold-GS opacity pruning) step", g.start, g.stop,
+                                     g.interval, iterations)
+    if cfg.eval.every and cfg.eval.every > iterations:
+        idle["eval.every"] = (f"eval.every={cfg.eval.every} is past train.iterations={iterations}: the held-out curve "
+                              f"gets only its final point; e.g. eval.every={max(1, iterations // 10)}")
+    if cfg.train.checkpoint_every and cfg.train.checkpoint_every >= iterations:
+        idle["train.checkpoint_every"] = (
+            f"train.checkpoint_every={cfg.train.checkpoint_every} is not before train.iterations={iterations}: no "
+            f"checkpoint before the final one (a killed run restarts from step 0); e.g. "
+            f"train.checkpoint_every={max(1, iterations // 3)}")
+    return {key: line for key, line in idle.items() if line}
+
+
+def schedule_warnings(cfg: Config) -> list[str]:
+    """One line per schedule of ``cfg`` that never runs within ``train.iterations`` (:func:`idle_schedules`),
+    naming the setting and a value that would run: a sweep over it, or over what it schedules, would mean
+    nothing. :func:`warn_schedules` logs them."""
+    return list(idle_schedules(cfg).values())
+
+
+def warn_schedules(cfg: Config) -> list[str]:
+    """Log each :func:`schedule_warnings` line as a warning (``cusgs_jax`` logger); returns them."""
+    import logging
+
+    warnings = schedule_warnings(cfg)
+    for line in warnings:
+        logging.getLogger("cusgs_jax").warning("%s", line)
+    return warnings

@@ -21,12 +21,15 @@ to revision 7f1a80c): it reads, its newer fields None. A record of a newer versi
 one line naming both versions. A current-version record holds its fields and nothing else: a key
 the record does not define (a misspelling, a hand edit) is refused naming it; records of older
 versions keep such keys in ``extra`` (version 2 wrote a strategy's own keys at the top level).
+``eval.json``'s ``time`` (the run's seconds per stage) is held by every record from version 2 on, its
+entries numbers of seconds >= 0: a missing or negative one is refused naming the file and the key.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import os
 import pathlib
 import shutil
@@ -209,7 +212,35 @@ class EvalRecord(_Record):
 
     @classmethod
     def from_json(cls, data: dict, where: str = EVAL_FILE) -> EvalRecord:
-        return super().from_json(data, where)
+        """The record of a parsed ``eval.json`` (see :meth:`_Record.from_json`); its ``time`` is checked too
+        (:func:`_check_time`): a record of version 2 or later holds it, each entry seconds >= 0."""
+        record = super().from_json(data, where)
+        _check_time(record.time, record.version, where)
+        return record
+
+
+#: The run-folder version from which ``eval.json`` holds ``time`` (its time budget, app/budget.py).
+TIME_SINCE = 2
+
+
+def _check_time(time, version: int, where: str) -> None:
+    """``eval.json``'s ``time``: absent only in a record older than :data:`TIME_SINCE`; else a JSON object whose
+    entries are seconds, finite and >= 0 (``compile`` may be null: compiles not told apart). UserError naming the
+    file and the key otherwise (a report would show a negative or missing time as if measured)."""
+    fix = "the file was edited or written by other code; restore it or rerun the job"
+    if time is None:
+        if version >= TIME_SINCE:
+            raise UserError(f"{where}: 'time' is missing (run-folder version {version} records hold the run's time "
+                            f"budget from version {TIME_SINCE} on): {fix}")
+        return
+    if not isinstance(time, dict):
+        raise UserError(f"{where}: time={time!r} is not a JSON object of seconds per stage: {fix}")
+    for key, seconds in time.items():
+        if seconds is None and key == "compile":
+            continue
+        number = isinstance(seconds, (int, float)) and not isinstance(seconds, bool)
+        if not (number and math.isfinite(seconds) and seconds >= 0):
+            raise UserError(f"{where}: time.{key}={seconds!r} is not a number of seconds >= 0: {fix}")
 
 
 def read_eval(folder: str | os.PathLike) -> EvalRecord | None:

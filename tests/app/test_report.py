@@ -11,7 +11,8 @@ from PIL import Image
 
 from cusgs_jax.app.report import collect, find_jobs, load_job, main, mark_pareto
 
-PLOTS = ("psnr_vs_time.png", "feature_error_vs_time.png", "psnr_vs_size.png", "anchors_vs_step.png")
+PLOTS = ("psnr_vs_time.png", "feature_error_vs_time.png", "psnr_vs_size.png", "anchors_vs_step.png",
+         "psnr_vs_job_time.png")
 
 
 def _job(root, name, ratio, *, extra=()):
@@ -117,7 +118,8 @@ def test_report_end_to_end(sweep, capsys):
 
     md = (out / "report.md").read_text()
     assert md in capsys.readouterr().out
-    assert "`experiment=prune_ratio`" in md and "| 0 | prune.ratio=0.01 | ok | ★ |  | 200,000 | 900 | 0.8123 | 25.12 |" in md
+    assert "`experiment=prune_ratio`" in md
+    assert "| 0 | prune.ratio=0.01 | ok | ★ |  | 200,000 | 900 | 10 | 123 | 0.8123 | 25.12 |" in md
     assert "| 2 | prune.ratio=0.2 | failed: FloatingPointError: NaN loss at step 7 |  |" in md
     assert ("Pareto front (2 of 5 runs, smallest first): job `0` 25.12 dB / 200,000 params; "
             "job `1` 26.50 dB / 3,000,000 params.") in md
@@ -249,3 +251,107 @@ def test_compile_seconds_and_the_seconds_waited_for_a_compiler_are_both_columns(
     (job / "eval.json").write_text(json.dumps(record))
     row = load_job(job)
     assert (row["compile_s"], row["compile_wait_s"]) == (41.5, 2.25)
+
+
+def _with(job, **keys):
+    """Add ``keys`` to the job's eval.json."""
+    record = json.loads((job / "eval.json").read_text())
+    (job / "eval.json").write_text(json.dumps(dict(record, **keys)))
+
+
+def test_pruning_passes_and_pruned_anchors_are_columns(tmp_path):
+    root = tmp_path / "sweep"
+    _eval(_job(root, "0", 0.01), 25.0, 0.8, 1000, 90, 10.0, 3.0, before=4.0)  # prune block: 10 passes, 123 pruned
+    tallied = _job(root, "1", 0.02)  # a record whose prune block lacks them: the strategy's tally says
+    _eval(tallied, 24.0, 0.8, 1000, 90, 10.0, 3.0)
+    _with(tallied, prune={"strategy": "feature_aware"}, densify={"feature_prune": {"updates": 7, "pruned": 40}})
+    none = _job(root, "2", 0.0)
+    _eval(none, 24.0, 0.8, 1000, 90, 10.0, 3.0)
+    _with(none, prune={"strategy": "none", "passes": 0, "pruned": 0})
+    _eval(_job(root, "3", 0.03), 24.0, 0.8, 1000, 90, 10.0, 3.0)  # no record of pruning at all
+    main([str(root)])
+    rows = _csv_rows(root / "report" / "report.csv")
+    assert [(r["passes"], r["pruned"]) for r in rows] == [("10", "123"), ("7", "40"), ("0", "0"), ("", "")]
+    md = (root / "report" / "report.md").read_text()
+    assert "| anchors | passes | pruned | SSIM |" in md and "| 90 | 10 | 123 | 0.8000 |" in md
+
+
+def test_training_time_without_compiles_and_the_compile_bias_are_named(tmp_path):
+    root = tmp_path / "sweep"
+    for name, compiled, steps in (("0", 40.0, 12.5), ("1", 3.0, 11.0)):
+        job = _job(root, name, 0.01 * (int(name) + 1))
+        _eval(job, 25.0, 0.8, 1000, 90, 10.0, 3.0)
+        _with(job, compilations={"seconds": compiled}, time={"train_steps": steps, "densify": 0.5,
+                                                             "compile_wait": compiled / 2, "total": 60.0 + compiled})
+    main([str(root)])
+    rows = _csv_rows(root / "report" / "report.csv")
+    assert [float(r["steps_s"]) for r in rows] == [13.0, 11.5]  # train_steps + densify: no compile in them
+    assert [float(r["run_s"]) for r in rows] == [100.0, 63.0]
+    md = (root / "report" / "report.md").read_text()
+    assert ("the jobs that run first compile programs that later jobs load from the persistent compilation cache "
+            "(`compile (s)` from 3.0 s in job `1` to 40.0 s in job `0`). Compare jobs by `steps (s)`") in md
+    assert "| steps (s) |" in md
+
+
+def test_a_single_job_has_no_compile_bias_line(tmp_path):
+    job = _job(tmp_path, "0", 0.01)
+    _eval(job, 25.0, 0.8, 1000, 90, 10.0, 3.0)
+    _with(job, compilations={"seconds": 40.0})
+    main([str(tmp_path)])
+    assert "Compare jobs by" not in (tmp_path / "report" / "report.md").read_text()
+
+
+def test_the_psnr_against_job_time_plot_shows_the_finished_jobs(tmp_path):
+    from PIL import ImageChops
+
+    images = {}
+    for timed in (False, True):
+        root = tmp_path / f"timed_{timed}"
+        for name in ("0", "1"):
+            job = _job(root, name, 0.01 * (int(name) + 1))
+            _eval(job, 24.0 + int(name), 0.8, 1000, 90, 10.0, 3.0)
+            if timed:
+                _with(job, time={"total": 50.0 + 20 * int(name)})
+        main([str(root)])
+        assert load_job(root / "1")["run_s"] == (70.0 if timed else None)
+        images[timed] = Image.open(root / "report" / "psnr_vs_job_time.png").convert("RGB")
+    assert ImageChops.difference(images[False], images[True]).getbbox() is not None  # points, not "no data"
+
+
+def test_jobs_that_differ_only_in_the_seed_are_summarised_as_mean_and_std(tmp_path):
+    from cusgs_jax.app.report import seed_summary, swept_keys
+
+    root = tmp_path / "sweep"
+    runs = [("0", 0.01, 0, 25.0), ("1", 0.01, 1, 26.0), ("2", 0.01, 2, 27.0), ("3", 0.1, 0, 20.0),
+            ("4", 0.1, 1, 22.0), ("5", 0.5, 0, 19.0)]
+    for name, ratio, seed, psnr in runs:
+        job = _job(root, name, ratio, extra=[f"train.seed={seed}"])
+        _eval(job, psnr, 0.8, 1000 + 10 * seed, 90, 10.0, 3.0)
+    records = collect(root)
+    keys, _ = swept_keys(records)
+    summary = seed_summary(records, keys)
+    assert [(s["label"], s["jobs"], s["seeds"]) for s in summary] == [
+        ("prune.ratio=0.01", ["0", "1", "2"], ["0", "1", "2"]), ("prune.ratio=0.1", ["3", "4"], ["0", "1"])]
+    assert summary[0]["psnr"] == pytest.approx((26.0, 1.0)) and summary[1]["psnr"] == pytest.approx((21.0, 2 ** 0.5))
+    assert summary[0]["params"] == pytest.approx((1010.0, 10.0)) and summary[0]["steps_s"] is None
+    main([str(root)])
+    md = (root / "report" / "report.md").read_text()
+    assert "## Over seeds: mean ± std" in md
+    assert "| prune.ratio=0.01 | `0`, `1`, `2` | 0, 1, 2 | 26.00 ± 1.00 | 0.8000 ± 0.0000 | 1,010 ± 10 |" in md
+    assert "prune.ratio=0.5 |" not in md.split("## Over seeds")[1].split("##")[0]  # one seed: nothing to average
+    assert seed_summary(collect(root), ["prune.ratio"]) == []  # the seed not swept: no summary
+
+
+def test_a_negative_or_missing_time_in_eval_json_makes_the_job_unreadable_not_a_number(tmp_path):
+    from cusgs_jax.run_folder import VERSION
+
+    job = _job(tmp_path, "0", 0.01)
+    _eval(job, 25.0, 0.8, 1000, 90, 10.0, 3.0)
+    _with(job, time={"total": 60.0, "compile_wait": -5.0})
+    row = load_job(job)
+    assert row["status"].startswith("failed: unreadable eval.json (") and "time.compile_wait=-5.0" in row["status"]
+    assert row["compile_wait_s"] is None
+    record = json.loads((job / "eval.json").read_text())
+    del record["time"]
+    (job / "eval.json").write_text(json.dumps(dict(record, version=VERSION)))
+    assert "'time' is missing" in load_job(job)["status"]

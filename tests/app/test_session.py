@@ -33,11 +33,21 @@ def test_spread_picks_evenly_spaced_entries_and_never_more_than_there_are():
     assert spread(np.arange(3), 8).tolist() == [0, 1, 2]
 
 
-def test_resume_with_nothing_to_resume_is_refused_before_any_work(tiny_scene, tmp_path):
-    from cusgs_jax.errors import ConfigError
-
-    with pytest.raises(ConfigError, match=r"train\.resume=True: there is no checkpoint to resume in .*fresh"):
-        setup(_cfg(tiny_scene, "train.resume=true"), tmp_path / "fresh")
+def test_resume_before_the_first_checkpoint_starts_afresh_and_says_so(tiny_scene, tmp_path, caplog):
+    """A job killed before its first checkpoint (a lost sweep job rerun with train.resume=true) has nothing to
+    continue: the run starts from step 0 with a warning, and the rows its killed run logged go (they would
+    otherwise precede the fresh run's own rows for the same steps)."""
+    out = tmp_path / "killed_early"
+    out.mkdir()
+    (out / "metrics.jsonl").write_text('{"step": 10, "loss": 0.5}\n')
+    (out / "eval_curve.jsonl").write_text('{"step": 10, "psnr": 12.0}\n')
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        session = setup(_cfg(tiny_scene, "train.resume=true"), out)
+    assert session.cfg.train.resume is False  # the loop starts a fresh state (app/loop.py start)
+    warnings = [r.getMessage() for r in caplog.records if r.name == "cusgs_jax" and r.levelname == "WARNING"]
+    assert warnings == [f"train.resume=true: no checkpoint yet in {out / 'checkpoints'}: starting afresh"]
+    assert not (out / "metrics.jsonl").exists() and not (out / "eval_curve.jsonl").exists()
+    session.ckpt.close()
 
 
 def test_an_output_folder_that_cannot_be_written_is_refused(tiny_scene, tmp_path):
@@ -79,3 +89,24 @@ def test_a_run_reads_its_scene_once_and_extracts_features_from_the_images_it_tra
     meta = json.loads((scene / "features" / "daisy" / "meta.json").read_text())
     assert meta["image_size"] == [session.scene.width, session.scene.height]
     session.ckpt.close()
+
+
+def test_setup_warns_once_about_each_schedule_that_never_runs_before_reading_the_scene(tiny_scene, tmp_path,
+                                                                                       caplog, monkeypatch):
+    """A run of 5 steps with the tiny schedule (pruning and growing from step 10, checkpoints every 10, the curve
+    every 15): each idle schedule is one warning naming the setting and a value that runs, said before any work."""
+    from cusgs_jax.app import session as session_module
+    from cusgs_jax.config import schedule_warnings
+
+    cfg = _cfg(tiny_scene, "train.iterations=5")
+
+    def no_scene(*args, **kwargs):
+        raise RuntimeError("stop before the scene")
+
+    monkeypatch.setattr(session_module, "load_data", no_scene)
+    with caplog.at_level("WARNING", logger="cusgs_jax"), pytest.raises(RuntimeError, match="stop before the scene"):
+        setup(cfg, tmp_path / "run")
+    warnings = [r.getMessage() for r in caplog.records if r.name == "cusgs_jax" and r.levelname == "WARNING"]
+    assert warnings == schedule_warnings(cfg) and len(warnings) == 4
+    assert warnings[0] == ("prune.start=10 is past train.iterations=5: no pruning pass runs; "
+                           "e.g. prune.start=2 prune.interval=2")

@@ -130,6 +130,49 @@ def test_sweep_survives_a_failing_job_and_reports_it(tiny_scene, tmp_path):
     assert (sweep / "report" / "psnr_vs_time.png").is_file()
 
 
+BROKEN_POOL = """
+import pathlib, sys
+from hydra._internal.core_plugins.basic_launcher import BasicLauncher
+from hydra.core.plugins import Plugins
+from joblib.externals.loky.process_executor import TerminatedWorkerError
+from cusgs_jax.app.train import main
+
+sweep = pathlib.Path(sys.argv[1])
+
+def launch(self, job_overrides, initial_job_idx):  # joblib's pool when a worker is killed: jobs started, then lost
+    for job in ("0", "1"):
+        (sweep / job / ".hydra").mkdir(parents=True)
+        (sweep / job / ".hydra" / "config.yaml").write_text("train: {}")
+    (sweep / "1" / "eval.json").write_text("{}")  # finished before the pool broke: not lost
+    raise TerminatedWorkerError("A worker process managed by the executor was unexpectedly terminated. This could be "
+                                "caused by a segmentation fault while calling the function or by an excessive memory "
+                                "usage causing the Operating System to kill the worker.")
+
+Plugins.instance()  # Hydra's plugin scan loads the launcher modules afresh: patch the class it will use
+sys.modules[BasicLauncher.__module__].BasicLauncher.launch = launch
+main(["-m", "train.seed=0,1", f"data.path={sweep / 'no_scene'}", "hydra/launcher=basic", f"hydra.sweep.dir={sweep}"])
+"""
+
+
+def test_a_broken_launcher_pool_is_reported_in_the_clis_own_lines_only(tmp_path):
+    """A sweep whose launcher's worker pool breaks (joblib's, when a worker is killed) names each lost job and the
+    launcher's error in cusgs-train's own lines: no traceback from Hydra."""
+    import os
+
+    sweep = tmp_path / "sweep"
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    done = subprocess.run([sys.executable, "-c", BROKEN_POOL, str(sweep)], capture_output=True, text=True,
+                          timeout=120, cwd=tmp_path, env=env)
+    assert done.returncode == 1, done.stderr[-3000:]
+    assert "Traceback" not in done.stderr and "HYDRA_FULL_ERROR" not in done.stderr, done.stderr
+    assert done.stderr.splitlines() == [
+        f"cusgs-train: job lost: {sweep / '0'} did not finish; rerun the sweep with train.resume=true to continue it",
+        "cusgs-train: error: the sweep's launcher stopped (TerminatedWorkerError: a job's process ended abruptly, "
+        "killed or out of memory); 1 job(s) lost, their checkpoints kept"]
+    assert json.loads((sweep / "0" / "failed.json").read_text())["error"].startswith("JobLost:")
+    assert not (sweep / "1" / "failed.json").exists()
+
+
 @pytest.mark.slow  # a 2-job sweep whose worker is killed: .ci/run runs it with -m slow
 def test_a_sweep_whose_worker_is_killed_records_every_lost_job(tiny_scene, tmp_path):
     """kill -9 of one joblib worker breaks the pool, which stops the other job too: the command exits non-zero and
@@ -163,6 +206,7 @@ def test_a_sweep_whose_worker_is_killed_records_every_lost_job(tiny_scene, tmp_p
         failure = json.loads((sweep / str(job) / "failed.json").read_text())
         assert failure["error"].startswith("JobLost:") and "train.resume=true" in failure["error"]
         assert f"job lost: {sweep / str(job)} did not finish" in stderr
+    assert "Traceback" not in stderr and "the sweep's launcher stopped (TerminatedWorkerError" in stderr, stderr
     assert not (sweep / "0" / "eval.json").exists()
     report = subprocess.run([sys.executable, "-m", "cusgs_jax.app.report", str(sweep)], capture_output=True,
                             text=True, timeout=300)

@@ -5,19 +5,26 @@ lexer error gives no hint. :func:`check_command_line` composes the
 configuration the command would run — every value of a swept option in turn —
 through the same schema (:mod:`cusgs_jax.config`) and returns one message
 naming the option and the fix, or None. The caller prints it and exits 2.
+A sweep over a setting that changes nothing in any of its jobs (a schedule that
+never runs within ``train.iterations``, :func:`sweep_warnings`) is logged as one
+warning before anything runs.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import itertools
+import logging
 import os
 import pathlib
 
 from cusgs_jax.compose import compose_config, compose_node
+from cusgs_jax.config import idle_schedules
 from cusgs_jax.errors import UserError
 from cusgs_jax.sweep.pareto import check_sweeper_settings
 
+log = logging.getLogger("cusgs_jax")
 _INFO_FLAGS = ("help", "hydra_help", "cfg", "info", "shell_completion")
 
 
@@ -59,13 +66,86 @@ def check_command_line(argv: list[str]) -> str | None:
         _check_hydra_sweeps(overrides)
         for variant in _variants(overrides):
             _compose(variant)
-        _check_sweeper([o.input_line for o in overrides if not o.is_sweep_override()],
-                       [o.input_line for o in overrides])
+        fixed = [o.input_line for o in overrides if not o.is_sweep_override()]
+        hydra_node = compose_node(fixed, return_hydra_config=True).hydra
+        _check_sweeper(fixed, [o.input_line for o in overrides], hydra_node.sweeper)
+        if args.multirun or str(hydra_node.mode) == "RunMode.MULTIRUN":
+            for line in sweep_warnings(fixed, _sweeps(overrides, hydra_node.sweeper)):
+                log.warning("%s", line)
         if not args.multirun and not any(o.is_sweep_override() for o in overrides):
             _check_writable(_run_dir(overrides))
     except UserError as error:
         return str(error)
     return None
+
+
+def is_multirun(argv: list[str]) -> bool:
+    """Whether ``cusgs-train argv`` runs a sweep: ``-m``, or a composed ``hydra.mode`` of MULTIRUN (the ready
+    experiments set it). False for a command line that does not compose (:func:`check_command_line` says why)."""
+    args = hydra_args_parser().parse_args(argv)
+    if args.multirun:
+        return True
+    if any(getattr(args, flag, None) for flag in _INFO_FLAGS):
+        return False
+    try:
+        fixed = [o.input_line for o in _parse(args.overrides) if not o.is_sweep_override()]
+        return str(compose_node(fixed, return_hydra_config=True).hydra.mode) == "RunMode.MULTIRUN"
+    except Exception:  # noqa: BLE001 - not composable: check_command_line reports it
+        return False
+
+
+#: Most jobs whose configurations :func:`sweep_warnings` composes one by one (about 0.1 s each); a larger sweep is
+#: checked one swept value at a time, the other sweeps at their first value.
+MAX_COMPOSED_JOBS = 48
+
+
+def _sweeps(overrides, sweeper) -> dict[str, list[str]]:
+    """{key: its values} of the sweep Hydra's basic sweeper runs: ``hydra.sweeper.params`` (an experiment's), then
+    the command line's sweeps (which replace a param of the same key). Empty for other sweepers (Optuna's)."""
+    sweeps = {}
+    if str(sweeper.get("_target_", "")).endswith("BasicSweeper"):
+        params = sweeper.get("params") or {}
+        for sweep in _parse([f"{key}={value}" for key, value in params.items()]):
+            values = _sweep_values(sweep) if sweep.is_sweep_override() else [sweep.value()]
+            sweeps[sweep.get_key_element()] = [str(v) for v in values]
+    for sweep in (o for o in overrides if o.is_sweep_override()):
+        sweeps[sweep.get_key_element()] = [str(v) for v in _sweep_values(sweep)]
+    return sweeps
+
+
+def _idle_reason(cfg, key: str) -> str | None:
+    """Why a setting ``key`` (``prune.ratio``, a group choice ``prune``) changes nothing in a job of ``cfg``: the
+    schedule it belongs to never runs (:func:`cusgs_jax.config.idle_schedules`), or None."""
+    key = key.lstrip("+~")
+    group = key.split(".")[0].split("/")[0]
+    idle = idle_schedules(cfg)
+    if group == "prune":
+        if cfg.prune.strategy != "feature_aware" and key not in ("prune", "prune.strategy"):
+            return f"prune.strategy={cfg.prune.strategy} runs no feature-aware pruning pass"
+        return idle.get("prune")
+    if group == "grow" and not key.startswith("grow.early_cull"):
+        return idle.get("grow")
+    return idle.get(key)
+
+
+def sweep_warnings(fixed: list[str], sweeps: dict[str, list[str]]) -> list[str]:
+    """One line per swept setting that changes nothing in any job of the sweep (``fixed`` overrides, ``sweeps``
+    {key: values}): e.g. ``experiment=prune_ratio train.iterations=300`` sweeps ``prune.ratio``, but no pruning
+    pass runs before step 300 (``prune.start=500``), so every job trains the same model."""
+    keys = [key for key in sweeps if len(sweeps[key]) > 1]
+    if not keys:
+        return []
+    jobs = [dict(zip(sweeps, values)) for values in itertools.product(*sweeps.values())]
+    if len(jobs) > MAX_COMPOSED_JOBS:
+        first = {key: values[0] for key, values in sweeps.items()}
+        jobs = [dict(first, **{key: value}) for key in keys for value in sweeps[key]]
+    reasons: dict[str, list[str | None]] = {key: [] for key in keys}
+    for job in jobs:
+        cfg = compose_config(fixed + [f"{key}={value}" for key, value in job.items()])
+        for key in keys:
+            reasons[key].append(_idle_reason(cfg, key))
+    return [f"the sweep over {key} ({', '.join(sweeps[key])}) changes nothing in any of its {len(jobs)} jobs: "
+            f"{reasons[key][0]}" for key in keys if all(reasons[key])]
 
 
 def _parse(tokens: list[str]):
@@ -106,10 +186,6 @@ def _sweep_values(sweep) -> list:
     return list(sweep.sweep_string_iterator())
 
 
-#: The Hydra plugin each optional launcher / sweeper needs, and the extra that installs it.
-_EXTRAS = {"hydra/launcher/ray": "ray", "hydra/launcher/submitit": "slurm"}
-
-
 def _check_hydra_sweeps(overrides) -> None:
     """Hydra cannot sweep its own ``hydra.*`` settings (it stops with exit 1): say what to write instead."""
     for o in overrides:
@@ -126,12 +202,12 @@ def _check_hydra_sweeps(overrides) -> None:
                         "one value")
 
 
-def _check_sweeper(fixed: list[str], arguments: list[str] = ()) -> None:
-    """``hydra/sweeper=pareto``: its settings, its search space (``params`` and the sweeps of the command
-    line ``arguments``) and every end / choice of ``params`` must compose."""
+def _check_sweeper(fixed: list[str], arguments: list[str], sweeper) -> None:
+    """``hydra/sweeper=pareto`` (``sweeper``: the composed ``hydra.sweeper``): its settings, its search space
+    (``params`` and the sweeps of the command line ``arguments``) and every end / choice of ``params`` must
+    compose."""
     from omegaconf import OmegaConf
 
-    sweeper = compose_node(fixed, return_hydra_config=True).hydra.sweeper
     if not str(sweeper.get("_target_", "")).endswith("ParetoSweeper"):
         return
     try:
@@ -149,43 +225,7 @@ def _check_sweeper(fixed: list[str], arguments: list[str] = ()) -> None:
 
 
 def _compose(overrides: list[str]) -> None:
-    from hydra.errors import ConfigCompositionException, MissingConfigException
-
-    try:
-        compose_config(overrides)
-    except MissingConfigException as error:
-        first = str(error).split("\n\n")[0]
-        options = _listed_options(str(error))
-        extra = next((name for key, name in _EXTRAS.items() if f"'{key}" in first), None)
-        hint = f"; the plugin comes with the {extra} extra: pip install -e \".[{extra}]\"" if extra else ""
-        raise UserError((f"{first}; choose one of {options}" if options else first) + hint) from None
-    except ConfigCompositionException as error:
-        raise UserError(_composition_message(error)) from None
-
-
-def _listed_options(message: str) -> list[str]:
-    """The tab-indented names under Hydra's "Available options in 'group':" line."""
-    lines = message.split("Available options", 1)[-1].splitlines()[1:] if "Available options" in message else []
-    options = []
-    for line in lines:
-        if not line.startswith("\t"):
-            break
-        options.append(line.strip())
-    return options
-
-
-def _composition_message(error: Exception) -> str:
-    """One line from Hydra's composition error and its OmegaConf cause, with the fix."""
-    cause = error.__cause__
-    head = str(error).splitlines()[0]
-    if cause is None:
-        return head
-    detail = str(cause).splitlines()[0]
-    full_key = next((line.split(":", 1)[1].strip() for line in str(cause).splitlines()
-                     if line.strip().startswith("full_key:")), "")
-    if type(cause).__name__ in ("ConfigAttributeError", "ConfigKeyError"):
-        return f"unknown option {full_key or head}: {detail}; `cusgs-train --cfg job` lists every option"
-    return f"{head}: {detail}" + (f" (option {full_key})" if full_key else "")
+    compose_config(overrides)  # a ConfigError in one line (compose.composition_error)
 
 
 def _run_dir(overrides) -> pathlib.Path:

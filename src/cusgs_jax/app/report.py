@@ -7,7 +7,9 @@ Input. A *job folder* is any folder under the multirun folder that holds ``.hydr
 
 * ``.hydra/overrides.yaml`` -- the job's command-line overrides (``["prune.ratio=0.01", ...]``).
 * ``eval.json`` -- written when a run finishes: ``psnr``, ``ssim``, ``params`` (``total`` and its
-  parts), ``alive_anchors``, ``train_wall_s``, ``render_ms_per_view``, ``model_bytes``, ``checkpoint_bytes``,
+  parts), ``alive_anchors``, ``prune`` (``passes``, ``pruned``), ``time`` (``train_steps``, ``densify``,
+  ``compile_wait``, ``total``), ``compilations``, ``train_wall_s``, ``render_ms_per_view``, ``model_bytes``,
+  ``checkpoint_bytes``,
   optional ``lpips_vgg`` / ``lpips_alex`` (the lpips extra), ``render_ms_before_prune``,
   ``ply_bytes``, ``features.models.<name>.{cosine,l2}`` and the held-out ``curve``.
 * ``*.ply`` -- an exported PLY in the job folder gives Table 1's PLY size (its model size is ``model_bytes``).
@@ -23,16 +25,23 @@ Output, in ``<root>/report/`` unless ``--out`` says otherwise:
 * ``report.md`` -- the table (CUS-GS Table 4 style, rounded) and a line naming the best-PSNR and
   the smallest run, then a Table-1 style table (model MB, PLY MB, parameters, PSNR, SSIM, LPIPS) and a
   Table-2 style table (per feature model cosine / L2 distance, parameter split;
-  :mod:`cusgs_jax.app.paper_tables`); also printed to stdout.
+  :mod:`cusgs_jax.app.paper_tables`); also printed to stdout. Where two finished jobs say how long they
+  compiled, a line names the spread (the jobs that run first compile what later jobs load from the
+  persistent compilation cache) and points to ``steps (s)``, the training time without compiles. When
+  ``train.seed`` is swept, a table gives mean ± sample std over the jobs that differ only in it
+  (:func:`seed_summary`).
   Its ``Pareto`` column marks (★) the non-dominated runs: no other finished run has at least the
   held-out PSNR with at most the parameters, one of them strictly (:func:`mark_pareto`).
 * ``report.csv`` -- the Table-4 rows at full precision with one column per swept override key,
   ``pareto`` (1 on the front, 0 off it, empty without both numbers), plus ``lpips_vgg``, ``lpips_alex``, ``size_mb`` (the model: ``model_bytes``), ``size_of`` (``model``, or ``checkpoint`` for a run older than
   ``model_bytes``) and ``ply_mb``.
-* ``psnr_vs_time.png`` -- held-out PSNR against training wall-clock seconds, one line per run.
-* ``feature_error_vs_time.png`` -- feature cosine distance and L2 error against wall-clock
+* ``psnr_vs_time.png`` -- held-out PSNR against the training clock's seconds, one line per run: the loop's
+  steps and densification with the compiles it waited for after its first step, not the first step's
+  compile (:data:`cusgs_jax.eval.plots.CLOCK`).
+* ``feature_error_vs_time.png`` -- feature cosine distance and L2 error against the training clock's
   seconds; not written when no run evaluated feature fields.
 * ``psnr_vs_size.png`` -- final PSNR against total parameters, Pareto front highlighted.
+* ``psnr_vs_job_time.png`` -- final PSNR against the whole job's seconds (``time.total``, compiles included).
 * ``anchors_vs_step.png`` -- alive anchors against training step, one line per run.
 
 Failed jobs are listed in the table but left out of the plots; incomplete jobs are plotted with
@@ -63,15 +72,23 @@ METRICS = [
      "Blender scenes are evaluated on their test split, the others on every 8th image)"),
     ("params", "params", "{:,.0f}", "total trained parameters (eval.json params.total)"),
     ("anchors", "anchors", "{:,.0f}", "alive anchors at the end of training"),
+    ("passes", "passes", "{:,.0f}", "feature-aware pruning passes run (eval.json prune.passes, what the strategy's "
+     "results record; 0 without feature-aware pruning or when its schedule never ran)"),
+    ("pruned", "pruned", "{:,.0f}", "anchors those passes removed (eval.json prune.pruned)"),
     ("ssim", "SSIM", "{:.4f}", "held-out SSIM"),
     ("psnr", "PSNR", "{:.2f}", "held-out PSNR in dB"),
     ("feature_cosine", "feat. cos", "{:.4f}",
      "cosine distance 1-cos of the rendered feature maps, mean over feature models (lower is better)"),
     ("feature_l2", "feat. L2", "{:.4f}", "L2 error of the rendered feature maps, mean over feature models"),
-    ("train_s", "train (s)", "{:.1f}", "training wall-clock seconds (the train step's compilation included; "
-     "evaluation and checkpoints not)"),
+    ("train_s", "train (s)", "{:.1f}", "the training clock's seconds (eval.json train_wall_s, the x axis of "
+     "psnr_vs_time.png): steps and densification, with the compiles the loop waited for after its first step; the "
+     "first step's compile, evaluation and checkpoints not (eval/plots.py CLOCK)"),
+    ("steps_s", "steps (s)", "{:.1f}", "training steps and densification with no compile at all (eval.json "
+     "time.train_steps + time.densify; every wait for a compiler is in compile wait): the time to compare between "
+     "jobs, which train (s) and run (s) are not when the jobs run first compile what later ones load from the "
+     "persistent compilation cache"),
     ("run_s", "run (s)", "{:.1f}", "the whole run's seconds: load, features, PSC, compiling, training, "
-     "evaluation, checkpoints, report (eval.json time.total)"),
+     "evaluation, checkpoints, report (eval.json time.total; the x axis of psnr_vs_job_time.png)"),
     ("compile_s", "compile (s)", "{:.1f}", "seconds spent compiling XLA programs, tracing included, those compiled "
      "ahead on the background thread too (eval.json compilations.seconds; small when the persistent compilation "
      "cache held them)"),
@@ -161,21 +178,47 @@ def _eval_metrics(result: dict) -> dict:
     models = features.get("models") if isinstance(features, dict) else None
     models = [m for m in models.values() if isinstance(m, dict)] if isinstance(models, dict) else []
     layout = result.get("dataset_format")
+    time = result.get("time") if isinstance(result.get("time"), dict) else {}
+    passes, pruned = _pruning(result)
     return {
         "dataset_format": layout if isinstance(layout, str) else None,
         "params": finite_or_none(params.get("total")) if isinstance(params, dict) else finite_or_none(params),
         "anchors": finite_or_none(result.get("alive_anchors")),
+        "passes": passes,
+        "pruned": pruned,
         "ssim": finite_or_none(result.get("ssim")),
         "psnr": finite_or_none(result.get("psnr")),
         "feature_cosine": _mean(m.get("cosine") for m in models),
         "feature_l2": _mean(m.get("l2") for m in models),
         "train_s": finite_or_none(result.get("train_wall_s")),
-        "run_s": finite_or_none(time.get("total")) if isinstance(time := result.get("time"), dict) else None,
+        "steps_s": _seconds(time, "train_steps", "densify"),
+        "run_s": finite_or_none(time.get("total")),
         "compile_s": finite_or_none(c.get("seconds")) if isinstance(c := result.get("compilations"), dict) else None,
-        "compile_wait_s": finite_or_none(t.get("compile_wait")) if isinstance(t := result.get("time"), dict) else None,
+        "compile_wait_s": finite_or_none(time.get("compile_wait")),
         "render_ms": finite_or_none(result.get("render_ms_per_view")),
         "render_ms_before_prune": finite_or_none(result.get("render_ms_before_prune")),
     }
+
+
+def _pruning(result) -> tuple[float | None, float | None]:
+    """(passes, pruned) of feature-aware pruning: the ``prune`` block its results fill in (densify/feature_prune.py
+    ``results``), else its tally in ``densify`` (``updates``, ``pruned``); None where neither says."""
+    block = result.get("prune")
+    block = block if isinstance(block, dict) else {}
+    densify = result.get("densify")
+    tally = densify.get("feature_prune") if isinstance(densify, dict) else None
+    tally = tally if isinstance(tally, dict) else {}
+    passes = finite_or_none(block.get("passes"))
+    pruned = finite_or_none(block.get("pruned"))
+    return (finite_or_none(tally.get("updates")) if passes is None else passes,
+            finite_or_none(tally.get("pruned")) if pruned is None else pruned)
+
+
+def _seconds(time: dict, *stages: str) -> float | None:
+    """The sum of ``time``'s ``stages`` (those present), None when the first is missing."""
+    if finite_or_none(time.get(stages[0])) is None:
+        return None
+    return sum(finite_or_none(time.get(stage)) or 0.0 for stage in stages)
 
 
 def _newer(a: Path, b: Path) -> bool:
@@ -305,9 +348,77 @@ def render_markdown(records, keys, fixed) -> str:
     if front:
         lines.append(f"Pareto front ({len(front)} of {len(records)} runs, smallest first): " + "; ".join(
             f"job `{r['job']}` {r['psnr']:.2f} dB / {r['params']:,.0f} params" for r in front) + ".")
+    lines += _compile_bias(ok)
+    lines += _seeds_markdown(seed_summary(records, keys))
     label = functools.partial(run_label, keys=keys)
     lines += [""] + table1_markdown(records, label) + [""] + table2_markdown(records, label)
     return "\n".join(lines) + "\n"
+
+
+def _compile_bias(ok) -> list[str]:
+    """The line that says which time columns carry compiles, and how unevenly the finished jobs paid them."""
+    compiled = sorted((r["compile_s"], r["job"]) for r in ok if r["compile_s"] is not None)
+    if len(compiled) < 2:
+        return []
+    (low, low_job), (high, high_job) = compiled[0], compiled[-1]
+    return ["", f"Times: `train (s)`, `run (s)` and psnr_vs_job_time.png include compiling, which the jobs do not pay "
+                f"alike: the jobs that run first compile programs that later jobs load from the persistent "
+                f"compilation cache (`compile (s)` from {low:.1f} s in job `{low_job}` to {high:.1f} s in job "
+                f"`{high_job}`). Compare jobs by `steps (s)`, which leaves every compile out."]
+
+
+#: The override key of the seed: jobs differing only in it are repeats of one setting.
+SEED_KEY = "train.seed"
+
+
+def _mean_std(values) -> tuple[float, float] | None:
+    """(mean, sample standard deviation) of the finite ``values``; None for fewer than two."""
+    values = [v for v in map(finite_or_none, values) if v is not None]
+    if len(values) < 2:
+        return None
+    mean = sum(values) / len(values)
+    return mean, (sum((v - mean) ** 2 for v in values) / (len(values) - 1)) ** 0.5
+
+
+#: The columns :func:`seed_summary` averages: (record key, Markdown header, format).
+SEED_COLUMNS = (("psnr", "PSNR", "{:.2f}"), ("ssim", "SSIM", "{:.4f}"), ("params", "params", "{:,.0f}"),
+                ("anchors", "anchors", "{:,.0f}"), ("steps_s", "steps (s)", "{:.1f}"))
+
+
+def seed_summary(records, keys) -> list[dict]:
+    """Mean ± std over the finished jobs that differ only in ``train.seed``: one dict per setting run with two or
+    more seeds, ``{"label", "jobs", "seeds", <column>: (mean, std) or None}`` for :data:`SEED_COLUMNS`, in the
+    order of the settings' first jobs. Empty when the seed is not swept."""
+    if SEED_KEY not in keys:
+        return []
+    others = [k for k in keys if k != SEED_KEY]
+    groups: dict[tuple, list[dict]] = {}
+    for r in records:
+        if r["status"] == "ok":
+            groups.setdefault(tuple(r["overrides"].get(k) for k in others), []).append(r)
+    summary = []
+    for group in groups.values():
+        if len({r["overrides"].get(SEED_KEY) for r in group}) < 2:
+            continue
+        summary.append(dict(label=run_label(group[0], others), jobs=[r["job"] for r in group],
+                            seeds=[r["overrides"].get(SEED_KEY) for r in group],
+                            **{key: _mean_std(r[key] for r in group) for key, *_ in SEED_COLUMNS}))
+    return summary
+
+
+def _seeds_markdown(summary) -> list[str]:
+    if not summary:
+        return []
+    header = ["run", "jobs", "seeds"] + [h for _, h, _ in SEED_COLUMNS]
+    lines = ["", "## Over seeds: mean ± std", "",
+             f"Finished jobs that differ only in `{SEED_KEY}`, as mean ± sample standard deviation.", "",
+             "| " + " | ".join(header) + " |", "|" + "|".join([":---"] * 3 + ["---:"] * len(SEED_COLUMNS)) + "|"]
+    for row in summary:
+        cells = [row["label"], ", ".join(f"`{j}`" for j in row["jobs"]), ", ".join(map(str, row["seeds"]))]
+        cells += ["" if row[key] is None else f"{fmt.format(row[key][0])} ± {fmt.format(row[key][1])}"
+                  for key, _, fmt in SEED_COLUMNS]
+        lines.append("| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |")
+    return lines
 
 
 def _write_csv(records, keys, path: Path) -> None:
@@ -318,7 +429,7 @@ def _write_csv(records, keys, path: Path) -> None:
         mark_pareto(records)
         for r in records:
             sweeps = [r["overrides"].get(k) or "" for k in keys]
-            values = ["" if r[k] is None else (int(r[k]) if k in ("params", "anchors") else r[k])
+            values = ["" if r[k] is None else (int(r[k]) if k in ("params", "anchors", "passes", "pruned") else r[k])
                       for k, *_ in METRICS]
             extra = ["" if r[k] is None else r[k] for k in CSV_COLUMNS]
             pareto = "" if r["pareto"] is None else int(r["pareto"])

@@ -156,14 +156,50 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit(2)
     sys.argv = [sys.argv[0] or PROG] + argv
     FailedJobs.found, FailedJobs.sweep_dir = [], None
+    from concurrent.futures import BrokenExecutor
+
+    from hydra.errors import CompactHydraException
+
+    from cusgs_jax.app.overrides import is_multirun
+
+    # A sweep's launcher error (a killed joblib worker breaks loky's pool: TerminatedWorkerError) would be printed by
+    # Hydra as a traceback before it exits 1; with HYDRA_FULL_ERROR set Hydra raises it instead, so the lines below
+    # are the only ones said about it. The jobs' own errors never get here (_hydra_main records them). A single run
+    # keeps Hydra's reporting.
+    sweeping, full_error = is_multirun(argv), os.environ.get("HYDRA_FULL_ERROR")
+    if sweeping:
+        os.environ["HYDRA_FULL_ERROR"] = "1"
+
+    def report_lost_jobs() -> list[pathlib.Path]:
+        lost = record_lost_jobs(FailedJobs.sweep_dir) if FailedJobs.sweep_dir is not None else []
+        for path in lost:
+            print(f"{PROG}: job lost: {path.parent} did not finish; rerun the sweep with train.resume=true to "
+                  "continue it", file=sys.stderr)
+        return lost
+
     try:
         _hydra_main()
-    except SystemExit as stopped:  # Hydra reports a launcher's error (a killed joblib worker) and exits 1
-        if stopped.code not in (0, None) and FailedJobs.sweep_dir is not None:
-            for path in record_lost_jobs(FailedJobs.sweep_dir):
-                print(f"{PROG}: job lost: {path.parent} did not finish; rerun the sweep with train.resume=true to "
-                      "continue it", file=sys.stderr)
+    except SystemExit as stopped:  # a launcher that exits by itself
+        if stopped.code not in (0, None):
+            report_lost_jobs()
         raise
+    except BrokenExecutor as error:  # the launcher's worker pool broke: a job's process was killed
+        if not sweeping or full_error:  # the user asked for Hydra's full error: theirs
+            raise
+        lost = report_lost_jobs()
+        print(f"{PROG}: error: the sweep's launcher stopped ({type(error).__name__}: a job's process ended "
+              f"abruptly, killed or out of memory); {len(lost)} job(s) lost, their checkpoints kept", file=sys.stderr)
+        raise SystemExit(1) from None
+    except CompactHydraException as error:  # Hydra's own one-line errors, as Hydra prints them
+        if not sweeping or full_error:
+            raise
+        report_lost_jobs()
+        lines = [(str(e).strip().splitlines() or [type(e).__name__])[0] for e in (error, error.__cause__) if e]
+        print(f"{PROG}: error: {': '.join(lines)}", file=sys.stderr)
+        raise SystemExit(1) from None
+    finally:
+        if sweeping and full_error is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
     if FailedJobs.found:
         for job in FailedJobs.found:
             print(f"{PROG}: job failed: {job['error'].splitlines()[0]} ({job['path']})", file=sys.stderr)

@@ -10,10 +10,14 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
 
-#: What the curves' time axis (``wall_s``, the run's training clock, :mod:`cusgs_jax.app.clock`) counts.
-CLOCK = ("training steps and densification, the train step's compilations included; evaluation, checkpoints "
-         "and set-up excluded")
-CLOCK_LABEL = "training wall-clock time (s), step compilation included"
+#: What the curves' time axis (``wall_s``, the run's training clock, :mod:`cusgs_jax.app.clock`; ``eval.json``'s
+#: ``train_wall_s`` and ``curve_clock``) counts: the loop's steps and densification (app/loop.py ``train``), with
+#: the compiles they waited for inside the loop (a replayed step's, a grown capacity's program). Not on it: the
+#: compile of the first step's program, waited for before the loop starts (``eval.json`` ``time.compile_wait``
+#: holds it with every other wait), evaluation, checkpoints, the live viewer and set-up.
+CLOCK = ("training steps and densification, with the compiles the loop waited for after its first step; the first "
+         "step's compile (before the loop), evaluation, checkpoints and set-up excluded")
+CLOCK_LABEL = "training time (s): steps and densification, the first step's compile excluded"
 
 
 def plot_error_vs_time(curve: list[dict], path: pathlib.Path, title: str = "") -> None:
