@@ -83,8 +83,9 @@ class Session:
         return scene_digest(scene.viewmats[idx], scene.Ks[idx], scene.width, scene.height)
 
     def cameras(self, idx) -> dict:
-        """Views ``idx`` in the normalised frame: {"viewmats": [V][4][4], "Ks": [V][3][3], "width", "height"}, and
-        with ``data.undistort=lens`` of distorted cameras "lens": {"coeffs": [V][6], "bounds": [V][4], "fisheye"}."""
+        """Views ``idx`` in the normalised frame: {"viewmats": [V, 4, 4], "Ks": [V, 3, 3], "width", "height"} as
+        nested lists, and with ``data.undistort=lens`` of distorted cameras "lens": {"coeffs": [V, 6], "bounds": [V, 4],
+        "fisheye"}."""
         scene = self.scene
         out = dict(viewmats=np.asarray(scene.viewmats, np.float64)[idx].tolist(),
                    Ks=np.asarray(scene.Ks, np.float64)[idx].tolist(), width=int(scene.width), height=int(scene.height))
