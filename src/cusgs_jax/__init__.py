@@ -36,7 +36,8 @@ _EXPORTS = {
     "view_inputs": "model.decode", "decode_inputs": "model.decode",
     # splatting
     "RenderOutput": "splat", "check_inputs": "splat", "rasterize": "splat", "rasterize_batch": "splat",
-    "sh_to_rgb": "splat", "sh_basis": "splat",
+    "sh_to_rgb": "splat", "sh_basis": "splat", "rasterize_jit": "splat", "rasterize_batch_jit": "splat",
+    "Compositor": "splat",
     # models that leave the project (standard 3DGS PLY)
     "SplatModel": "io", "PlyError": "io", "read_ply": "io", "write_ply": "io", "render_splats": "io",
     "bake_splats": "model.bake", "load_trained": "io.load_run", "TrainedModel": "io.load_run",

@@ -96,7 +96,7 @@ def test_setup_warns_once_about_each_schedule_that_never_runs_before_reading_the
     """A run of 5 steps with the tiny schedule (pruning and growing from step 10, checkpoints every 10, the curve
     every 15): each idle schedule is one warning naming the setting and a value that runs, said before any work."""
     from cusgs_jax.app import session as session_module
-    from cusgs_jax.config import schedule_warnings
+    from cusgs_jax.schedules import schedule_warnings
 
     cfg = _cfg(tiny_scene, "train.iterations=5")
 

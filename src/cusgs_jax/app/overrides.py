@@ -20,7 +20,7 @@ import os
 import pathlib
 
 from cusgs_jax.compose import compose_config, compose_node
-from cusgs_jax.config import idle_schedules
+from cusgs_jax.schedules import idle_schedules
 from cusgs_jax.errors import UserError
 from cusgs_jax.sweep.pareto import check_sweeper_settings
 
@@ -115,7 +115,7 @@ def _sweeps(overrides, sweeper) -> dict[str, list[str]]:
 
 def _idle_reason(cfg, key: str) -> str | None:
     """Why a setting ``key`` (``prune.ratio``, a group choice ``prune``) changes nothing in a job of ``cfg``: the
-    schedule it belongs to never runs (:func:`cusgs_jax.config.idle_schedules`), or None."""
+    schedule it belongs to never runs (:func:`cusgs_jax.schedules.idle_schedules`), or None."""
     key = key.lstrip("+~")
     group = key.split(".")[0].split("/")[0]
     idle = idle_schedules(cfg)

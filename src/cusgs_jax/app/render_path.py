@@ -75,7 +75,6 @@ def render_path(run, *, path: str = "orbit", frames: int = 60, fps: float = 30.0
     if isinstance(appearance, int) and not 0 <= appearance < len(model.cameras.world_to_camera):
         raise UserError(f"--appearance {appearance}: the run has {len(model.cameras.world_to_camera)} training views "
                         "(indices from 0)")
-    writer = None
     out = pathlib.Path(out or pathlib.Path(run) / f"path_{path}")
     out.mkdir(parents=True, exist_ok=True)
     if video:

@@ -22,6 +22,7 @@ from cusgs_jax.app.ahead import Ahead
 from cusgs_jax.app.budget import TimeBudget
 from cusgs_jax.app.resolve import resolve_for_scene
 from cusgs_jax.config import Config, require
+from cusgs_jax.schedules import warn_schedules
 from cusgs_jax.data.features import FeatureSet
 from cusgs_jax.data.identity import scene_digest
 from cusgs_jax.data.normalize import WorldTransform
@@ -29,7 +30,7 @@ from cusgs_jax.data.scene_data import SceneData
 from cusgs_jax.densify.base import Strategy
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.errors import UserError
-from cusgs_jax.run_folder import CHECKPOINTS_DIR, read_eval, restore_hydra_record
+from cusgs_jax.run_folder import CHECKPOINTS_DIR, CURVE_FILE, METRICS_FILE, read_eval, restore_hydra_record
 from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training.distributed import require_single_process
 from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, make_batches
@@ -107,6 +108,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
     A refused setup puts the folder's accepted Hydra record back (:func:`~cusgs_jax.run_folder.restore_hydra_record`).
     """
     budget = budget or TimeBudget()
+    warn_schedules(cfg)  # a schedule that never runs within train.iterations: one warning each
     loss_terms = check_loss_terms(loss_terms)
     require_single_process()
     devices = resolve_devices(cfg.train.batch_size, cfg.train.devices)  # train.devices=N with fewer: refused first
@@ -124,7 +126,7 @@ def setup(cfg: Config, output_dir, extra_strategies: tuple[Strategy, ...] = (),
 def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...], budget: TimeBudget,
            ahead: Ahead | None, loss_terms: tuple[LossTerm, ...] = ()) -> Session:
     ckpt = Checkpointer(cfg.train.checkpoint_dir or out / CHECKPOINTS_DIR)
-    _require_resumable(cfg, ckpt, out)
+    cfg = _require_resumable(cfg, ckpt, out)
     with budget.stage("load"):
         scene, world = load_data(cfg)
         cfg = resolve_for_scene(cfg, scene).cfg  # every auto setting, once (app/resolve.py)
@@ -153,20 +155,24 @@ def _setup(cfg: Config, out: pathlib.Path, extra_strategies: tuple[Strategy, ...
                    ahead=ahead, loss_terms=loss_terms)
 
 
-def _require_resumable(cfg: Config, ckpt: Checkpointer, out: pathlib.Path) -> None:
+def _require_resumable(cfg: Config, ckpt: Checkpointer, out: pathlib.Path) -> Config:
     """``train.resume`` agrees with the checkpoints there are, and a resumed folder's record is one this version
-    reads (a newer or damaged one is refused here, not overwritten)."""
+    reads (a newer or damaged one is refused here, not overwritten). Returns the config the run goes on with: a
+    resume before the first checkpoint (a job killed early) starts afresh, with a warning, its killed run's log
+    rows removed (the fresh run logs those steps again)."""
     latest = ckpt.latest_step()
-    require(not cfg.train.resume or latest is not None, "train.resume", True,
-            f"there is no checkpoint to resume in {ckpt.directory}",
-            "point hydra.run.dir (or train.checkpoint_dir) at the folder of the run to continue, "
-            "or drop train.resume to start afresh")
+    if cfg.train.resume and latest is None:
+        log.warning("train.resume=true: no checkpoint yet in %s: starting afresh", ckpt.directory)
+        cfg = cfg.replace(train=dict(resume=False))
+        for name in (METRICS_FILE, CURVE_FILE):
+            (out / name).unlink(missing_ok=True)
     require(cfg.train.resume or latest is None, "train.resume", False,
             f"{ckpt.directory} already holds checkpoints of an earlier run (newest: step {latest})",
             "continue it with train.resume=true, or start afresh in a new folder (hydra.run.dir=...)")
     require_not_past(cfg, latest, ckpt.directory)
     if cfg.train.resume:
         read_eval(out)
+    return cfg
 
 
 def require_not_past(cfg: Config, step: int | None, directory) -> None:
