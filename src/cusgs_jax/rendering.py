@@ -96,7 +96,8 @@ def render(model: TrainedModel, cameras: Camera, *, capacities: Capacities, appe
 
     Args:
       model: a trained model (:func:`cusgs_jax.train`'s or :func:`cusgs_jax.load_trained`'s).
-      capacities: from :func:`fit_render` (or ``eval.json``'s ``capacities``).
+      capacities: from :func:`fit_render`. Not ``eval.json``'s ``capacities``: those are fractions of the
+        training run's anchor capacity, and a loaded model is compacted to fewer slots, so they can drop work.
       appearance: ``"nearest"`` (the held-out protocol), ``"mean"`` or a training view's index.
       features: also read out the feature maps (a model trained with feature models).
     Returns:
