@@ -11,7 +11,8 @@ import pytest
 from cusgs_jax.config import Config
 from cusgs_jax.densify.factory import make_strategies
 from cusgs_jax.testing.scenes import sfm_points
-from cusgs_jax.training.loss_terms import BUILT_IN_TERMS, LossTally, LossTerm, check_loss_terms, term_weights
+from cusgs_jax.training.loss_terms import (BUILT_IN_TERMS, LossTally, LossTerm, check_loss_terms, term_weights,
+                                          weighted_terms)
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.step import loss_weights, make_train_step
 from cusgs_jax.types import Camera
@@ -82,14 +83,13 @@ def test_every_term_is_reported_weighted_and_they_sum_to_the_loss(model):
     terms = (LossTerm("mean_alpha", mean_alpha, 0.3), LossTerm("depth_tv", depth_tv, 0.05))
     step = make_train_step(cfg, tx, strategies, loss_terms=terms)
     _, metrics = step(_copy(state), _batch(terms))
-    assert set(metrics["terms"]) == {"l1", "ssim", "volume", "mean_alpha", "depth_tv"}
-    total = sum(float(v) for v in metrics["terms"].values())
-    np.testing.assert_allclose(total, float(metrics["loss"]), rtol=1e-6)
-    np.testing.assert_allclose(float(metrics["terms"]["mean_alpha"]), 0.3 * float(metrics["loss_mean_alpha"]),
-                               rtol=1e-6)
+    weighted = weighted_terms(jax.device_get(metrics), loss_weights(cfg, terms))
+    assert set(weighted) == {"l1", "ssim", "volume", "mean_alpha", "depth_tv"}
+    np.testing.assert_allclose(sum(weighted.values()), float(metrics["loss"]), rtol=1e-6)
+    np.testing.assert_allclose(weighted["mean_alpha"], 0.3 * float(metrics["loss_mean_alpha"]), rtol=1e-6)
     assert 0 < float(metrics["loss_mean_alpha"]) <= 1
-    np.testing.assert_allclose(float(metrics["terms"]["l1"]), cfg.loss.l1_weight * float(metrics["loss_l1"]),
-                               rtol=1e-6)
+    np.testing.assert_allclose(weighted["l1"], cfg.loss.l1_weight * float(metrics["loss_l1"]), rtol=1e-6)
+    np.testing.assert_allclose(weighted["ssim"], cfg.loss.ssim_weight * (1 - float(metrics["loss_ssim"])), rtol=1e-6)
 
 
 def test_the_weight_is_an_argument_of_the_program_and_the_term_is_differentiated(model, compiles):

@@ -45,7 +45,7 @@ from cusgs_jax.model.anchors import compact
 from cusgs_jax.run_folder import BANKS_FILE, CURVE_FILE, METRICS_FILE, CheckpointMeta, accept_hydra_record, \
     restore_hydra_record
 from cusgs_jax.training import capacity
-from cusgs_jax.training.loss_terms import LossTally
+from cusgs_jax.training.loss_terms import LossTally, weighted_terms
 from cusgs_jax.training.render import RgbOfFeatureRender, make_feature_render_fn, make_render_fn, most_work
 from cusgs_jax.training.state import TrainState, init_train_state
 from cusgs_jax.training.step import make_train_step
@@ -238,6 +238,7 @@ def exact_step(session: Session, loop: Loop, batch: dict) -> dict:
         loop.state, metrics = loop.step_fn(loop.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
         if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
+            metrics["terms"] = weighted_terms(metrics, session.weights)
             loop.loss_tally.add(metrics["terms"])
             return metrics
         loop.capacities = loop.capacities.grown(metrics, loop.state.anchors.capacity,

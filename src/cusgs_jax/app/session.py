@@ -35,6 +35,7 @@ from cusgs_jax.training.checkpoint import Checkpointer
 from cusgs_jax.training.distributed import require_single_process
 from cusgs_jax.training.inputs import feature_targets, load_data, load_feature_targets, make_batches
 from cusgs_jax.training.loss_terms import LossTerm, check_loss_terms
+from cusgs_jax.training.step import loss_weights
 from cusgs_jax.training.parallel import resolve_devices
 
 log = logging.getLogger("cusgs_jax")
@@ -72,6 +73,12 @@ class Session:
     @property
     def psnr_label(self) -> str:
         return "held-out PSNR" if self.evaluated_on == "held_out" else "training-view PSNR (no held-out views)"
+
+    @property
+    def weights(self) -> dict:
+        """The loss terms' weights ({term: float}, :func:`~cusgs_jax.training.step.loss_weights`): what
+        :func:`~cusgs_jax.training.loss_terms.weighted_terms` weighs a step's terms by."""
+        return {name: float(w) for name, w in loss_weights(self.cfg, self.loss_terms).items()}
 
     @property
     def devices(self) -> int:

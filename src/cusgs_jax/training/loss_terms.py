@@ -10,10 +10,10 @@ A :class:`LossTerm` is a name, a weight and a function ``fn(render, batch, state
 
 The step adds ``weight · fn(...)`` to the loss and differentiates through it. The weight is an argument of the
 step's program (``batch["loss_weights"][name]``, as the built-in weights are, :func:`term_weights`), so a sweep
-over it shares one compiled step. Every term — the built-in ``l1``, ``ssim`` (1 − SSIM), ``volume`` and
-``feature`` and the user's — is reported weighted in the step's ``metrics["terms"]`` (their sum is the loss),
-logged in ``metrics.jsonl`` and summed over the run in ``eval.json``'s ``loss_terms``
-(``docs/api.md#a-loss-term-of-your-own``).
+over it shares one compiled step. The step reports every term unweighted (``metrics["loss_<name>"]``);
+:func:`weighted_terms` weighs them on the host — the built-in ``l1``, ``ssim`` (1 − SSIM), ``volume`` and
+``feature`` and the user's, which sum to the loss — and the loop logs them in ``metrics.jsonl`` and sums them over
+the run in ``eval.json``'s ``loss_terms`` (``docs/api.md#a-loss-term-of-your-own``).
 """
 
 from __future__ import annotations
@@ -26,10 +26,12 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-__all__ = ["LossTerm", "TermRender", "BUILT_IN_TERMS", "check_loss_terms", "term_weights", "LossTally"]
+__all__ = ["LossTerm", "TermRender", "BUILT_IN_TERMS", "check_loss_terms", "term_weights", "weighted_terms",
+           "LossTally"]
 
-#: The built-in terms, by the names ``metrics["terms"]`` reports them under (``feature`` only with feature models).
+#: The built-in terms (``feature`` only with feature models), by the step metric that holds each one unweighted.
 BUILT_IN_TERMS = ("l1", "ssim", "volume", "feature")
+_METRIC = dict(l1="loss_l1", ssim="loss_ssim_loss", volume="loss_volume", feature="loss_feature")
 _RESERVED = frozenset(BUILT_IN_TERMS) | {"loss", "image", "ssim_loss", "psnr", "terms"}
 
 
@@ -95,6 +97,18 @@ def check_loss_terms(terms) -> tuple[LossTerm, ...]:
 def term_weights(terms) -> dict[str, np.float32]:
     """``{name: weight}`` ([] float32) of the user's terms, the entries ``batch["loss_weights"]`` adds for them."""
     return {term.name: np.float32(term.weight) for term in terms}
+
+
+def weighted_terms(metrics: dict, weights: dict) -> dict[str, float]:
+    """Every loss term of a step's ``metrics`` (host values) times its weight: ``{"l1", "ssim", "volume"[,
+    "feature"], <user terms>}`` as floats, which sum to ``metrics["loss"]`` (up to rounding). ``weights``: the
+    step's ``loss_weights`` (:func:`cusgs_jax.training.step.loss_weights`)."""
+    out = {}
+    for name, weight in weights.items():
+        key = _METRIC.get(name, f"loss_{name}")
+        if key in metrics:
+            out[name] = float(weight) * float(metrics[key])
+    return out
 
 
 @dataclasses.dataclass

@@ -59,8 +59,7 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_t
     ``grads``: the trainable tree's gradient with the anchor rows of the view's S visible
     slots only ({"anchor": AnchorParams [S, …], networks dense}). ``parts``: what the record,
     the metrics and the update need (the visible slots, decoded Gaussians, the render with its
-    per-Gaussian fields in decoded order, ∂L/∂μ_2D [G, 2], the loss terms, the work counts). ``parts["weighted"]``:
-    every term's weighted value ({"l1", "ssim", "volume"[, "feature"], user terms}: they sum to the loss).
+    per-Gaussian fields in decoded order, ∂L/∂μ_2D [G, 2], the loss terms (unweighted), the work counts).
     """
     model, features = cfg.model, cfg.features
     num_slots = capacities.visible_slots(anchor_capacity)
@@ -79,22 +78,18 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_t
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
                                         pixel_mask=batch.get("valid"), l1_weight=weights["l1"],
                                         ssim_weight=weights["ssim"], volume_weight=weights["volume"])
-        weighted = dict(l1=weights["l1"] * terms["l1"], ssim=weights["ssim"] * terms["ssim_loss"],
-                        volume=weights["volume"] * terms["volume"])
         if features.enabled:
             feature_total, feature_terms = sampled_feature_loss(out.image[..., 3:], batch["features"],
                                                                 local["memory"], batch["banks"], key, features)
             loss = loss + weights["feature"] * feature_total
             terms.update(feature_terms, feature=feature_total)
-            weighted["feature"] = weights["feature"] * feature_total
         if loss_terms:  # research code's own terms (training/loss_terms.py), after the built-in ones
             seen = TermRender(out.image[..., :3], out.alpha, out.depth, gaussians)
             for term in loss_terms:
                 value = jnp.asarray(term.fn(seen, batch, state), jnp.float32).reshape(())
-                weighted[term.name] = weights[term.name] * value
                 terms[term.name] = value
-                loss = loss + weighted[term.name]
-        return loss, (out, gaussians, chosen, terms, weighted)
+                loss = loss + weights[term.name] * value
+        return loss, (out, gaussians, chosen, terms)
 
     def one(trainable, anchors, batch, key, state):
         camera = batch["camera"]
@@ -102,12 +97,11 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_t
         rows, centers, decoded = gather_visible(anchors.replace(params=trainable["anchor"]), view)
         local = dict(trainable, anchor=rows)
         delta = jnp.zeros((active_capacity, 2), jnp.float32)
-        (loss, (out, gaussians, chosen, terms, weighted)), (grads, grad2d) = jax.value_and_grad(
+        (loss, (out, gaussians, chosen, terms)), (grads, grad2d) = jax.value_and_grad(
             loss_fn, argnums=(0, 1), has_aux=True)(local, delta, centers, decoded, batch, key, state)
         mse = losses.masked_mean((jnp.clip(out.image[..., :3], 0, 1) - batch["image"]) ** 2, batch.get("valid"))
         parts = dict(view=view, gaussians=gaussians, render=expand_render(out, chosen),
-                     grad2d=scatter_back(grad2d, chosen), terms=terms, weighted=weighted,
-                     work=work_metrics(view, chosen, out), mse=mse)
+                     grad2d=scatter_back(grad2d, chosen), terms=terms, work=work_metrics(view, chosen, out), mse=mse)
         return loss, grads, parts
 
     return one
@@ -127,8 +121,7 @@ def _metrics(loss, finite, parts: dict, reduce) -> dict:
     return dict(loss=loss, psnr=-10.0 * jnp.log10(jnp.maximum(mse, 1e-12)), finite=finite,
                 **{k: reduce(v, jnp.max) for k, v in work.items()},
                 loss_image=reduce(terms["loss"], jnp.mean),
-                **{f"loss_{k}": reduce(v, jnp.mean) for k, v in terms.items() if k != "loss"},
-                terms={k: reduce(v, jnp.mean) for k, v in parts["weighted"].items()})
+                **{f"loss_{k}": reduce(v, jnp.mean) for k, v in terms.items() if k != "loss"})
 
 
 def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacities: Capacities | None = None,
@@ -151,8 +144,11 @@ def make_train_step(cfg: Config, tx, strategies: tuple[Strategy, ...], capacitie
     ``capacities``: the static work capacities (:class:`~cusgs_jax.training.capacity.Capacities`,
     owned and grown by the caller; default: the config's first guesses). ``loss_terms``: research code's own
     terms (:class:`~cusgs_jax.training.loss_terms.LossTerm`), added to the loss with their weights from
-    ``batch["loss_weights"]`` (:func:`loss_weights`). ``metrics["terms"]`` holds every term's weighted value
-    (built-in and the user's; they sum to ``metrics["loss"]``).
+    ``batch["loss_weights"]`` (:func:`loss_weights`). Every term's unweighted value is in the metrics
+    (``loss_l1``, ``loss_ssim_loss``, ``loss_volume``, ``loss_feature``, ``loss_<name>``);
+    :func:`~cusgs_jax.training.loss_terms.weighted_terms` weighs them on the host (they sum to ``metrics["loss"]``
+    up to rounding). The weighing is not done in the program, where a product the loss also computes would
+    change how XLA rounds the loss.
 
     With ``train.batch_size = B > 1`` every per-view entry has a leading view
     axis (``image`` [B, H, W, 3], ``camera.K`` [B, 3, 3], ``camera.world_to_camera``
