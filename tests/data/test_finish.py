@@ -60,7 +60,7 @@ def test_intrinsics_split_background_and_random_points():
     assert scene.images[4, 0, 0, 0] == 4 and (scene.width, scene.height) == (40, 30)
 
 
-def test_random_points_are_carved_by_the_training_frusta_and_the_record_says_so():
+def test_random_points_are_carved_by_the_training_frusta_and_the_record_says_so(caplog):
     data = check_settings(DataConfig(holdout_every=3, random_points=400, random_init="cube"))
     every = finish_scene(_raw()[0], dataclasses.replace(data, carve="none"), seed=1)
     carved = finish_scene(_raw()[0], data, seed=1)
@@ -70,9 +70,17 @@ def test_random_points_are_carved_by_the_training_frusta_and_the_record_says_so(
     assert record.outside_frusta == 400 - record.kept > 0 and record.transparent == 0
     kept = (every.points[:, None, :] == carved.points[None]).all(-1).any(0)
     assert kept.all()  # a subset of the same draw, in its order
-    clear = [np.zeros((30, 40), bool)] * V  # alpha 0 everywhere: nothing is left, refused naming the way out
-    with pytest.raises(SceneError, match="alpha is not coverage.*data.carve=none"):
-        finish_scene(_raw(read_coverage=lambda: clear)[0], data, seed=1)
+    clear = [np.zeros((30, 40), bool)] * V  # alpha 0 everywhere: every view named and ignored, the frusta carve
+    with caplog.at_level("WARNING", logger="cusgs_jax"):
+        blank = finish_scene(_raw(read_coverage=lambda: clear)[0], data, seed=1)
+    assert blank.carving.ignored_views == ("v1.png", "v2.png", "v4.png", "v5.png")  # the training views
+    assert blank.carving.views_with_alpha == 0 and blank.carving.transparent == 0
+    np.testing.assert_array_equal(blank.points, carved.points)  # as without alpha
+    assert "v1.png, v2.png, v4.png, v5.png" in caplog.text and "blank" in caplog.text
+    corner = [np.pad(np.ones((2, 2), bool), ((0, 28), (0, 38)))] * V  # coverage nowhere near the points
+    few = dataclasses.replace(data, random_points=40)
+    with pytest.raises(SceneError, match="left 0 of 40 .*alpha is not coverage.*data.carve=none"):
+        finish_scene(_raw(read_coverage=lambda: corner)[0], few, seed=1)
 
 
 def test_scene_points_are_never_carved():

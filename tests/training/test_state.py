@@ -109,14 +109,36 @@ def test_a_scaffold_of_a_few_anchors_is_refused_and_a_coarse_one_warned_about(ca
     from cusgs_jax.errors import ConfigError
 
     points = sfm_points()
-    with pytest.raises(ConfigError, match=r"model\.voxel_size=1000\.0: leaves only 1 anchor\(s\) for 400 SfM points.*"
-                                          r"model\.voxel_size=auto \(here "):
+    with pytest.raises(ConfigError, match=r"model\.voxel_size=1000\.0: leaves only 1 anchor\(s\) for 400 initial "
+                                          r"points.*model\.voxel_size=auto \(here "):
         init_train_state(CFG.replace(model=dict(voxel_size=1000.0)), points, 2, 1.0, ())
     with caplog.at_level("WARNING", logger="cusgs_jax"):
         state, _ = init_train_state(CFG.replace(model=dict(voxel_size=1.0)), points, 2, 1.0, ())
     assert 4 <= int(np.sum(state.anchors.alive)) < 64 and "the model will be very coarse" in caplog.text
+    assert "SfM" not in caplog.text and "model.voxel_size=auto (here" in caplog.text
     with pytest.raises(ConfigError, match="resolve_voxel_size"):
         init_train_state(CFG.replace(model=dict(voxel_size=None)), points, 2, 1.0, ())
+
+
+def test_too_few_initial_points_are_blamed_not_the_cell_and_auto_is_not_suggested_when_set(caplog):
+    """A random start that carving left with a handful of points (issue 47: 5 of 100 000) gets about one anchor
+    per point at any small cell: the hint names the carving, not model.voxel_size=auto."""
+    from cusgs_jax.errors import ConfigError
+    from cusgs_jax.model.anchors import auto_voxel_size
+
+    points = np.random.default_rng(0).uniform(-0.5, 0.5, size=(20, 3))
+    for voxel_size in (0.002, auto_voxel_size(points)):  # the random start's auto cell; the points' own spacing
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="cusgs_jax"):
+            state, _ = init_train_state(CFG.replace(model=dict(voxel_size=voxel_size)), points, 2, 1.0, ())
+        assert 10 <= int(np.sum(state.anchors.alive)) <= 20
+        assert "from 20 initial points" in caplog.text and "too few initial points" in caplog.text
+        assert "carving" in caplog.text and "data.carve=none" in caplog.text
+        assert "voxel_size=auto" not in caplog.text and "SfM" not in caplog.text
+    with pytest.raises(ConfigError, match=r"leaves only 3 anchor\(s\) for 3 initial points; there are too few "
+                                          r"initial points") as refused:
+        init_train_state(CFG.replace(model=dict(voxel_size=0.002)), points[:3], 2, 1.0, ())
+    assert "voxel_size=auto" not in str(refused.value) and "as large as the scene" not in str(refused.value)
 
 
 def test_auto_voxel_size_is_the_median_spacing_and_scales_with_the_scene():

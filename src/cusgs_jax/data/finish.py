@@ -165,14 +165,18 @@ def _carved(raw: RawScene, cameras: FinishedCameras, points: np.ndarray, colors:
     coverage = raw.read_coverage() if raw.read_coverage is not None else None
     train = cameras.train
     keep, carving = carve(points, raw.viewmats[train], cameras.Ks[train], cameras.width, cameras.height,
-                          None if coverage is None else [coverage[i] for i in train])
+                          None if coverage is None else [coverage[i] for i in train],
+                          names=[raw.names[i] for i in train])
+    ignored = (f"; {len(carving.ignored_views)} view(s) with blank alpha ignored: "
+               f"{', '.join(carving.ignored_views)}" if carving.ignored_views else "")
     if carving.kept < min(MIN_CARVED, carving.points):
         raise SceneError(
             f"data.path={str(raw.folder)!r}: carving left {carving.kept} of {carving.points} random initial points "
-            f"({carving.outside_frusta} outside every training view, {carving.transparent} in front of a transparent "
-            f"pixel of {carving.views_with_alpha} views with alpha): the cameras do not look at a common region or the "
+            f"({carving.outside_frusta} outside every training view, {carving.transparent} voted transparent by the "
+            f"{carving.views_with_alpha} views with alpha{ignored}): the cameras do not look at a common region or the "
             "images' alpha is not coverage; check the poses, or keep every point with data.carve=none")
-    log.info("carved the random initial points: %d of %d kept (%d outside every training view, %d in front of a "
-             "transparent pixel; %d of %d training views carry alpha; data.carve=none keeps them all)", carving.kept,
-             carving.points, carving.outside_frusta, carving.transparent, carving.views_with_alpha, len(train))
+    log.info("carved the random initial points: %d of %d kept (%d outside every training view, %d voted transparent "
+             "by the views with alpha; %d of %d training views carry alpha%s; data.carve=none keeps them all)",
+             carving.kept, carving.points, carving.outside_frusta, carving.transparent, carving.views_with_alpha,
+             len(train), ignored)
     return points[keep], colors[keep], carving

@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import math
 from typing import Any
 
 import jax
@@ -29,15 +30,32 @@ FEW_ANCHORS = 64  # fewer is allowed but warned about
 
 
 def _check_scaffold(count: int, voxel_size: float, points: np.ndarray) -> None:
-    """Refuse a scaffold of ``count`` anchors too coarse to mean anything; warn when it is merely coarse."""
+    """Refuse a scaffold of ``count`` anchors too coarse to mean anything; warn when it is merely coarse.
+
+    The hint names the cause the numbers show: points at one location; nearly one anchor per distinct point
+    (too few initial points, whatever the cell: a random start that carving left almost empty, or a sparse
+    reconstruction — a smaller cell cannot help); or many points per anchor (the cell is too large: a smaller
+    one, or ``model.voxel_size=auto`` unless the cell already is the points' auto spacing)."""
     distinct = len(np.unique(np.asarray(points, np.float64), axis=0))
-    hint = (f"use model.voxel_size=auto (here {auto_voxel_size(points):.4g}) or a smaller cell" if distinct >= 2 else
-            f"the {len(points)} points lie at {distinct} location(s): check the reconstruction's points (points3D)")
+    if distinct < 2:
+        hint = (f"the {len(points)} points lie at {distinct} location(s): check the initial points (a reconstruction's "
+                "points3D, or what carving left of a random start)")
+    elif 2 * count >= distinct:
+        hint = ("there are too few initial points, not too large a cell (about one point per anchor): a random start "
+                "(a layout without points) keeps what carving by the training views leaves — see the 'carved the "
+                "random initial points' log line and eval.json's carving (data.carve=none keeps every point, "
+                "data.random_points draws more); from a reconstruction, its points (points3D) are too sparse")
+    else:
+        auto = auto_voxel_size(points)
+        hint = (f"model.voxel_size is already these points' auto spacing ({auto:.4g}): the points are too few or too "
+                "clustered; check them" if math.isclose(voxel_size, auto, rel_tol=1e-6) else
+                f"use model.voxel_size=auto (here {auto:.4g}) or a smaller cell")
     require(count >= MIN_ANCHORS, "model.voxel_size", voxel_size,
-            f"leaves only {count} anchor(s) for {len(points)} SfM points (the cell is about as large as the "
-            "scene, whose extent is 1 in these units)", hint)
+            f"leaves only {count} anchor(s) for {len(points)} initial points (the cell is about as large as the "
+            "scene, whose extent is 1 in these units)" if 2 * count < distinct else
+            f"leaves only {count} anchor(s) for {len(points)} initial points", hint)
     if count < FEW_ANCHORS:
-        log.warning("only %d anchors from %d SfM points at model.voxel_size=%g: the model will be very coarse; %s",
+        log.warning("only %d anchors from %d initial points at model.voxel_size=%g: the model will be very coarse; %s",
                     count, len(points), voxel_size, hint)
 
 
