@@ -30,6 +30,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from cusgs_jax.app import interrupt
 from cusgs_jax.app.ahead import Program
 from cusgs_jax.app.alarms import loss_alarms
 from cusgs_jax.app.foresight import Foresight
@@ -209,10 +210,23 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 with session.budget.stage("checkpoints"):
                     save_checkpoint(session, loop, done)
+            if interrupt.requested() is not None and done < iterations:
+                _stop(session, loop, done, interrupt.requested())
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
         with session.budget.stage("checkpoints"):
             save_checkpoint(session, loop, iterations)
+
+
+def _stop(session: Session, loop: Loop, done: int, signum: int) -> None:
+    """Stop for a signal after ``done`` steps (:mod:`cusgs_jax.app.interrupt`): SIGTERM checkpoints this step first
+    (a preempted or timed-out job resumes from it); Ctrl-C stops at once (the newest checkpoint resumes)."""
+    checkpoint = None
+    if signum == interrupt.signal.SIGTERM:
+        if session.ckpt.latest_step() != done:
+            save_checkpoint(session, loop, done)
+        checkpoint = str(session.ckpt.directory)
+    raise interrupt.Interrupted(signum, done, checkpoint)
 
 
 def _snapshot(session: Session, loop: Loop, cameras: list[ViewCamera]) -> ViewModel:

@@ -36,6 +36,7 @@ from hydra.experimental.callback import Callback
 from hydra.types import RunMode
 from omegaconf import DictConfig
 
+from cusgs_jax.app import interrupt
 from cusgs_jax.app.accelerator import sweep_memory_env
 from cusgs_jax.app.overrides import check_command_line
 from cusgs_jax.compose import from_omegaconf, register_configs
@@ -128,6 +129,10 @@ def _hydra_main(cfg: DictConfig) -> float | tuple[float, ...]:
     try:
         result = train(from_omegaconf(cfg), output_dir, log=False,  # Hydra set the logging up
                        progress_label=f"job {hydra_cfg.job.num}" if sweeping else "train", started=started).record
+    except interrupt.Interrupted as stopped:  # one line; background compiles are abandoned, not waited for
+        print(f"{PROG}: {stopped}", file=sys.stderr, flush=True)
+        logging.shutdown()  # the job's log file complete
+        os._exit(stopped.exit_code)
     except UserError as error:
         record_failure(output_dir, error)
         if sweeping:
@@ -178,7 +183,8 @@ def main(argv: list[str] | None = None) -> None:
         return lost
 
     try:
-        _hydra_main()
+        with interrupt.handling(PROG):  # Ctrl-C stops within seconds, SIGTERM checkpoints first (app/interrupt.py)
+            _hydra_main()
     except SystemExit as stopped:  # a launcher that exits by itself
         if stopped.code not in (0, None):
             report_lost_jobs()
