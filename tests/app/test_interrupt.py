@@ -13,7 +13,7 @@ import time
 
 import pytest
 
-from cusgs_jax.app.interrupt import INTERRUPT_GRACE_S, handling, requested
+from cusgs_jax.app.interrupt import INTERRUPT_GRACE_S, TERMINATE_GRACE_S, handling, requested
 
 RUN = ["train.iterations=5000", "train.progress=false", "eval.every=0", "train.log_every=5", "model.n_offsets=4",
        "model.latent_dim=8", "model.hidden=16", "model.appearance_dim=8", "features=none"]
@@ -78,7 +78,7 @@ def test_sigterm_checkpoints_the_step_it_reached_and_the_run_resumes_from_it(tmp
     process = _start(tiny_scene, out, "train.checkpoint_every=1000")
     _stepping(out, 20)
     code, seconds, stderr = _stopped(process, signal.SIGTERM, out)
-    assert code == 143 and seconds < 10, (code, seconds, stderr)
+    assert code == 143 and seconds < TERMINATE_GRACE_S + 2, (code, seconds, stderr)  # a compile may finish first
     assert "Traceback" not in stderr and "@ " not in stderr  # no C++ stack dump (glog's failure-signal handler)
     line = [line for line in stderr.splitlines() if line.startswith("cusgs-train:")]
     assert len(line) == 1 and "terminated (SIGTERM) after step" in line[0], stderr
