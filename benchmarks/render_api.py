@@ -52,21 +52,26 @@ def main(argv=None) -> dict:
     def vmapped():
         return np.asarray(jax.block_until_ready(batched(cameras).image))
 
-    first_old, first_new = sequential(), vmapped()  # compiles
-    times = {"make_render_fn_x4": [], "render_vmap": []}
+    def batch():  # one call with the batch of cameras (views one after another in one program)
+        return np.asarray(jax.block_until_ready(cg.render(model, cameras, capacities=capacities).image))
+
+    first_old, first_new, first_batch = sequential(), vmapped(), batch()  # compiles
+    paths = {"make_render_fn_x4": sequential, "render_vmap": vmapped, "render_batch": batch}
+    times = {name: [] for name in paths}
     for _ in range(args.rounds):  # alternately
-        start = time.perf_counter()
-        sequential()
-        times["make_render_fn_x4"].append(time.perf_counter() - start)
-        start = time.perf_counter()
-        vmapped()
-        times["render_vmap"].append(time.perf_counter() - start)
+        for name, fn in paths.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
     medians = {k: statistics.median(v) * 1e3 for k, v in times.items()}
     evaluation = model.evaluation.per_view if model.evaluation else None
     result = dict(run=args.run, views=len(views), size=[scene.width, scene.height],
                   anchors=model.num_anchors, capacities=capacities.as_dict(), rounds=args.rounds,
                   median_ms=medians, ratio_render_over_sequential=medians["render_vmap"] / medians["make_render_fn_x4"],
+                  ratio_batch_over_sequential=medians["render_batch"] / medians["make_render_fn_x4"],
                   max_abs_image_difference=float(max(np.max(np.abs(a - b)) for a, b in zip(first_old, first_new))),
+                  max_abs_image_difference_batch=float(max(np.max(np.abs(a - b))
+                                                           for a, b in zip(first_old, first_batch))),
                   psnr_render=[float(psnr(image, t)) for image, t in zip(first_new, targets)],
                   psnr_make_render_fn=[float(psnr(image, t)) for image, t in zip(first_old, targets)],
                   psnr_eval_json=None if evaluation is None else [row["psnr"] for row in evaluation],

@@ -128,5 +128,5 @@ def test_every_snippet_of_the_api_page_runs_as_written(tmp_path, tiny_scene, mon
     record, own = namespace["record"], namespace["record_own"]
     assert set(namespace["record_tv"].loss_terms["mean"]) == {"l1", "ssim", "volume", "depth_tv"}
     assert namespace["record_pruned"].densify["prune_unseen"]["updates"] == 1
-    assert float(np.max(np.abs(namespace["out"].image - namespace["same"].image))) == 0.0
+    assert float(np.max(np.abs(namespace["out"].image - namespace["same"].image))) < 1e-5  # vmap: float rounding
     assert own.loss_terms["steps"] == record.iterations and (tmp_path / "outputs" / "own_loop" / "eval.json").is_file()
