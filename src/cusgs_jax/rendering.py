@@ -25,10 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.io.load_run import TrainedModel
-from cusgs_jax.model.decode import gather_visible, view_inputs, visible_slots
-from cusgs_jax.model.field import retrieve
 from cusgs_jax.training.capacity import Capacities
-from cusgs_jax.training.render import decode_view_inputs, render_gaussians, view_needs
+from cusgs_jax.training.render import render_view, view_needs
 from cusgs_jax.types import Camera, camera_center
 
 __all__ = ["Rendered", "render", "fit_render", "RenderCapacityError", "appearance_index", "APPEARANCE_PROTOCOL"]
@@ -135,17 +133,8 @@ def _render(anchors, nets, centers, banks, cameras, *, cfg, capacities, appearan
 
 def _render_view(anchors, nets, camera, index, cfg, capacities: Capacities, banks) -> Rendered:
     """One view: :func:`cusgs_jax.training.render.render_model`'s pipeline, keeping the per-Gaussian meta."""
-    model = cfg.model
-    view = visible_slots(anchors, camera, num_slots=capacities.visible_slots(anchors.capacity),
-                         margin=model.frustum_margin)
-    inputs = view_inputs(nets, *gather_visible(anchors, view), camera, index, model)
-    gaussians, queries = decode_view_inputs(nets, inputs, cfg, queries=banks is not None)
-    out, chosen = render_gaussians(gaussians, camera, cfg.splat,
-                                   active_capacity=capacities.active_gaussians(anchors.capacity, model.n_offsets),
-                                   pair_capacity=capacities.pairs(anchors.capacity, model.n_offsets),
-                                   extra_channels=queries)
-    feature_maps = {} if banks is None else retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
-    n = model.n_offsets
+    out, feature_maps, view, chosen = render_view(anchors, nets, camera, index, cfg, capacities, banks)
+    n = cfg.model.n_offsets
     ids = jnp.where(chosen.valid, view.slots[chosen.index // n] * n + chosen.index % n, -1).astype(jnp.int32)
     return Rendered(image=jnp.clip(out.image[..., :3], 0.0, 1.0), alpha=out.alpha, depth=out.depth,
                     features=feature_maps, means2d=out.means2d, radii=out.radii, ids=ids,

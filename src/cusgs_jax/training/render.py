@@ -87,6 +87,14 @@ def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_in
       {model: [H, W, D]} retrieved through the memory heads, or {} without ``banks``,
       :func:`work_metrics`).
     """
+    out, features, view, chosen = render_view(anchors, nets, camera, appearance_index, cfg, capacities, banks)
+    return out, features, work_metrics(view, chosen, out)
+
+
+def render_view(anchors: AnchorState, nets: dict, camera: Camera, appearance_index, cfg: Config,
+                capacities: Capacities, banks: dict | None = None):
+    """:func:`render_model`'s pipeline, returning what it rendered from: ``(RenderOutput, features,
+    VisibleSlots [S], ActiveSet [G_act])`` (:func:`cusgs_jax.render` reads the per-Gaussian meta off the last two)."""
     model = cfg.model
     view = visible_slots(anchors, camera, num_slots=capacities.visible_slots(anchors.capacity),
                          margin=model.frustum_margin)
@@ -97,7 +105,7 @@ def render_model(anchors: AnchorState, nets: dict, camera: Camera, appearance_in
                                    pair_capacity=capacities.pairs(anchors.capacity, model.n_offsets),
                                    extra_channels=queries)
     features = {} if banks is None else retrieve(nets["memory"], banks, out.image[..., 3:], cfg.features)
-    return out, features, work_metrics(view, chosen, out)
+    return out, features, view, chosen
 
 
 def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index, cfg: Config) -> dict:
