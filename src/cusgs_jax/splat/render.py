@@ -323,7 +323,8 @@ def _rasterize(
         means, quats, scales, opacities, viewmat.astype(dtype), K.astype(dtype),
         width, height, near=near, far=far, eps2d=eps2d, antialiased=antialiased, lens=lens,
     )
-    isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs)
+    isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, max_pairs,
+                            proj.conics, proj.opacities)
     order = isect.order
     means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
     depth = jnp.where(proj.visible, proj.depths, 0.0)

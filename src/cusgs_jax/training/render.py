@@ -21,7 +21,7 @@ from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
 from cusgs_jax.splat import Compositor, RenderOutput, rasterize
 from cusgs_jax.splat.project import project_gaussians
-from cusgs_jax.splat.tiles import TileGrid, tile_bounds
+from cusgs_jax.splat.tiles import TileGrid, count_pairs
 from cusgs_jax.training.capacity import Capacities, ExactRender, max_pairs
 from cusgs_jax.types import Camera
 
@@ -112,7 +112,8 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     """What one view needs, measured without any capacity (traceable; forward only, no sort).
 
     Every slot is decoded (S = A), every active Gaussian projected, and the tile pairs counted
-    as the splatter would bin them (:func:`cusgs_jax.splat.tiles.tile_bounds`).
+    as the splatter bins them (:func:`cusgs_jax.splat.tiles.count_pairs`: the tiles each
+    Gaussian's opacity-aware ellipse reaches).
 
     Returns:
       {"visible_anchors", "active_gaussians", "pairs"}: [] int32 each.
@@ -121,11 +122,11 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     g, view = decode_view(nets, anchors, camera, appearance_index, cfg.model, anchors.capacity)
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
                              camera.width, camera.height, antialiased=splat.antialiased, lens=camera.lens)
-    box = tile_bounds(proj.means2d, proj.radii, TileGrid(camera.width, camera.height, splat.tile_size))
-    area = (box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1])
+    grid = TileGrid(camera.width, camera.height, splat.tile_size)
+    pairs = count_pairs(proj.means2d, proj.radii, proj.visible, grid, proj.conics, proj.opacities)
     return dict(visible_anchors=jnp.sum(view.valid).astype(jnp.int32),
                 active_gaussians=jnp.sum(g.active).astype(jnp.int32),
-                pairs=jnp.sum(jnp.where(proj.visible, area, 0)).astype(jnp.int32))
+                pairs=jnp.sum(pairs).astype(jnp.int32))
 
 
 def make_render_fn(cfg: Config, capacities: Capacities | None = None, wrap=None) -> ExactRender:
