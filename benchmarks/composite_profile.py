@@ -68,7 +68,7 @@ def sorted_inputs(scene_path: str, view: int, tile_size: int | None = None):
         proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
                                  camera.width, camera.height, antialiased=cfg.splat.antialiased)
         isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid,
-                                caps.pairs(anchors.capacity, n))
+                                caps.pairs(anchors.capacity, n), proj.conics, proj.opacities)  # as rasterize bins
         depth = jnp.where(proj.visible, proj.depths, 0.0)
         features = jnp.concatenate([g.colors, depth[:, None]], axis=-1)
         o = isect.order

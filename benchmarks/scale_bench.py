@@ -412,7 +412,8 @@ def stage_breakdown(cfg, capacities, state, batch, repeats: int) -> tuple[dict, 
         proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera.astype(g.means.dtype),
                                  camera.K.astype(g.means.dtype), camera.width, camera.height,
                                  antialiased=splat.antialiased)
-        isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, pair_capacity)
+        isect = intersect_tiles(proj.means2d, proj.radii, proj.depths, proj.visible, grid, pair_capacity,
+                                proj.conics, proj.opacities)  # the exact ellipse-tile pairs, as rasterize bins
         depth = jnp.where(proj.visible, proj.depths, 0.0)
         features = jnp.concatenate([g.colors, depth[:, None]], axis=-1)
         order = isect.order
