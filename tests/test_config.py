@@ -432,3 +432,9 @@ def test_good_learning_rates_pass():
     assert Config().replace(optim=dict(latent=(0.0, 0.0))).optim.latent == (0.0, 0.0)  # a frozen group
     with pytest.raises(ConfigError, match=r"^optim\.eps=0: must be a number > 0"):
         Config().replace(optim=dict(eps=0))
+
+
+def test_splat_tiles_is_box_or_ellipse():
+    assert Config().splat.tiles == "box" and Config().replace(splat=dict(tiles="ellipse")).splat.tiles == "ellipse"
+    with pytest.raises(ConfigError, match=r"splat\.tiles='circle': must be box"):
+        Config().replace(splat=dict(tiles="circle"))

@@ -226,6 +226,7 @@ class SplatConfig:
     max_pairs_per_gaussian: float = 6.0
     antialiased: bool = False
     backend: str = "auto"  # the compositor: auto = Pallas kernels on a GPU, JAX elsewhere (splat/render.py)
+    tiles: str = "box"  # tiles a Gaussian is binned into: box (its whole box) | ellipse (only where α ≥ 1/255 reaches)
     # RGB in [0, 1] behind the Gaussians and under images with alpha. None: the layout's (white for Blender, else
     # black: data/finish.py); a run records the colour it used (training/inputs.py). Renderers read background_color.
     background: Optional[tuple[float, float, float]] = None
@@ -234,6 +235,9 @@ class SplatConfig:
         _tuples(self)
         _at_least(self, "splat", 1, "tile_size", "chunk_size")
         require(self.backend in COMPOSITORS, "splat.backend", self.backend, f"must be one of {', '.join(COMPOSITORS)}")
+        require(self.tiles in ("box", "ellipse"), "splat.tiles", self.tiles,
+                "must be box (every tile of a Gaussian's box) or ellipse (only the tiles its α >= 1/255 ellipse "
+                "reaches: fewer pairs, gradients equal to rounding)", "e.g. splat.tiles=ellipse")
         require(self.backend != "pallas" or self.tile_size & (self.tile_size - 1) == 0, "splat.tile_size",
                 self.tile_size, "must be a power of two with splat.backend=pallas (the kernels' blocks)",
                 "e.g. splat.tile_size=8 or 16")

@@ -179,7 +179,7 @@ def _render_both_binnings(monkeypatch, tile_size, antialiased, backend, dtype):
     # one chunk holds a tile's whole list: the JAX compositor then sums each pixel's colour in one
     # pass, and leaving out Gaussians whose α is below 1/255 there adds the same terms in the same order
     longest = int(jnp.max(box.tile_ends - box.tile_starts))
-    compositor = Compositor(backend, chunk_size=-(-longest // 8) * 8)
+    compositor = Compositor(backend, chunk_size=-(-longest // 8) * 8, tiles="ellipse")
     cotangent = jnp.asarray(np.random.default_rng(6).normal(size=(height, width, 3)), dtype)
 
     def render(binning):
@@ -230,3 +230,18 @@ def test_exact_binning_gradients_agree_to_float64_rounding(x64, monkeypatch, til
     for name, b in old_grads.items():  # a dropped pixel with α ≥ 1/255 would differ by ~1e-3 of the scale
         scale = float(jnp.max(jnp.abs(b)))
         np.testing.assert_allclose(new_grads[name], b, rtol=1e-12, atol=1e-12 * scale, err_msg=name)
+
+
+def test_rasterize_bins_by_the_ellipse_only_when_asked():
+    """``Compositor(tiles="ellipse")`` (``splat.tiles``) through the public rasterize: fewer pairs, the same image;
+    the default is every tile of the box (c806fe4's pairs)."""
+    from cusgs_jax.splat import rasterize
+
+    width, height = 64, 48
+    s = _elongated_scene(5, 100, width, height)
+    args = [s[k] for k in ("means", "quats", "scales", "opacities", "colors", "viewmat", "K")] + [width, height]
+    box = rasterize(*args, tile_size=8, compositor=Compositor("jax", chunk_size=256))
+    ellipse = rasterize(*args, tile_size=8, compositor=Compositor("jax", chunk_size=256, tiles="ellipse"))
+    assert int(ellipse.num_pairs) < 0.8 * int(box.num_pairs)
+    np.testing.assert_array_equal(np.asarray(ellipse.image), np.asarray(box.image))
+    assert Compositor().tiles == "box"

@@ -60,7 +60,8 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
     out = rasterize(compact.means, compact.quats, compact.scales, compact.opacities, colors,
                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, max_pairs=int(pair_capacity),
-                    means2d_delta=means2d_delta, lens=camera.lens, compositor=Compositor(cfg.backend, cfg.chunk_size))
+                    means2d_delta=means2d_delta, lens=camera.lens,
+                    compositor=Compositor(cfg.backend, cfg.chunk_size, tiles=cfg.tiles))
     return out, chosen
 
 
@@ -123,7 +124,8 @@ def view_work(anchors: AnchorState, nets: dict, camera: Camera, appearance_index
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, camera.world_to_camera, camera.K,
                              camera.width, camera.height, antialiased=splat.antialiased, lens=camera.lens)
     grid = TileGrid(camera.width, camera.height, splat.tile_size)
-    pairs = count_pairs(proj.means2d, proj.radii, proj.visible, grid, proj.conics, proj.opacities)
+    pairs = count_pairs(proj.means2d, proj.radii, proj.visible, grid,
+                        *((proj.conics, proj.opacities) if splat.tiles == "ellipse" else ()))  # as the splatter bins
     return dict(visible_anchors=jnp.sum(view.valid).astype(jnp.int32),
                 active_gaussians=jnp.sum(g.active).astype(jnp.int32),
                 pairs=jnp.sum(pairs).astype(jnp.int32))
