@@ -434,7 +434,7 @@ def stage_breakdown(cfg, capacities, state, batch, repeats: int) -> tuple[dict, 
     one = _view_pass(cfg, capacities, anchors.capacity)
     key = jax.random.PRNGKey(0)
     forward = jax.jit(forward_loss)
-    both = jax.jit(lambda trainable, anchors, batch, key: one(trainable, anchors, batch, key)[:2])
+    both = jax.jit(lambda trainable, anchors, batch, key: one(trainable, anchors, batch, key, None)[:2])  # no loss terms: no state
 
     seconds, compile_s = {}, {}
     first, seconds["decode"], gaussians = _timed(decode, trainable, anchors, camera, index, repeats=repeats)

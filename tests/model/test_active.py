@@ -92,7 +92,7 @@ def test_the_compacted_step_has_the_loss_and_gradients_of_rasterising_every_deco
     camera, anchors = batch["camera"], state.anchors
     caps = Capacities(visible_fraction=1.0, active_fraction=0.25, pairs_per_active=20.0)
     loss, grads, parts = jax.jit(_view_pass(cfg, caps, anchors.capacity))(state.trainable, anchors, batch,
-                                                                         jax.random.PRNGKey(0))
+                                                                         jax.random.PRNGKey(0), state)
     decoded_count = parts["gaussians"].means.shape[0]
     active = int(parts["work"]["active_gaussians"])
     assert int(parts["work"]["dropped_gaussians"]) == 0 and int(parts["work"]["dropped_pairs"]) == 0
