@@ -74,11 +74,12 @@ def appearance_index(appearance, train_centers, center):
     return jnp.int32(appearance)
 
 
-def fit_render(model: TrainedModel, cameras: Camera, *, appearance="nearest", features: bool = False) -> Capacities:
+def fit_render(model: TrainedModel, cameras: Camera, *, appearance="nearest") -> Capacities:
     """The capacities that every view of ``cameras`` (one or a batch) fits, with headroom (outside ``jit``: one
     program measures every view's need, :func:`cusgs_jax.training.render.view_needs`)."""
     _check_model(model)
-    views = [_one(cameras, b) for b in range(_batch_size(cameras) or 1)] if _batch_size(cameras) else [cameras]
+    count = _batch_size(cameras)
+    views = [_one(cameras, b) for b in range(count)] if count else [cameras]
     nets, centers = _nets(model, appearance), _train_centers(model)
     needs = view_needs(model.anchors, nets, [(view, _index(appearance, centers, view)) for view in views],
                        model.cfg)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import signal
 import sys
 import threading
@@ -66,8 +67,6 @@ def _watch(read_fd: int, prog: str, done: threading.Event) -> None:
                     else "terminated (SIGTERM) before a step ended: no new checkpoint")
             print(f"{prog}: {line}; the newest checkpoint resumes with train.resume=true", file=sys.stderr, flush=True)
             os._exit(EXIT_CODES[signum])
-        import select
-
         ready, _, _ = select.select([read_fd], [], [], timeout if timeout is not None else 0.5)
         if not ready:
             continue

@@ -210,8 +210,9 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
             if cfg.train.checkpoint_every and done % cfg.train.checkpoint_every == 0 and done < iterations:
                 with session.budget.stage("checkpoints"):
                     save_checkpoint(session, loop, done)
-            if interrupt.requested() is not None and done < iterations:
-                _stop(session, loop, done, interrupt.requested())
+            signum = interrupt.requested()
+            if signum is not None and done < iterations:
+                _stop(session, loop, done, signum)
     bar.close()
     if session.ckpt.latest_step() != iterations:  # a resumed run that was already complete has it
         with session.budget.stage("checkpoints"):

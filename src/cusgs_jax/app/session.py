@@ -11,6 +11,7 @@ loop's state, which grows and is checkpointed, is made from the session by
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import pathlib
 from collections.abc import Callable
@@ -74,7 +75,7 @@ class Session:
     def psnr_label(self) -> str:
         return "held-out PSNR" if self.evaluated_on == "held_out" else "training-view PSNR (no held-out views)"
 
-    @property
+    @functools.cached_property  # read after every step: computed once (the configuration and terms are fixed)
     def weights(self) -> dict:
         """The loss terms' weights ({term: float}, :func:`~cusgs_jax.training.step.loss_weights`): what
         :func:`~cusgs_jax.training.loss_terms.weighted_terms` weighs a step's terms by."""
