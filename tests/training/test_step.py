@@ -19,7 +19,7 @@ from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import make_render_fn, render_gaussians, render_model
 from cusgs_jax.training.state import init_train_state
 from cusgs_jax.training.optim import group_rates, make_optimizer, rate_arguments
-from cusgs_jax.training.step import loss_weights, make_train_step
+from cusgs_jax.training.step import loss_weights, make_train_step, step_settings
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import sfm_points
 
@@ -114,8 +114,7 @@ WEIGHTED = dict(loss=dict(l1_weight=0.55, ssim_weight=0.45, volume_weight=0.3))
 
 def _settings(cfg, extent=2.0) -> dict:
     """The batch entries that make settings arguments, as ``make_batches`` gives them (``extent`` as ``_init``)."""
-    return dict(loss_weights=jax.device_put(loss_weights(cfg)), seed_key=jax.random.PRNGKey(cfg.train.seed),
-                learning_rates=rate_arguments(group_rates(cfg.optim, extent, cfg.train.batch_size)))
+    return step_settings(cfg, extent)
 
 
 @pytest.mark.slow  # two step programs compiled (27 s); the lowered-program test below stays in the default run
@@ -553,3 +552,19 @@ def test_the_pallas_compositor_takes_the_same_step(setup):
     assert float(theirs[1]["loss"]) == pytest.approx(float(ours[1]["loss"]), rel=1e-5)
     for a, b in zip(jax.tree_util.tree_leaves(theirs[0].trainable), jax.tree_util.tree_leaves(ours[0].trainable)):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_step_settings_are_what_every_batch_carries(tiny_scene):
+    """``step_settings`` is the one source of the settings a batch carries: ``make_batches`` gives them, value for
+    value (loss weights, the seed's key, the learning rates of the scene's extent)."""
+    from cusgs_jax.testing.runs import tiny_config
+    from cusgs_jax.training.inputs import load_data, make_batches
+    cfg = tiny_config(tiny_scene, "loss.l1_weight=0.7", "train.seed=3")
+    scene, _ = load_data(cfg)
+    batch = make_batches(scene, scene.train_indices, cfg, {}, None)(0)
+    settings = step_settings(cfg, scene.extent)
+    assert set(settings) == {"loss_weights", "seed_key", "learning_rates"}
+    for key, value in settings.items():
+        for a, b in zip(jax.tree_util.tree_leaves(batch[key]), jax.tree_util.tree_leaves(value), strict=True):
+            np.testing.assert_array_equal(a, b)
+    assert float(settings["loss_weights"]["l1"]) == np.float32(0.7)

@@ -23,8 +23,7 @@ from cusgs_jax.extract import BUILT_IN_EXTRACTORS, ensure_extracted
 from cusgs_jax.memory import psc
 from cusgs_jax.model.field import image_pixel_of
 from cusgs_jax.splat.lens import Lens
-from cusgs_jax.training.optim import group_rates, rate_arguments
-from cusgs_jax.training.step import loss_weights
+from cusgs_jax.training.step import step_settings
 from cusgs_jax.types import Camera
 
 log = logging.getLogger("cusgs_jax")
@@ -210,8 +209,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
     pick = jax.jit(lambda tree, view: jax.tree_util.tree_map(lambda a: a[view], tree))  # one program for every step
     # arguments of the step, not constants: a sweep over the loss weights, the learning rates or the seed shares
     # its program
-    weights, seed_key = jax.device_put(loss_weights(cfg, loss_terms)), jax.random.PRNGKey(cfg.train.seed)
-    rates = rate_arguments(group_rates(cfg.optim, scene.extent, size))
+    settings = step_settings(cfg, scene.extent, loss_terms)
 
     def batch(step: int) -> dict:
         if size == 1:
@@ -222,8 +220,7 @@ def make_batches(scene: SceneData, train_idx: np.ndarray, cfg: Config, targets: 
         views = pick((per_view, lens), view)
         (picked, view_lens), view = views, jax.device_put(view)
         camera = Camera(picked["K"], picked["viewmat"], scene.width, scene.height, view_lens)
-        out = dict(image=picked["image"], camera=camera, index=view, loss_weights=weights, seed_key=seed_key,
-                   learning_rates=rates)
+        out = dict(image=picked["image"], camera=camera, index=view, **settings)
         if "valid" in picked:
             out["valid"] = picked["valid"]
         if banks is not None:

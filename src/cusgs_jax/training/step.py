@@ -34,6 +34,7 @@ from cusgs_jax.model.anchors import is_per_anchor, map_rows
 from cusgs_jax.model.decode import gather_visible, to_slots, view_inputs, visible_slots
 from cusgs_jax.model.field import sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
+from cusgs_jax.training.optim import group_rates, rate_arguments
 from cusgs_jax.training.loss_terms import TermRender, check_loss_terms, term_weights
 from cusgs_jax.training import parallel
 from cusgs_jax.training.render import decode_view_inputs, render_gaussians, work_metrics
@@ -51,6 +52,19 @@ def loss_weights(cfg: Config, loss_terms=()) -> dict[str, np.float32]:
     return dict(l1=np.float32(cfg.loss.l1_weight), ssim=np.float32(cfg.loss.ssim_weight),
                 volume=np.float32(cfg.loss.volume_weight), feature=np.float32(cfg.features.weight),
                 **term_weights(loss_terms))
+
+
+def step_settings(cfg: Config, extent: float, loss_terms=()) -> dict:
+    """The settings a step takes as arguments rather than constants, in one place: ``{"loss_weights":
+    {term: [] float32} (:func:`loss_weights`), "seed_key": jax.random.PRNGKey(train.seed), "learning_rates":
+    {group: [2] float32} (:func:`~cusgs_jax.training.optim.rate_arguments` of the groups' rates for a scene of
+    ``extent`` and ``train.batch_size``)}``.
+
+    :func:`~cusgs_jax.training.inputs.make_batches` puts them in every batch, so jobs of a sweep that differ only
+    in them share one step program; a batch without them runs with the same values folded in as constants."""
+    return dict(loss_weights=jax.device_put(loss_weights(cfg, loss_terms)),
+                seed_key=jax.random.PRNGKey(cfg.train.seed),
+                learning_rates=rate_arguments(group_rates(cfg.optim, extent, cfg.train.batch_size)))
 
 
 def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_terms=()):
