@@ -14,7 +14,7 @@ from cusgs_jax.testing.scenes import sfm_points
 from cusgs_jax.training.loss_terms import (BUILT_IN_TERMS, LossTally, LossTerm, check_loss_terms, term_weights,
                                           weighted_terms)
 from cusgs_jax.training.state import init_train_state
-from cusgs_jax.training.step import loss_weights, make_train_step
+from cusgs_jax.training.step import loss_weights, make_train_step, step_settings
 from cusgs_jax.types import Camera
 
 W, H = 32, 24
@@ -46,7 +46,7 @@ def _batch(terms=()):
     cfg = _cfg()
     return dict(image=jnp.asarray(rng.uniform(0, 1, (H, W, 3)).astype(np.float32)),
                 camera=Camera(K, jnp.asarray(view), W, H), index=jnp.int32(0),
-                loss_weights=jax.device_put(loss_weights(cfg, terms)))
+                **step_settings(cfg, 2.0, terms))
 
 
 @pytest.fixture(scope="module")

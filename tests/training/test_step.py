@@ -18,8 +18,8 @@ from cusgs_jax.model.decode import decode_view, num_visible_slots
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.render import make_render_fn, render_gaussians, render_model
 from cusgs_jax.training.state import init_train_state
-from cusgs_jax.training.optim import group_rates, make_optimizer, rate_arguments
-from cusgs_jax.training.step import loss_weights, make_train_step, step_settings
+from cusgs_jax.training.optim import make_optimizer
+from cusgs_jax.training.step import make_train_step, step_settings
 from cusgs_jax.types import Camera
 from cusgs_jax.testing.scenes import sfm_points
 
