@@ -205,6 +205,7 @@ class EvalRecord(_Record):
     # version 4
     loss_terms: dict | None = None  # every weighted loss term summed over the steps (training/loss_terms.py)
     appearance: str | None = None  # the held-out protocol's appearance embedding (render.py's ``appearance``)
+    deferred: dict | None = None  # views trained later because their program was late (app/deferral.py)
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 
@@ -293,6 +294,7 @@ class CheckpointMeta(_Record):
     scene_digest: str | None = None
     # version 4
     loss_terms: dict | None = None  # LossTally.as_dict() at the checkpoint's step
+    views: dict | None = None  # the batch positions still to train (app/deferral.ViewQueue.as_dict); None: all < step
     version: int = VERSION
     extra: dict = dataclasses.field(default_factory=dict)
 

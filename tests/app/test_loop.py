@@ -69,10 +69,10 @@ def test_a_strategy_growing_the_anchor_capacity_regrows_the_work_capacities_and_
     session = setup(_cfg(tiny_scene), tmp_path / "run")
     loop = start(session)
     session = dataclasses.replace(session, strategies=(Grow(),))
-    loop.tallies, loop.step_fn = {"grow": Tally()}, object()
+    loop.tallies = {"grow": Tally()}
     before, capacity, n = loop.capacities, loop.state.anchors.capacity, session.cfg.model.n_offsets
     run_strategies(session, loop, 1)
-    assert loop.state.anchors.capacity == 2 * capacity and loop.step_fn is None and loop.recompilations == 1
+    assert loop.state.anchors.capacity == 2 * capacity and loop.recompilations == 1
     assert loop.capacities == before.regrown(capacity, 2 * capacity, n)
     assert loop.capacities.visible_fraction == before.visible_fraction
     assert before.active_gaussians(capacity, n) <= loop.capacities.active_gaussians(2 * capacity, n) < \

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -29,6 +30,8 @@ log = logging.getLogger("cusgs_jax")
 
 WORKERS = 2  # compiles at once by default: the start's step and evaluation render side by side
 THREAD_PREFIX = "cusgs-compile-ahead"  # the background thread's name (CompileLog tells its compiles apart by it)
+#: A test hook: seconds every background compile waits before it starts (a machine whose compiles are late).
+DELAY_ENV = "CUSGS_TEST_COMPILE_DELAY_S"
 
 
 def in_background() -> bool:
@@ -67,11 +70,15 @@ class Ahead:
       on_wait: told the seconds of every wait for a program still compiling.
       enabled: False compiles nothing ahead (every program compiles on its first call, as a plain jit).
       workers: compile threads (default :data:`WORKERS`).
+      delay_s: seconds each background compile waits before it starts (a test hook for late programs; default
+        the environment's :data:`DELAY_ENV`, else 0). Settable between compiles.
     """
 
     def __init__(self, on_wait: Callable[[float], None] | None = None, enabled: bool = True,
-                 workers: int | None = None):
+                 workers: int | None = None, delay_s: float | None = None):
         self.enabled = enabled
+        self.delay_s = float(os.environ.get(DELAY_ENV, 0.0) if delay_s is None else delay_s)
+        self._closing = threading.Event()  # set by close: a delayed compile gives up its wait
         self.workers = max(1, WORKERS if workers is None else int(workers))
         self._pool = _pool(self.workers)
         self._on_wait = on_wait or (lambda seconds: None)
@@ -92,7 +99,11 @@ class Ahead:
             types = fn.types(*types)
         self.submitted += 1
 
+        delay = self.delay_s
+
         def compile_now():
+            if delay > 0 and self._closing.wait(delay):
+                raise RuntimeError("the run ended before this delayed compile started")
             start = time.perf_counter()
             compiled = jitted.lower(*types).compile()
             self.compile_seconds.append(time.perf_counter() - start)
@@ -117,6 +128,14 @@ class Ahead:
             self._pool.shutdown(wait=True)  # idle: everything it was given is done
             self.workers, self._pool = workers, _pool(workers)
 
+    def loop_starts(self) -> None:
+        """The training loop starts stepping: the compile policy for the steps' time. On a CPU backend a compile
+        shares the steps' cores: the loop starts after the start-up's programs (waited for here, one wait), and
+        later compiles take one core at a time. On an accelerator the host's cores are idle while the device
+        trains: the pool stays as it is."""
+        if jax.default_backend() == "cpu":
+            self.settle(workers=1)
+
     def result(self, future: concurrent.futures.Future):
         """The executable of ``future`` (waiting, and reporting the wait, if it is not ready), or None when its
         compile failed (the jitted call then compiles, and raises, on the caller's path)."""
@@ -133,6 +152,7 @@ class Ahead:
 
     def close(self) -> None:
         """Drop what was not started; wait for a compile under way (XLA cannot interrupt it)."""
+        self._closing.set()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> Ahead:
@@ -162,6 +182,7 @@ class Program:
         self.jitted, self.ahead = jitted, ahead
         self._ready: dict[tuple, object] = {}  # signature -> Compiled (None: refused once, use jitted)
         self._pending: dict[tuple, concurrent.futures.Future] = {}
+        self._called: set[tuple] = set()  # signatures the jitted function compiled on a call (jit's own cache)
         self.fallbacks = 0
 
     def prepare(self, *args) -> bool:
@@ -175,6 +196,18 @@ class Program:
         self._pending[key] = self.ahead.compile(self.jitted, args)
         return True
 
+    def ready(self, *args) -> bool:
+        """Whether a call with arguments of these types runs without waiting for a compile: its executable was
+        compiled ahead (or by an earlier call). Always true when nothing is compiled in the background (a call
+        then compiles on the caller's path: there is nothing to wait for but the call)."""
+        if self.ahead is None or not self.ahead.enabled:
+            return True
+        key = signature(args)
+        if key in self._ready or key in self._called:
+            return True
+        future = self._pending.get(key)
+        return future is not None and future.done()
+
     def wait(self, *args) -> None:
         """Wait for the program prepared for the types of ``args`` (if one is being compiled)."""
         self._resolve(signature(args))
@@ -184,7 +217,7 @@ class Program:
             self._ready[key] = self.ahead.result(self._pending.pop(key))
 
     def __call__(self, *args):
-        if not self._ready and not self._pending:
+        if self.ahead is None or not self.ahead.enabled:
             return self.jitted(*args)
         key = signature(args)
         self._resolve(key)
@@ -196,6 +229,7 @@ class Program:
             except (TypeError, ValueError) as error:  # argument types or shardings refused before anything ran
                 log.debug("an ahead-compiled program refused its arguments (%s): the jitted function compiles", error)
                 self._ready[key], self.fallbacks = None, self.fallbacks + 1
+        self._called.add(key)
         return self.jitted(*args)
 
     def __getattr__(self, name):  # e.g. the batched step's ``mesh``

@@ -22,7 +22,6 @@ import functools
 import json
 import logging
 import time
-from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -32,8 +31,11 @@ from tqdm import tqdm
 
 from cusgs_jax.app import interrupt
 from cusgs_jax.app.ahead import Program
+from cusgs_jax.app.ahead import specs as ahead_specs
 from cusgs_jax.app.alarms import loss_alarms
+from cusgs_jax.app.deferral import ViewQueue
 from cusgs_jax.app.foresight import Foresight
+from cusgs_jax.app.programs import StepPrograms
 from cusgs_jax.app.resume import resume
 from cusgs_jax.app.session import Session, spread
 from cusgs_jax.data.errors import SceneError
@@ -63,17 +65,47 @@ class Loop:
 
     state: TrainState
     tx: optax.GradientTransformation  # the optimiser of ``state`` (its groups follow the state's tree)
-    capacities: capacity.Capacities  # the step's work capacities: owned, grown and checkpointed here
+    steps: StepPrograms  # the step's programs and work capacities (app/programs.py): owned, grown, checkpointed
     tallies: dict[str, Tally]  # {strategy name: what its updates did} (checkpointed)
+    views: ViewQueue | None = None  # the batch positions still to train, deferred ones included (app/deferral.py)
     render: capacity.ExactRender | RgbOfFeatureRender | None = None  # the evaluation's RGB render (it grows)
     feature_render: capacity.ExactRender | None = None  # and its feature render (feature models only)
     curve: list[dict] = dataclasses.field(default_factory=list)  # the learning curve (eval_curve.jsonl rows)
-    recompilations: int = 0  # capacity growths (anchors, visible slots, tile pairs) that recompile
-    replays: int = 0  # steps replayed because a capacity was too small
     alarmed: set[str] = dataclasses.field(default_factory=set)  # loss terms already warned about (loss_alarms)
-    step_fn: Callable[[TrainState, dict], tuple[TrainState, dict]] | None = None  # built for ``capacities``
-    programs: dict = dataclasses.field(default_factory=dict)  # {Capacities: the step's Program for them}
     loss_tally: LossTally = dataclasses.field(default_factory=LossTally)  # every loss term summed over the steps
+    batch_types: dict | None = None  # the types of every batch of the run (ShapeDtypeStructs), once known
+
+    @property
+    def capacities(self) -> capacity.Capacities:
+        """The step's work capacities now (:attr:`StepPrograms.capacities`)."""
+        return self.steps.capacities
+
+    @capacities.setter
+    def capacities(self, value: capacity.Capacities) -> None:  # a resume's restored capacities
+        self.steps.capacities = value
+
+    @property
+    def recompilations(self) -> int:
+        """Capacity growths (anchors, visible slots, tile pairs) that changed the step's program."""
+        return self.steps.recompilations
+
+    @recompilations.setter
+    def recompilations(self, value: int) -> None:
+        self.steps.recompilations = value
+
+    @property
+    def replays(self) -> int:
+        """Steps run again with grown capacities (at once, or later when deferred)."""
+        return self.steps.replays
+
+    @replays.setter
+    def replays(self, value: int) -> None:
+        self.steps.replays = value
+
+    @property
+    def programs(self) -> dict:
+        """{Capacities: the step's Program for them}."""
+        return self.steps.programs
 
 
 def start(session: Session) -> Loop:
@@ -97,8 +129,9 @@ def _start(session: Session) -> Loop:
         state, tx = init_train_state(cfg, scene.points, len(session.train_idx), scene.extent, session.strategies,
                                      session.banks)
     with budget.stage("probe"):
-        loop = Loop(state=state, tx=tx, capacities=_fitted_capacities(session, state),
-                    tallies={s.name: Tally() for s in session.strategies})
+        steps = StepPrograms(lambda caps: make_train_step(cfg, tx, session.strategies, caps, session.loss_terms),
+                             _fitted_capacities(session, state), cfg.model.n_offsets, session.ahead)
+        loop = Loop(state=state, tx=tx, steps=steps, tallies={s.name: Tally() for s in session.strategies})
     if cfg.train.resume:
         with budget.stage("checkpoints"):
             resume(session, loop)
@@ -111,19 +144,12 @@ def _start(session: Session) -> Loop:
         loop.render = RgbOfFeatureRender(loop.feature_render, session.banks)
     else:
         loop.render = make_render_fn(cfg, evaluation, wrap=wrap)
+    if loop.views is None:
+        loop.views = ViewQueue(next=int(loop.state.step), total=cfg.train.iterations)
     # the programs the loop starts with, compiled in the background from here on
-    _step_program(session, loop, loop.capacities).prepare(loop.state, session.batches(int(loop.state.step)))
+    loop.steps.prepare(loop.capacities, loop.state, session.batches(loop.views.next))
     _prepare_render(session, loop, loop.state.anchors)
     return loop
-
-
-def _step_program(session: Session, loop: Loop, capacities: capacity.Capacities) -> Program:
-    """The step's :class:`~cusgs_jax.app.ahead.Program` for ``capacities`` (one per capacities: its executables
-    are those of each anchor capacity it was prepared or called for)."""
-    if capacities not in loop.programs:
-        loop.programs[capacities] = Program(make_train_step(session.cfg, loop.tx, session.strategies,
-                                                               capacities, session.loss_terms), session.ahead)
-    return loop.programs[capacities]
 
 
 def _prepare_render(session: Session, loop: Loop, anchors) -> None:
@@ -162,8 +188,13 @@ def _fitted_capacities(session: Session, state: TrainState, probes: int = 8) -> 
 # --- the loop -------------------------------------------------------------------------------
 
 
-def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
-    """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint."""
+def train(session: Session, loop: Loop, progress_label: str = "train", foresight: Foresight | None = None) -> None:
+    """Steps from the state's step to ``train.iterations``: update, densify, log, evaluate, checkpoint.
+
+    Each update trains one batch (:func:`next_update`): the next fresh one, or one deferred earlier whose program
+    is now ready — the loop does not wait for a program compiling in the background while it has views that fit
+    the one it has (:mod:`cusgs_jax.app.deferral`). ``foresight``: what plans the programs compiled ahead (default
+    :class:`~cusgs_jax.app.foresight.Foresight` of the session's strategies)."""
     cfg = session.cfg
     iterations, start = cfg.train.iterations, int(loop.state.step)
     batches = session.batches
@@ -172,21 +203,19 @@ def train(session: Session, loop: Loop, progress_label: str = "train") -> None:
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
-    foresight = Foresight(session.strategies, iterations, functools.partial(_step_program, session, loop),
-                          functools.partial(_prepare_render, session, loop))
+    foresight = foresight or Foresight(session.strategies, iterations, loop.steps.program,
+                                       functools.partial(_prepare_render, session, loop))
     with session.budget.stage("train_steps"):  # the first step's program, compiled during setup: waited for here
-        loop.step_fn = _step_program(session, loop, loop.capacities)
-        loop.step_fn.wait(loop.state, batches(start))
-        if session.ahead is not None and jax.default_backend() == "cpu":
-            # the evaluation render too: on a CPU a compile shares the steps' cores (and later ones take one at a time)
-            session.ahead.settle(workers=1)
+        loop.steps.program().wait(loop.state, batches(loop.views.next))
+        if session.ahead is not None:
+            session.ahead.loop_starts()
     with open(session.out / METRICS_FILE, "a") as metrics_file, \
             open(session.out / CURVE_FILE, "a") as curve_file, live_view(cfg.train, snapshot) as live:
         for step in bar:
             with session.budget.clock:
                 with session.budget.stage("train_steps"):
                     started = time.perf_counter()
-                    metrics = exact_step(session, loop, batches(step))
+                    metrics = next_update(session, loop, step)
                     foresight.stepped(time.perf_counter() - started, metrics)
                 with session.budget.stage("densify"):
                     run_strategies(session, loop, step + 1)
@@ -243,22 +272,104 @@ def _snapshot(session: Session, loop: Loop, cameras: list[ViewCamera]) -> ViewMo
 def exact_step(session: Session, loop: Loop, batch: dict) -> dict:
     """One training step on ``batch`` that dropped no work; returns its metrics (host values).
 
-    A step that reported dropped anchors or tile pairs changed nothing; the
-    capacity is grown (:meth:`cusgs_jax.training.capacity.Capacities.grown`), the step
-    rebuilt and the same batch replayed.
+    A step that reported dropped anchors or tile pairs changed nothing; the capacity is grown
+    (:meth:`cusgs_jax.app.programs.StepPrograms.grow`) and the same batch replayed — waiting for the grown
+    program's compile if it is under way (:func:`next_update` trains other views meanwhile instead).
     """
+    metrics = _step_batch(session, loop, batch, defer=None)
+    assert metrics is not None
+    return metrics
+
+
+def _step_batch(session: Session, loop: Loop, batch: dict, defer) -> dict | None:
+    """Train ``batch``, replaying it with grown capacities while it drops work; returns its metrics, or None
+    when it was handed to ``defer(grown capacities)`` because the grown step's program is not ready (``defer``
+    None: wait for it)."""
+    steps = loop.steps
     while True:
-        if loop.step_fn is None:
-            loop.step_fn = _step_program(session, loop, loop.capacities)
-        loop.state, metrics = loop.step_fn(loop.state, batch)
+        loop.state, metrics = steps(loop.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
         if not (metrics["dropped_anchors"] or metrics["dropped_gaussians"] or metrics["dropped_pairs"]):
             metrics["terms"] = weighted_terms(metrics, session.weights)
             loop.loss_tally.add(metrics["terms"])
             return metrics
-        loop.capacities = loop.capacities.grown(metrics, loop.state.anchors.capacity,
-                                                      session.cfg.model.n_offsets)
-        loop.step_fn, loop.replays, loop.recompilations = None, loop.replays + 1, loop.recompilations + 1
+        anchor_capacity = loop.state.anchors.capacity
+        if defer is not None:
+            grown = steps.grown(metrics, anchor_capacity, announce=False)
+            if not steps.ready(grown, loop.state, batch):
+                defer(grown, metrics)
+                return None
+        steps.grow(metrics, anchor_capacity)
+
+
+def next_update(session: Session, loop: Loop, updates: int) -> dict:
+    """One update of :func:`train` after ``updates`` updates; returns its metrics (host values).
+
+    The batch is the oldest deferred one whose program is ready, else the next fresh one
+    (:class:`~cusgs_jax.app.deferral.ViewQueue`). A batch that needs grown capacities whose program is still
+    compiling in the background is deferred, and the next fresh batch tried with the program the step has; when
+    none is left, too many are deferred, or :data:`~cusgs_jax.app.deferral.MAX_TRIES` fresh ones overflowed for
+    this update, the loop waits for the oldest deferred one's program (logged, and counted in ``eval.json``'s
+    ``deferred``). With every program ready in time this trains the batches in order, as :func:`exact_step` does.
+    """
+    queue, steps = loop.views, loop.steps
+    tries = 0
+
+    def is_ready(capacities) -> bool:
+        return steps.covers(capacities) or steps.ready(capacities, loop.state, batch_types)
+
+    def defer_to(position: int):
+        def defer(grown, metrics) -> None:
+            # one program for every deferred view: the union of what they wait for (it covers each of them)
+            target = functools.reduce(capacity.Capacities.union, [i.capacities for i in queue.waiting
+                                                                  if i.capacities is not None], grown)
+            if steps.prepare(target, loop.state, batch_types):
+                log.info("step %d: a view needs more work capacity than the step has (%s): it waits for the step "
+                         "for %s, compiling in the background, while the loop trains the views that fit",
+                         updates, _shortfall_text(metrics), target)
+            queue.defer(position, target, updates)
+        return defer
+
+    if loop.batch_types is None:  # every batch of a run has the same types
+        loop.batch_types = ahead_specs(session.batches(queue.next if queue.fresh_left() else queue.waiting[0].position))
+    batch_types = loop.batch_types
+    while True:
+        item = queue.take_ready(is_ready)
+        if item is None and queue.must_wait(tries):
+            item = queue.take_oldest()
+            if item.capacities is not None and not steps.covers(item.capacities):
+                started = time.perf_counter()
+                log.info("step %d: waiting for the step's program for %s (%d views deferred, %s)", updates,
+                         item.capacities, len(queue.waiting) + 1,
+                         "no fresh view left" if not queue.fresh_left() else "too many overflow")
+                steps.program(item.capacities).wait(loop.state, batch_types)
+                queue.waited(time.perf_counter() - started)
+        if item is not None:
+            if item.capacities is not None and not steps.covers(item.capacities):
+                steps.use(item.capacities)
+            steps.replays += 1
+            metrics = _step_batch(session, loop, session.batches(item.position), defer_to(item.position))
+            if metrics is not None:
+                queue.trained(item, updates)
+                return metrics
+            continue
+        if not queue.fresh_left():
+            raise RuntimeError(f"no batch left to train after {updates} updates")  # cannot happen: T positions
+        position = queue.take_fresh()
+        metrics = _step_batch(session, loop, session.batches(position), defer_to(position))
+        if metrics is not None:
+            return metrics
+        tries += 1
+
+
+def _shortfall_text(metrics: dict) -> str:
+    """What a step that dropped work lacked, in words (its first overflowing capacity)."""
+    for dropped, have, what in (("dropped_anchors", "visible_anchors", "visible anchors"),
+                                ("dropped_gaussians", "active_gaussians", "active Gaussians"),
+                                ("dropped_pairs", "pairs", "tile pairs")):
+        if metrics.get(dropped, 0) > 0:
+            return f"{int(metrics[have]) + int(metrics[dropped])} {what} against {int(metrics[have])}"
+    return "nothing dropped"
 
 
 def run_strategies(session: Session, loop: Loop, step: int) -> None:
@@ -277,8 +388,9 @@ def run_strategies(session: Session, loop: Loop, step: int) -> None:
         before = loop.state.anchors.capacity
         loop.state, info = strategy.update(loop.state, loop.tx, step)
         if info.capacity_changed:  # new shapes: the step compiles again (for work capacities that follow A)
-            loop.capacities = loop.capacities.regrown(before, loop.state.anchors.capacity, session.cfg.model.n_offsets)
-            loop.step_fn, loop.recompilations = None, loop.recompilations + 1
+            loop.steps.regrow(before, loop.state.anchors.capacity)
+            if loop.views is not None:
+                loop.views.reset_capacities()
         loop.tallies[strategy.name] = tally.add(info)
         log.debug("step %d: %s grew %d, pruned %d anchors%s %s", step, strategy.name, info.grown, info.pruned,
                   " (capacity changed)" if info.capacity_changed else "", dict(info.extra))
@@ -293,8 +405,9 @@ def _shrink_if_empty(session: Session, loop: Loop, step: int) -> None:
     if new is None:
         return
     loop.state = ops.resize_capacity(loop.state, loop.tx, new)
-    loop.capacities = _fitted_capacities(session, loop.state)
-    loop.step_fn, loop.recompilations = None, loop.recompilations + 1
+    loop.steps.refit(_fitted_capacities(session, loop.state))
+    if loop.views is not None:
+        loop.views.reset_capacities()
     log.info("step %d: %d of %d anchor slots alive: capacity shrunk to %d (the step recompiles once)",
              step, alive, old, new)
 
@@ -353,6 +466,7 @@ def save_checkpoint(session: Session, loop: Loop, step: int) -> None:
         step=step, capacity=loop.state.anchors.capacity, wall_s=session.budget.clock.total, curve=loop.curve,
         densify={name: tally.as_dict() for name, tally in loop.tallies.items()},
         recompilations=loop.recompilations, replays=loop.replays, loss_terms=loop.loss_tally.as_dict(),
+        views=None if loop.views is None else loop.views.as_dict(),
         capacities=loop.capacities.as_dict(), voxel_size=session.cfg.model.voxel_size,
         # what cusgs-export needs from an unfinished run or one trained without Hydra (io/load_run.py)
         world_transform=session.world.as_dict(), config=dataclasses.asdict(session.cfg),

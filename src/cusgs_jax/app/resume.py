@@ -14,6 +14,7 @@ import pathlib
 
 import numpy as np
 
+from cusgs_jax.app.deferral import ViewQueue
 from cusgs_jax.config import require
 from cusgs_jax.data.identity import same_cameras
 from cusgs_jax.densify import ops
@@ -50,6 +51,7 @@ def resume(session, loop) -> None:
     loop.recompilations = int(meta.recompilations or 0)
     loop.replays = int(meta.replays or 0)
     loop.loss_tally = LossTally.restored(meta.loss_terms)
+    loop.views = ViewQueue.restored(meta.views, step, session.cfg.train.iterations)  # deferred views train after it
     trim_jsonl(session.out / METRICS_FILE, step)
     trim_jsonl(session.out / CURVE_FILE, step)
     log.info("resumed from step %d (capacity %d)", step, loop.state.anchors.capacity)

@@ -75,7 +75,7 @@ def finalise(session: Session, loop: Loop) -> EvalRecord:
         **strategy_results(session.strategies, loop.tallies, session.cfg),  # render_ms_before_prune, prune, densify
         loss_terms=loop.loss_tally.as_dict(), appearance=APPEARANCE_PROTOCOL,
         skipped_updates=int(state.skipped), dropped_anchors=0, dropped_gaussians=0, dropped_pairs=0,
-        replayed_steps=loop.replays,
+        replayed_steps=loop.replays, deferred=loop.views.record() if loop.views is not None else None,
         recompilations=loop.recompilations + loop.render.growths
         + (loop.feature_render.growths if loop.feature_render else 0),
         capacities=loop.capacities.as_dict(), voxel_size=cfg.model.voxel_size,

@@ -234,6 +234,13 @@ class Capacities:
         visible = min(1.0, math.ceil(EVAL_HEADROOM * self.visible_fraction * FRACTION_BUCKET) / FRACTION_BUCKET)
         return dataclasses.replace(self, visible_fraction=max(visible, self.visible_fraction))
 
+    def union(self, other: Capacities) -> Capacities:
+        """The capacities that hold what these and ``other`` hold: each fraction the larger (visible slots, active
+        Gaussians and pairs all grow with their fraction)."""
+        return Capacities(max(self.visible_fraction, other.visible_fraction),
+                          max(self.active_fraction, other.active_fraction),
+                          max(self.pairs_per_active, other.pairs_per_active))
+
     def as_dict(self) -> dict:
         """Checkpoint metadata and ``eval.json``'s ``capacities``."""
         return dataclasses.asdict(self)
