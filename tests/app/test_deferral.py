@@ -79,7 +79,7 @@ def _blind():
         """A forecast that misses on purpose: it prepares nothing."""
 
         def after(self, session, loop, done):
-            return None
+            return []
 
     return Blind
 
@@ -104,7 +104,7 @@ def test_a_late_program_defers_the_view_that_needs_it_and_the_loop_trains_the_ot
         calls = []
         batches = session.batches
         session = dataclasses.replace(session, batches=lambda position: calls.append(position) or batches(position))
-        train(session, loop, foresight=_blind()(session.strategies, iterations, None, None))
+        train(session, loop, foresight=_blind()(session.strategies, iterations))
     queue = loop.views
     assert int(loop.state.step) == iterations and queue.next == iterations and not queue.waiting
     assert sorted(set(calls)) == list(range(iterations))  # every position trained (the deferred ones again)

@@ -25,7 +25,7 @@ class _Every:
 
 
 def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that_when_near_the_capacities():
-    foresight = Foresight([_Every(400, 100)], iterations=3000, step_program=None, prepare_render=None)
+    foresight = Foresight([_Every(400, 100)], iterations=3000)
     assert foresight.lead_steps([]) == MIN_LEAD_STEPS  # nothing measured yet
     for _ in range(10):
         foresight.stepped(0.2)
@@ -35,12 +35,12 @@ def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that_wh
 
     def preview(session, loop, done, due):
         seen.append((done, due))
-        return due == 400  # the update at 400 comes near the capacities; the one at 500 leaves room to spare
+        return due == 400, []  # the update at 400 comes near the capacities; the one at 500 leaves room to spare
 
     foresight._preview = preview
     session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]))
     loop = types.SimpleNamespace(state=None)
-    foresight._next_capacities = lambda session, loop, done: None
+    foresight._next_capacities = lambda session, loop, done: []
     for done in range(1, 520):
         foresight.after(session, loop, done)
     lead = foresight.lead_steps([4.0])  # 30 steps
@@ -54,10 +54,10 @@ def test_updates_that_only_remove_anchors_are_not_previewed():
     grower = ScaffoldStrategy(GrowConfig(start=400, stop=600, interval=100), voxel_size=0.01, n_offsets=4, seed=0)
     pruner = FeaturePruneStrategy(PruneConfig(start=500, interval=100))
     assert pruner.only_removes(500) and not grower.only_removes(500)
-    foresight = Foresight([grower, pruner], iterations=1000, step_program=None, prepare_render=None)
+    foresight = Foresight([grower, pruner], iterations=1000)
     seen = []
-    foresight._preview = lambda session, loop, done, due: seen.append(due)
-    foresight._next_capacities = lambda session, loop, done: None
+    foresight._preview = lambda session, loop, done, due: (seen.append(due), (False, []))[1]
+    foresight._next_capacities = lambda session, loop, done: []
     session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[]))
     for done in range(1, 1000):
         foresight.after(session, types.SimpleNamespace(state=None), done)
@@ -83,24 +83,23 @@ def test_the_next_capacitys_step_is_prepared_for_the_work_capacities_the_growth_
         def next_capacity(self, state, step):
             return 1500
 
-    asked, rendered = [], []
-    monkeypatch.setattr(foresight_module.jax, "eval_shape", lambda fn, state: types.SimpleNamespace(anchors="grown"))
-    program = types.SimpleNamespace(prepare=lambda *args: True)
-    foresight = Foresight([Next(400, 100)], iterations=1000, step_program=lambda caps: asked.append(caps) or program,
-                          prepare_render=rendered.append)
+    grown = types.SimpleNamespace(anchors="grown")
+    monkeypatch.setattr(foresight_module.jax, "eval_shape", lambda fn, state: grown)
+    foresight = Foresight([Next(400, 100)], iterations=1000)
     caps = Capacities(visible_fraction=0.5, active_fraction=0.5, pairs_per_active=4.0)
     session = types.SimpleNamespace(cfg=types.SimpleNamespace(model=types.SimpleNamespace(n_offsets=10)),
                                     batches=lambda step: {})
     loop = types.SimpleNamespace(state=types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=1000), step=0),
                                  capacities=caps, tx=None)
-    foresight._next_capacities(session, loop, 10)
-    foresight._next_capacities(session, loop, 20)  # asked once per anchor capacity
-    assert asked == [caps.regrown(1000, 1500, 10)] and rendered == ["grown"]  # what the loop's growth will run
-    assert asked[0].active_fraction < caps.active_fraction
+    requests = foresight._next_capacities(session, loop, 10)
+    assert foresight._next_capacities(session, loop, 20) == []  # asked once per anchor capacity
+    # what the loop's growth will run, with the evaluation render for the grown anchors
+    assert requests == [foresight_module.Request(caps.regrown(1000, 1500, 10), grown, render=True)]
+    assert requests[0].capacities.active_fraction < caps.active_fraction
 
 
 def test_the_work_bound_is_the_recent_most_plus_what_the_grown_anchors_can_add():
-    foresight = Foresight([], iterations=100, step_program=None, prepare_render=None)
+    foresight = Foresight([], iterations=100)
     assert foresight.work_bound(alive=100, grown=5, n_offsets=4) is None  # no step seen yet
     foresight.stepped(0.1, dict(visible_anchors=40, active_gaussians=120, pairs=600, loss=1.0))
     foresight.stepped(0.1, dict(visible_anchors=50, active_gaussians=100, pairs=480))
@@ -131,21 +130,19 @@ def _preview_case(monkeypatch, visible: int, grown: int):
             return types.SimpleNamespace(anchors=types.SimpleNamespace(capacity=capacity, alive=grown_alive),
                                          nets={}), UpdateInfo(grown=grown)
 
-    measured, prepared = [], []
+    measured = []
     monkeypatch.setattr(foresight_module, "_copy", lambda s: s)
     monkeypatch.setattr(foresight_module, "view_needs", lambda anchors, nets, views, cfg: measured.extend(views) or [
         dict(visible_anchors=visible + grown, active_gaussians=100, pairs=300) for _ in views])
-    program = types.SimpleNamespace(prepare=lambda *args: prepared.append(args) or True)
-    foresight = Foresight([Grower(400, 100)], iterations=1000, step_program=lambda caps: program,
-                          prepare_render=None)
+    foresight = Foresight([Grower(400, 100)], iterations=1000)
     foresight.stepped(0.1, dict(visible_anchors=visible, active_gaussians=100, pairs=300))
     session = types.SimpleNamespace(cfg=types.SimpleNamespace(model=types.SimpleNamespace(n_offsets=n_offsets),
                                                               train=types.SimpleNamespace(batch_size=1)),
                                     batches=lambda step: dict(camera=step, index=step))
     loop = types.SimpleNamespace(state=state, capacities=capacities, tx=None)
     assert capacities.visible_slots(capacity) == 500
-    near = foresight._preview(session, loop, 399, 400)
-    return near, measured, prepared
+    near, requests = foresight._preview(session, loop, 399, 400)
+    return near, measured, requests
 
 
 def test_a_preview_whose_bound_leaves_room_measures_no_views(monkeypatch):
@@ -156,3 +153,36 @@ def test_a_preview_whose_bound_leaves_room_measures_no_views(monkeypatch):
 def test_a_preview_near_the_capacities_measures_the_next_views(monkeypatch):
     near, measured, prepared = _preview_case(monkeypatch, visible=440, grown=20)  # 460 · 1.1 does not fit 500
     assert near and len(measured) == 8 and prepared  # PREVIEW_STEPS views; the step prepared at least once
+
+
+def test_the_plan_is_the_updates_capacities_then_each_replays_from_plain_values():
+    """``plan`` takes plain values: the capacities now, the anchor capacity before and after, the views' needs."""
+    from cusgs_jax.app.foresight import plan
+    from cusgs_jax.training.capacity import Capacities
+
+    caps = Capacities(0.5, 0.25, 3.0)
+    assert plan(caps, 1000, 1000, [dict(visible_anchors=10, active_gaussians=10, pairs=10)], 4) == [caps]
+    planned = plan(caps, 1000, 1000, [dict(visible_anchors=600, active_gaussians=100, pairs=300)], 4)
+    assert planned[0] == caps and planned[1].visible_fraction > 0.5 and len(planned) == 2
+    grown = plan(caps, 1000, 1500, [], 4)
+    assert grown == [caps.regrown(1000, 1500, 4)]
+
+
+def test_a_preview_silences_its_own_thread_only(caplog):
+    """The preview's update would announce a growth that has not happened: its thread's records are dropped while
+    another thread's (a background compile's) still reach the log."""
+    import logging
+    import threading
+
+    from cusgs_jax.app.foresight import _quiet
+
+    logger = logging.getLogger("cusgs_jax")
+    with caplog.at_level("INFO", logger="cusgs_jax"):
+        with _quiet():
+            logger.info("from the preview")
+            other = threading.Thread(target=lambda: logger.info("from another thread"))
+            other.start()
+            other.join()
+        logger.info("after the preview")
+    assert "from another thread" in caplog.text and "from the preview" not in caplog.text
+    assert "after the preview" in caplog.text

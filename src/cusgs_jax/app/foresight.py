@@ -23,25 +23,30 @@ happen:
   anchor capacity a strategy says its next growth would move to, with the work capacities a growth gives
   (:meth:`~cusgs_jax.training.capacity.Capacities.regrown`).
 
-The evaluation render is prepared for a new anchor capacity too. A forecast that misses costs what
-it cost without one (a compile on the loop's path); a forecast never changes a capacity, so the
-run's numbers are those of a run without it.
+The evaluation render is prepared for a new anchor capacity too. The foresight only plans: it returns
+:class:`Request` s (which capacities, for which state's types) and the loop hands them to the one owner of the
+step's programs (:class:`cusgs_jax.app.programs.StepPrograms`); which capacities a run will pass through is the
+pure :func:`plan`. A forecast that misses costs what it cost without one (a deferred view, or a compile on the
+loop's path where nothing is compiled in the background); a forecast never changes a capacity, so the run's
+numbers are those of a run without it.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 import statistics
-from collections.abc import Callable
+import threading
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from cusgs_jax.densify import ops
-from cusgs_jax.training.capacity import FIT_HEADROOM, WORK_KEYS
+from cusgs_jax.training.capacity import FIT_HEADROOM, WORK_KEYS, Capacities
 from cusgs_jax.training.render import view_needs
 
 log = logging.getLogger("cusgs_jax")
@@ -54,18 +59,36 @@ RECENT_STEPS = 50  # the step time is the median of this many recent steps, and 
 CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
 
 
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """A program the loop will likely need: the step with ``capacities`` on a train state of ``state``'s types
+    (arrays or ``ShapeDtypeStruct`` s), and with ``render`` the evaluation render for ``state.anchors`` too."""
+
+    capacities: Capacities
+    state: Any
+    render: bool = False
+
+
+def plan(current: Capacities, anchor_capacity: int, new_capacity: int, needs: list[dict],
+         n_offsets: int) -> list[Capacities]:
+    """The work capacities a run stepping with ``current`` passes through after an update that moves the anchor
+    capacity from ``anchor_capacity`` to ``new_capacity`` (equal: unchanged), on steps whose views need ``needs``
+    ({"visible_anchors", "active_gaussians", "pairs"} each): the update's own
+    (:meth:`~cusgs_jax.training.capacity.Capacities.regrown`), then each replay's
+    (:meth:`~cusgs_jax.training.capacity.Capacities.replayed`), in order. Plain values in, plain values out."""
+    after = current.regrown(anchor_capacity, new_capacity, n_offsets)
+    return [after, *after.replayed(needs, new_capacity, n_offsets)]
+
+
 class Foresight:
-    """Prepares the programs of the steps after the next strategy update (see the module docstring).
+    """Plans the programs of the steps after the next strategy update (see the module docstring).
 
     Args:
       strategies: the run's densification strategies; iterations: ``train.iterations``.
-      step_program: ``step_program(capacities) -> Program`` (the run's step program for those capacities).
-      prepare_render: ``prepare_render(anchors)``: compile the evaluation render for that anchor capacity.
     """
 
-    def __init__(self, strategies, iterations: int, step_program: Callable, prepare_render: Callable):
+    def __init__(self, strategies, iterations: int):
         self.strategies, self.iterations = tuple(strategies), iterations
-        self.step_program, self.prepare_render = step_program, prepare_render
         self._recent: list[float] = []
         self._needs: list[dict] = []  # the recent steps' work (visible anchors, active Gaussians, tile pairs)
         self._next_due: int | None = None
@@ -108,27 +131,29 @@ class Foresight:
         step = max(statistics.median(self._recent), 1e-6)
         return max(MIN_LEAD_STEPS, math.ceil(LEAD * max(compile_seconds) / step))
 
-    def after(self, session, loop, done: int) -> None:
+    def after(self, session, loop, done: int) -> list[Request]:
         """After ``done`` completed steps (and their strategy updates) of ``session``'s ``loop``
-        (:class:`cusgs_jax.app.session.Session`, :class:`~cusgs_jax.app.loop.Loop`)."""
+        (:class:`cusgs_jax.app.session.Session`, :class:`~cusgs_jax.app.loop.Loop`): the programs to compile
+        ahead now (the loop hands them to its :class:`~cusgs_jax.app.programs.StepPrograms`)."""
         ahead = session.ahead
         if ahead is None or not ahead.enabled:
-            return
-        if done % CAPACITY_CHECK_EVERY == 0:
-            self._next_capacities(session, loop, done)
+            return []
+        requests = self._next_capacities(session, loop, done) if done % CAPACITY_CHECK_EVERY == 0 else []
         due = self._due_after(done)
         if due is None:
-            return
+            return requests
         lead = self.lead_steps(ahead.compile_seconds)
         for look in range(PREVIEWS):  # at the lead, then at half of it: a later preview sees more of the statistics
             if (due, look) not in self._previewed and due - done <= max(lead >> look, MIN_LEAD_STEPS):
                 self._previewed.update((due, earlier) for earlier in range(look + 1))
-                if not self._preview(session, loop, done, due):  # room to spare: a second look would find it too
+                near, previewed = self._preview(session, loop, done, due)
+                if not near:  # room to spare: a second look would find it too
                     self._previewed.update((due, later) for later in range(PREVIEWS))
-                return
+                return requests + previewed
+        return requests
 
-    def _next_capacities(self, session, loop, done: int) -> None:
-        state = loop.state
+    def _next_capacities(self, session, loop, done: int) -> list[Request]:
+        state, requests = loop.state, []
         for strategy in self.strategies:
             capacity = strategy.next_capacity(state, done) if hasattr(strategy, "next_capacity") else None
             if capacity is None or capacity == state.anchors.capacity or capacity in self._asked:
@@ -137,13 +162,13 @@ class Foresight:
             grown = jax.eval_shape(lambda s, c=capacity: ops.grow_capacity(s, loop.tx, c), state)
             log.debug("compiling ahead the step for %d anchor slots (%s's next capacity)", capacity, strategy.name)
             caps = loop.capacities.regrown(state.anchors.capacity, capacity, session.cfg.model.n_offsets)
-            self.step_program(caps).prepare(grown, session.batches(int(state.step)))
-            self.prepare_render(grown.anchors)
+            requests.append(Request(caps, grown, render=True))
+        return requests
 
-    def _preview(self, session, loop, done: int, due: int) -> bool:
-        """Preview the update due after ``due`` steps and compile ahead what the steps after it need; returns whether
-        they come near the run's capacities: an anchor capacity of its own, or a view needing more than
-        1/:data:`~cusgs_jax.training.capacity.FIT_HEADROOM` of a work capacity."""
+    def _preview(self, session, loop, done: int, due: int) -> tuple[bool, list[Request]]:
+        """Preview the update due after ``due`` steps: what the steps after it need compiled, and whether they come
+        near the run's capacities (an anchor capacity of its own, or a view needing more than
+        1/:data:`~cusgs_jax.training.capacity.FIT_HEADROOM` of a work capacity)."""
         cfg = session.cfg
         preview, grown = _copy(loop.state), 0  # an update may donate the arrays it is given
         with _quiet():
@@ -157,25 +182,21 @@ class Foresight:
             if bound is not None and loop.capacities.roomy([bound], capacity, cfg.model.n_offsets,
                                                            headroom=FIT_HEADROOM):
                 log.debug("step %d: the update at %d leaves room to spare (%s): no views measured", done, due, bound)
-                return False
+                return False, []
         steps = range(due, min(due + PREVIEW_STEPS, self.iterations))
         batches = [session.batches(step) for step in steps]
         if not batches:
-            return False
+            return False, []
         size = cfg.train.batch_size
         views = [(b["camera"], b["index"]) for b in batches] if size == 1 else [
             (jax.tree_util.tree_map(lambda x, v=v: x[v], b["camera"]), b["index"][v]) for b in batches
             for v in range(size)]
         needs = view_needs(preview.anchors, preview.nets, views, cfg)
-        after = loop.capacities.regrown(loop.state.anchors.capacity, capacity, cfg.model.n_offsets)
-        for caps in (after, *after.replayed(needs, capacity, cfg.model.n_offsets)):
-            if self.step_program(caps).prepare(preview, batches[0]):
-                log.debug("step %d: compiling ahead the step after the update at %d: %d anchor slots, %s",
-                          done, due, capacity, caps)
-        if capacity != loop.state.anchors.capacity:
-            self.prepare_render(preview.anchors)
-            return True
-        return not after.roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM)
+        planned = plan(loop.capacities, loop.state.anchors.capacity, capacity, needs, cfg.model.n_offsets)
+        grows = capacity != loop.state.anchors.capacity
+        requests = [Request(caps, preview, render=grows and i == 0) for i, caps in enumerate(planned)]
+        log.debug("step %d: the steps after the update at %d (%d anchor slots) need %s", done, due, capacity, planned)
+        return grows or not planned[0].roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM), requests
 
 
 def _only_removes(strategy, step: int) -> bool:
@@ -190,12 +211,24 @@ def _copy(state):
     return jax.tree_util.tree_map(jnp.copy, state)
 
 
+class _OtherThreads(logging.Filter):
+    """Lets through the records of every thread but one."""
+
+    def __init__(self, thread: int):
+        super().__init__()
+        self.thread = thread
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.thread != self.thread
+
+
 @contextlib.contextmanager
 def _quiet():
-    """The package's log silenced (a preview's update would announce a growth that has not happened)."""
-    logger = logging.getLogger("cusgs_jax")
-    disabled, logger.disabled = logger.disabled, True
+    """The package's log silenced on this thread (a preview's update would announce a growth that has not
+    happened); other threads — a background compile's, a viewer's — log as ever."""
+    logger, only = logging.getLogger("cusgs_jax"), _OtherThreads(threading.get_ident())
+    logger.addFilter(only)
     try:
         yield
     finally:
-        logger.disabled = disabled
+        logger.removeFilter(only)

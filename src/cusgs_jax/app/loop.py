@@ -152,6 +152,18 @@ def _start(session: Session) -> Loop:
     return loop
 
 
+def _compile_ahead(session: Session, loop: Loop, requests) -> None:
+    """Hand what the foresight plans (:class:`~cusgs_jax.app.foresight.Request` s) to the programs' owners: the
+    step's to :class:`~cusgs_jax.app.programs.StepPrograms`, the evaluation render's to its render."""
+    for request in requests or ():
+        batch = loop.batch_types if loop.batch_types is not None else session.batches(0)  # one type for all
+        if loop.steps.prepare(request.capacities, request.state, batch):
+            log.debug("compiling ahead the step for %d anchor slots, %s", request.state.anchors.capacity,
+                      request.capacities)
+        if request.render:
+            _prepare_render(session, loop, request.state.anchors)
+
+
 def _prepare_render(session: Session, loop: Loop, anchors) -> None:
     """Compile the evaluation render for ``anchors``' capacity in the background (``anchors``: arrays or
     ``ShapeDtypeStruct`` s of the padded model), so a held-out evaluation does not wait for it."""
@@ -203,8 +215,7 @@ def train(session: Session, loop: Loop, progress_label: str = "train", foresight
     bar = tqdm(range(start, iterations), initial=start, total=iterations, desc=progress_label,
                disable=not cfg.train.progress, dynamic_ncols=True)
     last_log = time.perf_counter()
-    foresight = foresight or Foresight(session.strategies, iterations, loop.steps.program,
-                                       functools.partial(_prepare_render, session, loop))
+    foresight = foresight or Foresight(session.strategies, iterations)
     with session.budget.stage("train_steps"):  # the first step's program, compiled during setup: waited for here
         loop.steps.program().wait(loop.state, batches(loop.views.next))
         if session.ahead is not None:
@@ -219,7 +230,7 @@ def train(session: Session, loop: Loop, progress_label: str = "train", foresight
                     foresight.stepped(time.perf_counter() - started, metrics)
                 with session.budget.stage("densify"):
                     run_strategies(session, loop, step + 1)
-                    foresight.after(session, loop, step + 1)
+                    _compile_ahead(session, loop, foresight.after(session, loop, step + 1))
             if live is not None:  # train.viewer: within its share of the wall time, not on the clock
                 live.after_step()
             done = step + 1
