@@ -130,3 +130,10 @@ def test_two_compiles_run_side_by_side_until_settle_narrows_them_to_one():
         assert program.prepare(jnp.ones(4))
         np.testing.assert_array_equal(program(jnp.ones(4)), jnp.sin(jnp.ones(4)))
     assert ahead.submitted == 1 and program.fallbacks == 0
+
+
+def test_an_accelerator_compiles_several_programs_at_once_where_the_host_has_idle_cores():
+    from cusgs_jax.app.ahead import WORKERS, default_workers
+
+    assert default_workers("cpu", 64) == WORKERS
+    assert default_workers("gpu", 16) == 4 and default_workers("gpu", 4) == WORKERS and default_workers("tpu", 12) == 3

@@ -25,7 +25,7 @@ class _Every:
 
 
 def test_the_preview_comes_a_compile_before_the_update_and_again_at_half_that_when_near_the_capacities():
-    foresight = Foresight([_Every(400, 100)], iterations=3000)
+    foresight = Foresight([_Every(400, 100)], iterations=3000, eager=False)
     assert foresight.lead_steps([]) == MIN_LEAD_STEPS  # nothing measured yet
     for _ in range(10):
         foresight.stepped(0.2)
@@ -54,7 +54,7 @@ def test_updates_that_only_remove_anchors_are_not_previewed():
     grower = ScaffoldStrategy(GrowConfig(start=400, stop=600, interval=100), voxel_size=0.01, n_offsets=4, seed=0)
     pruner = FeaturePruneStrategy(PruneConfig(start=500, interval=100))
     assert pruner.only_removes(500) and not grower.only_removes(500)
-    foresight = Foresight([grower, pruner], iterations=1000)
+    foresight = Foresight([grower, pruner], iterations=1000, eager=False)
     seen = []
     foresight._preview = lambda session, loop, done, due: (seen.append(due), (False, []))[1]
     foresight._next_capacities = lambda session, loop, done: []
@@ -186,3 +186,23 @@ def test_a_preview_silences_its_own_thread_only(caplog):
         logger.info("after the preview")
     assert "from another thread" in caplog.text and "from the preview" not in caplog.text
     assert "after the preview" in caplog.text
+
+
+def test_the_lead_follows_the_recent_compiles_and_an_eager_foresight_looks_as_soon_as_it_can():
+    """On an accelerator (eager) the first look at an update comes right after the update before it, the second at
+    the lead; the lead itself follows the recent compiles' seconds (the machine's load now, not its worst)."""
+    from cusgs_jax.app.foresight import RECENT_COMPILES
+
+    foresight = Foresight([_Every(400, 100)], iterations=1000, eager=False)
+    for _ in range(5):
+        foresight.stepped(0.1)
+    assert foresight.lead_steps([30.0] + [2.0] * RECENT_COMPILES) == int(np.ceil(LEAD * 2.0 / 0.1))
+    eager = Foresight([_Every(400, 100)], iterations=1000, eager=True)
+    seen = []
+    eager._preview = lambda session, loop, done, due: (seen.append((done, due)), (True, []))[1]
+    eager._next_capacities = lambda session, loop, done: []
+    session = types.SimpleNamespace(ahead=types.SimpleNamespace(enabled=True, compile_seconds=[4.0]))
+    for done in range(1, 450):
+        eager.after(session, types.SimpleNamespace(state=None), done)
+    assert seen[0] == (1, 400) and seen[1][1] == 400 and 400 - seen[1][0] == max(MIN_LEAD_STEPS, eager.lead_steps([4.0]))
+    assert seen[2] == (400, 500)  # the next update's first look: right after the one before it

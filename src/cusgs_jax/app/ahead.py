@@ -79,7 +79,7 @@ class Ahead:
         self.enabled = enabled
         self.delay_s = float(os.environ.get(DELAY_ENV, 0.0) if delay_s is None else delay_s)
         self._closing = threading.Event()  # set by close: a delayed compile gives up its wait
-        self.workers = max(1, WORKERS if workers is None else int(workers))
+        self.workers = max(1, default_workers() if workers is None else int(workers))
         self._pool = _pool(self.workers)
         self._on_wait = on_wait or (lambda seconds: None)
         self.submitted = 0  # programs compiled ahead
@@ -160,6 +160,17 @@ class Ahead:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def default_workers(backend: str | None = None, cpus: int | None = None) -> int:
+    """Compiles at once: :data:`WORKERS` on a CPU backend (the start's step and render side by side; the loop
+    narrows it to one, :meth:`Ahead.loop_starts`); on an accelerator, whose host cores are idle while the device
+    trains, one per four host cores, from :data:`WORKERS` to 4 (XLA compiles a program mostly on one core)."""
+    backend = jax.default_backend() if backend is None else backend
+    if backend == "cpu":
+        return WORKERS
+    cpus = (os.cpu_count() or 1) if cpus is None else cpus
+    return max(WORKERS, min(4, cpus // 4))
 
 
 def _pool(workers: int) -> concurrent.futures.ThreadPoolExecutor:

@@ -20,7 +20,7 @@ import dataclasses
 import time
 
 MAX_DEFERRED = 64  # deferred batches at most; one more and the loop waits for the oldest one's program
-MAX_TRIES = 3  # fresh batches tried for one update before the loop waits (every view overflowing: wait)
+MAX_TRIES = 8  # fresh batches tried for one update before the loop waits (nearly every view overflowing)
 
 
 @dataclasses.dataclass

@@ -56,6 +56,7 @@ MIN_LEAD_STEPS = 10  # and at least this many steps before it
 PREVIEW_STEPS = 8  # the steps after an update whose views say which capacities to compile ahead
 PREVIEWS = 2  # previews of one update: at the lead and at half of it (each may start a compile)
 RECENT_STEPS = 50  # the step time is the median of this many recent steps, and their work bounds the next ones'
+RECENT_COMPILES = 3  # the lead follows the slowest of this many recent background compiles
 CAPACITY_CHECK_EVERY = 10  # steps between asking the strategies for their next capacity (a host transfer)
 
 
@@ -85,10 +86,15 @@ class Foresight:
 
     Args:
       strategies: the run's densification strategies; iterations: ``train.iterations``.
+      eager: preview each update as soon as the one before it is done (as early as it can be known), and again at
+        the lead. Default: on an accelerator, whose host cores are idle while the device trains (a compile there
+        costs the run nothing, a late one a deferred view or a wait); on a CPU a compile shares the steps' cores,
+        so the first look comes at the lead.
     """
 
-    def __init__(self, strategies, iterations: int):
+    def __init__(self, strategies, iterations: int, eager: bool | None = None):
         self.strategies, self.iterations = tuple(strategies), iterations
+        self.eager = jax.default_backend() != "cpu" if eager is None else bool(eager)
         self._recent: list[float] = []
         self._needs: list[dict] = []  # the recent steps' work (visible anchors, active Gaussians, tile pairs)
         self._next_due: int | None = None
@@ -125,11 +131,19 @@ class Foresight:
         return self._next_due
 
     def lead_steps(self, compile_seconds: list[float]) -> int:
-        """Steps before an update at which its preview runs: :data:`LEAD` background compiles' worth."""
+        """Steps before an update at which its preview runs: :data:`LEAD` background compiles' worth — the slowest
+        of the last :data:`RECENT_COMPILES` (measured on this machine, so the lead follows its load) over the
+        median of the recent steps."""
         if not self._recent or not compile_seconds:
             return MIN_LEAD_STEPS
         step = max(statistics.median(self._recent), 1e-6)
-        return max(MIN_LEAD_STEPS, math.ceil(LEAD * max(compile_seconds) / step))
+        return max(MIN_LEAD_STEPS, math.ceil(LEAD * max(compile_seconds[-RECENT_COMPILES:]) / step))
+
+    def _look_leads(self, lead: int) -> tuple[float, ...]:
+        """How many steps before the update each of the :data:`PREVIEWS` looks may come."""
+        if self.eager:
+            return (math.inf, *(max(lead >> (look - 1), MIN_LEAD_STEPS) for look in range(1, PREVIEWS)))
+        return tuple(max(lead >> look, MIN_LEAD_STEPS) for look in range(PREVIEWS))
 
     def after(self, session, loop, done: int) -> list[Request]:
         """After ``done`` completed steps (and their strategy updates) of ``session``'s ``loop``
@@ -142,9 +156,9 @@ class Foresight:
         due = self._due_after(done)
         if due is None:
             return requests
-        lead = self.lead_steps(ahead.compile_seconds)
+        leads = self._look_leads(self.lead_steps(ahead.compile_seconds))
         for look in range(PREVIEWS):  # at the lead, then at half of it: a later preview sees more of the statistics
-            if (due, look) not in self._previewed and due - done <= max(lead >> look, MIN_LEAD_STEPS):
+            if (due, look) not in self._previewed and due - done <= leads[look]:
                 self._previewed.update((due, earlier) for earlier in range(look + 1))
                 near, previewed = self._preview(session, loop, done, due)
                 if not near:  # room to spare: a second look would find it too
