@@ -125,3 +125,21 @@ def test_every_loss_term_far_outside_its_normal_range_is_warned_about_at_any_log
     assert f"step {9 * cfg.train.log_every}: the L2 feature loss of model semantic is 3e+08" in caplog.text
     assert "features/semantic/" in caplog.text
     assert f"step {10 * cfg.train.log_every}: the loss term l1 is nan" in caplog.text
+
+
+def test_an_accelerators_start_fits_the_growth_the_strategies_forecast(tiny_scene, tmp_path):
+    """On an accelerator the start's capacities hold the views' need times A/alive where a strategy will grow the
+    anchors into the capacity; on a CPU, or where nothing grows, what the views need now."""
+    from cusgs_jax.app.loop import growth_forecast
+    from cusgs_jax.training.state import init_train_state
+
+    session = setup(_cfg(tiny_scene), tmp_path / "run")
+    state, _ = init_train_state(session.cfg, session.scene.points, len(session.train_idx), session.scene.extent,
+                                session.strategies, None)
+    alive, capacity = int(np.sum(np.asarray(state.anchors.alive))), state.anchors.capacity
+    assert growth_forecast(session, state, backend="cpu") == 1.0
+    assert capacity > alive and growth_forecast(session, state, backend="gpu") == capacity / alive
+    still = setup(_cfg(tiny_scene, "grow.start=100", "grow.stop=100"), tmp_path / "still")
+    assert growth_forecast(still, state, backend="gpu") == 1.0  # Scaffold-GS never grows within 30 steps
+    session.ckpt.close()
+    still.ckpt.close()

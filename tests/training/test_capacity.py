@@ -155,3 +155,19 @@ def test_the_host_side_render_under_vmap_names_the_traceable_one():
     render = ExactRender(build=lambda capacities: None, capacities=None, n_offsets=4)
     with pytest.raises(TypeError, match=r"host-side.*cusgs_jax\.render\(model, cameras"):
         jax.vmap(lambda x: render(x))(jnp.zeros((2, 3)))
+
+
+def test_a_fit_for_the_forecast_growth_scales_every_need_before_the_headroom():
+    """``fill``: the start's fit for a run whose strategies will grow the alive anchors into the capacity (an
+    accelerator's start, app/loop.growth_forecast): each need times ``fill``, then the usual buckets and headroom."""
+    from cusgs_jax.training.capacity import Capacities, growth_fill
+
+    needs = dict(visible_anchors=300, active_gaussians=1200, pairs=9000)
+    tight = Capacities.fitted(needs, 1000, 10)
+    assert Capacities.fitted(needs, 1000, 10, fill=1.0) == tight == Capacities.fitted(needs, 1000, 10, fill=0.5)
+    assert growth_fill(alive=500, anchor_capacity=1000) == 2.0 and growth_fill(alive=2000, anchor_capacity=1000) == 1.0
+    wide = Capacities.fitted(needs, 1000, 10, fill=2.0)
+    doubled = {key: 2 * value for key, value in needs.items()}
+    assert wide == Capacities.fitted(doubled, 1000, 10)
+    assert wide.visible_slots(1000) >= 1.1 * 600 > tight.visible_slots(1000)
+    assert wide.pairs(1000, 10) >= 1.25 * 18000 - 4096

@@ -130,7 +130,8 @@ def _start(session: Session) -> Loop:
                                      session.banks)
     with budget.stage("probe"):
         steps = StepPrograms(lambda caps: make_train_step(cfg, tx, session.strategies, caps, session.loss_terms),
-                             _fitted_capacities(session, state), cfg.model.n_offsets, session.ahead)
+                             _fitted_capacities(session, state, fill=growth_forecast(session, state)),
+                             cfg.model.n_offsets, session.ahead)
         loop = Loop(state=state, tx=tx, steps=steps, tallies={s.name: Tally() for s in session.strategies})
     if cfg.train.resume:
         with budget.stage("checkpoints"):
@@ -174,10 +175,31 @@ def _prepare_render(session: Session, loop: Loop, anchors) -> None:
     render.program().prepare(*args, *((session.banks,) if loop.feature_render else ()))
 
 
-def _fitted_capacities(session: Session, state: TrainState, probes: int = 8) -> capacity.Capacities:
+def growth_forecast(session: Session, state: TrainState, backend: str | None = None) -> float:
+    """How much the start's fit scales the probed views' need (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`'s
+    ``fill``): on an accelerator, where a wider step costs little and each step compile ~18 s, the growth the
+    strategies forecast when one of them grows the alive anchors into the capacity
+    (:func:`~cusgs_jax.training.capacity.growth_fill`), so the replays a growth would bring do not happen; on a CPU,
+    where every slot costs step time and a grown program compiles in the background while the loop trains around
+    it, 1 (what the views need now)."""
+    backend = jax.default_backend() if backend is None else backend
+    if backend == "cpu" or not _will_grow(session.strategies, session.cfg.train.iterations):
+        return 1.0
+    return capacity.growth_fill(int(np.sum(np.asarray(state.anchors.alive))), state.anchors.capacity)
+
+
+def _will_grow(strategies, iterations: int) -> bool:
+    """Whether an update of ``strategies`` within ``iterations`` steps may add anchors (one that does more than
+    remove them: :meth:`~cusgs_jax.densify.base.Strategy.only_removes`)."""
+    return any(strategy.due(step) and not (getattr(strategy, "only_removes", None) and strategy.only_removes(step))
+               for strategy in strategies for step in range(1, iterations + 1))
+
+
+def _fitted_capacities(session: Session, state: TrainState, probes: int = 8, fill: float = 1.0) -> capacity.Capacities:
     """The step's first work capacities, sized by what up to ``probes`` training views (spread over
-    them) need of the initial model, with headroom (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`);
-    the config's guesses are not used. They grow, and the step replays, when a later view needs more."""
+    them) need of the initial model, times ``fill`` (:func:`growth_forecast`), with headroom
+    (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`); the config's guesses are not used. They grow, and the
+    step replays, when a later view needs more."""
     scene, cfg = session.scene, session.cfg
     positions = spread(np.arange(len(session.train_idx)), probes)
     needs = most_work(state.anchors, state.nets, [(Camera.of_scene(scene, int(session.train_idx[p])), np.int32(p))
@@ -190,10 +212,10 @@ def _fitted_capacities(session: Session, state: TrainState, probes: int = 8) -> 
             "would only fit the background. Check that the points and the cameras come from the same reconstruction "
             "and frame (not a points file of another run, not poses read as camera-to-world where world-to-camera "
             "is meant), and that data.path names the right scene")
-    fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets)
+    fitted = capacity.Capacities.fitted(needs, state.anchors.capacity, cfg.model.n_offsets, fill=fill)
     log.info("work capacities from %d probed views (at most %d visible anchors, %d active Gaussians, %d tile "
-             "pairs): %s", len(positions), needs["visible_anchors"], needs["active_gaussians"],
-             needs["pairs"], fitted)
+             "pairs%s): %s", len(positions), needs["visible_anchors"], needs["active_gaussians"],
+             needs["pairs"], f"; the strategies' growth forecast: x{fill:.2f}" if fill > 1 else "", fitted)
     return fitted
 
 

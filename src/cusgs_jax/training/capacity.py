@@ -48,6 +48,12 @@ WORK_KEYS = ("visible_anchors", "active_gaussians", "pairs")  # a view's work, a
 EVAL_HEADROOM = 1.5  # visible slots of an evaluation render over the step's (Capacities.for_evaluation)
 
 
+def growth_fill(alive: int, anchor_capacity: int) -> float:
+    """The growth of a view's work a run forecasts when its strategies grow the ``alive`` anchors into all
+    ``anchor_capacity`` slots: A / alive (a view sees anchors in proportion to the alive ones), at least 1."""
+    return max(1.0, anchor_capacity / max(int(alive), 1))
+
+
 def max_pairs(pairs_per_gaussian: float, num_gaussians: int) -> int:
     """Static tile–Gaussian pair capacity for G = ``num_gaussians`` decoded Gaussians."""
     return max(1, int(pairs_per_gaussian * num_gaussians) + PAIR_SLACK)
@@ -184,18 +190,24 @@ class Capacities:
         return passed
 
     @classmethod
-    def fitted(cls, needs: dict, anchor_capacity: int, n_offsets: int) -> Capacities:
+    def fitted(cls, needs: dict, anchor_capacity: int, n_offsets: int, fill: float = 1.0) -> Capacities:
         """Capacities sized by measured need with headroom (the shell's start; jax-md sizes a
         neighbour list from the first positions the same way).
 
         Args:
           needs: the most any probed view needed: ``visible_anchors``, ``active_gaussians``, ``pairs``
             (:func:`cusgs_jax.training.render.view_work`).
+          fill: the growth of the need the run forecasts (≥ 1): every need is scaled by it before the headroom —
+            :func:`growth_fill` where a strategy will grow the alive anchors into the capacity (a view then sees
+            about ``fill`` times the anchors it sees now: the README's main job, A/alive = 2.0, measured 1.7–2.2×
+            by step 800–3000), 1 for a fit to what the views need now.
         Returns:
           visible slots ≥ 1.1 × the visible anchors (in buckets of 1/8 of A), active Gaussians
           ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
           per active Gaussian).
         """
+        fill = max(1.0, float(fill))
+        needs = {key: math.ceil(fill * int(needs[key])) for key in WORK_KEYS} if fill > 1.0 else needs
         visible = grown_visible_fraction(0.0, int(needs["visible_anchors"]), anchor_capacity, headroom=FIT_HEADROOM)
         decoded = num_visible_slots(anchor_capacity, visible) * n_offsets
         active = grown_active_fraction(0.0, int(needs["active_gaussians"]), decoded, headroom=1.15)
