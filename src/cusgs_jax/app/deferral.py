@@ -79,6 +79,10 @@ class ViewQueue:
                 return self.waiting.pop(index)
         return None
 
+    def capacities(self) -> list:
+        """The capacities the deferred batches wait for (None ones left out)."""
+        return [item.capacities for item in self.waiting if item.capacities is not None]
+
     def must_wait(self, tries: int) -> bool:
         """Whether the loop must wait for the oldest deferred batch's program rather than try another fresh one:
         no fresh batch is left, :data:`MAX_DEFERRED` are deferred, or ``tries`` fresh batches overflowed for this

@@ -309,16 +309,20 @@ def exact_step(session: Session, loop: Loop, batch: dict) -> dict:
     (:meth:`cusgs_jax.app.programs.StepPrograms.grow`) and the same batch replayed — waiting for the grown
     program's compile if it is under way (:func:`next_update` trains other views meanwhile instead).
     """
-    metrics = _step_batch(session, loop, batch, defer=None)
+    metrics = _step_batch(session, loop, batch)
     assert metrics is not None
     return metrics
 
 
-def _step_batch(session: Session, loop: Loop, batch: dict, defer) -> dict | None:
-    """Train ``batch``, replaying it with grown capacities while it drops work; returns its metrics, or None
-    when it was handed to ``defer(grown capacities)`` because the grown step's program is not ready (``defer``
-    None: wait for it)."""
-    steps = loop.steps
+def _step_batch(session: Session, loop: Loop, batch: dict, position: int | None = None,
+                updates: int = 0) -> dict | None:
+    """Train ``batch``, replaying it with grown capacities while it drops work; returns its metrics.
+
+    With a queue position (:func:`next_update`) a batch whose grown program is not ready is deferred instead
+    (None is returned): the grown capacities are the union of what it needs and what every deferred batch waits
+    for, so the step's capacities only ever grow to ones that hold every batch waiting (no batch is pushed back
+    by another's growth)."""
+    steps, queue = loop.steps, loop.views
     while True:
         loop.state, metrics = steps(loop.state, batch)
         metrics = jax.device_get(metrics)  # also charges the step's real compute time to the clock
@@ -327,12 +331,22 @@ def _step_batch(session: Session, loop: Loop, batch: dict, defer) -> dict | None
             loop.loss_tally.add(metrics["terms"])
             return metrics
         anchor_capacity = loop.state.anchors.capacity
-        if defer is not None:
-            grown = steps.grown(metrics, anchor_capacity, announce=False)
-            if not steps.ready(grown, loop.state, batch):
-                defer(grown, metrics)
-                return None
-        steps.grow(metrics, anchor_capacity)
+        if position is None:
+            steps.grow(metrics, anchor_capacity)
+            continue
+        target = functools.reduce(capacity.Capacities.union, queue.capacities(),
+                                  steps.grown(metrics, anchor_capacity, announce=False))
+        if steps.ready(target, loop.state, batch):  # compiled (ahead, or nothing compiles ahead): replay now
+            steps.grown(metrics, anchor_capacity)  # logs the growth
+            steps.use(target)
+            steps.replays += 1
+            continue
+        if steps.prepare(target, loop.state, batch):
+            log.info("step %d: a view needs more work capacity than the step has (%s): it waits for the step "
+                     "for %s, compiling in the background, while the loop trains the views that fit",
+                     updates, _shortfall_text(metrics), target)
+        queue.defer(position, target, updates)
+        return None
 
 
 def next_update(session: Session, loop: Loop, updates: int) -> dict:
@@ -346,26 +360,13 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
     ``deferred``). With every program ready in time this trains the batches in order, as :func:`exact_step` does.
     """
     queue, steps = loop.views, loop.steps
-    tries = 0
+    if loop.batch_types is None:  # every batch of a run has the same types
+        loop.batch_types = ahead_specs(session.batches(queue.next if queue.fresh_left() else queue.waiting[0].position))
+    batch_types, tries = loop.batch_types, 0
 
     def is_ready(capacities) -> bool:
         return steps.covers(capacities) or steps.ready(capacities, loop.state, batch_types)
 
-    def defer_to(position: int):
-        def defer(grown, metrics) -> None:
-            # one program for every deferred view: the union of what they wait for (it covers each of them)
-            target = functools.reduce(capacity.Capacities.union, [i.capacities for i in queue.waiting
-                                                                  if i.capacities is not None], grown)
-            if steps.prepare(target, loop.state, batch_types):
-                log.info("step %d: a view needs more work capacity than the step has (%s): it waits for the step "
-                         "for %s, compiling in the background, while the loop trains the views that fit",
-                         updates, _shortfall_text(metrics), target)
-            queue.defer(position, target, updates)
-        return defer
-
-    if loop.batch_types is None:  # every batch of a run has the same types
-        loop.batch_types = ahead_specs(session.batches(queue.next if queue.fresh_left() else queue.waiting[0].position))
-    batch_types = loop.batch_types
     while True:
         item = queue.take_ready(is_ready)
         if item is None and queue.must_wait(tries):
@@ -374,14 +375,14 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
                 started = time.perf_counter()
                 log.info("step %d: waiting for the step's program for %s (%d views deferred, %s)", updates,
                          item.capacities, len(queue.waiting) + 1,
-                         "no fresh view left" if not queue.fresh_left() else "too many overflow")
+                         "no fresh view left" if not queue.fresh_left() else "nearly every view overflows")
                 steps.program(item.capacities).wait(loop.state, batch_types)
                 queue.waited(time.perf_counter() - started)
         if item is not None:
             if item.capacities is not None and not steps.covers(item.capacities):
-                steps.use(item.capacities)
+                steps.use(item.capacities)  # it holds what the step had (a union) and what the view needs
             steps.replays += 1
-            metrics = _step_batch(session, loop, session.batches(item.position), defer_to(item.position))
+            metrics = _step_batch(session, loop, session.batches(item.position), item.position, updates)
             if metrics is not None:
                 queue.trained(item, updates)
                 return metrics
@@ -389,7 +390,7 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
         if not queue.fresh_left():
             raise RuntimeError(f"no batch left to train after {updates} updates")  # cannot happen: T positions
         position = queue.take_fresh()
-        metrics = _step_batch(session, loop, session.batches(position), defer_to(position))
+        metrics = _step_batch(session, loop, session.batches(position), position, updates)
         if metrics is not None:
             return metrics
         tries += 1
