@@ -116,6 +116,9 @@ class TrainOptions:
     viewer_budget: float = 0.1  # at most this share of the training wall time goes to rendering the live view
     compilation_cache: Optional[str] = "auto"  # persistent XLA cache: auto, a folder or None (app/xla_cache.py)
     compile_ahead: bool = True  # compile the programs the loop will need on a background thread (app/ahead.py)
+    # A view whose grown program is still compiling waits while the loop trains the views that fit (app/deferral.py);
+    # false: the loop waits for it, and a run's numbers never depend on when a background compile finished.
+    defer_views: bool = True
 
     def __post_init__(self):
         require(_number(self.iterations) and self.iterations >= 1, "train.iterations", self.iterations,

@@ -96,7 +96,7 @@ def test_a_late_program_defers_the_view_that_needs_it_and_the_loop_trains_the_ot
 
     iterations = 300
     cfg = tiny_config(tiny_scene, f"train.iterations={iterations}", "eval.every=0", "train.checkpoint_every=0",
-                      "grow.start=400", "grow.stop=400", "prune.start=400")
+                      "grow.start=400", "grow.stop=400", "prune.start=400", "train.defer_views=true")
     with Ahead() as ahead:
         session = setup(cfg, tmp_path / "run", ahead=ahead)
         loop = start(session)
@@ -129,4 +129,32 @@ def test_without_background_compiles_nothing_is_deferred(tiny_scene, tmp_path):
         loop = start(session)
         train(session, loop)
     assert loop.views.deferred == 0 and loop.views.next == cfg.train.iterations
+    session.ckpt.close()
+
+
+def test_with_defer_views_off_a_late_program_is_waited_for_and_nothing_changes_order(tiny_scene, tmp_path):
+    """``train.defer_views=false``: the loop waits for a late program (the numbers never depend on when a background
+    compile finished); nothing is deferred, the replay still happens."""
+    from cusgs_jax.app.ahead import Ahead
+    from cusgs_jax.app.loop import start, train
+    from cusgs_jax.app.session import setup
+    from cusgs_jax.testing.runs import tiny_config
+
+    iterations = 20
+    cfg = tiny_config(tiny_scene, f"train.iterations={iterations}", "eval.every=0", "train.checkpoint_every=0",
+                      "grow.start=400", "grow.stop=400", "prune.start=400")
+    assert cfg.train.defer_views is False  # the tests' runs compare bit for bit
+    with Ahead() as ahead:
+        session = setup(cfg, tmp_path / "run", ahead=ahead)
+        loop = start(session)
+        # a step too narrow for most views (visible slots), whose growth needs a program not compiled yet
+        narrow = dataclasses.replace(loop.capacities, visible_fraction=0.25, pairs_per_active=1.0)
+        loop.steps.capacities = narrow
+        batch = session.batches(0)
+        loop.steps.prepare(narrow, loop.state, batch)
+        loop.steps.program().wait(loop.state, batch)
+        ahead.delay_s = 1.0
+        train(session, loop, foresight=_blind()(session.strategies, iterations))
+    assert loop.views.deferred == 0 and loop.views.next == iterations and loop.replays >= 1
+    assert ahead.waits >= 1  # the replay waited for its program
     session.ckpt.close()

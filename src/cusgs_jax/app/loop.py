@@ -360,6 +360,7 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
     ``deferred``). With every program ready in time this trains the batches in order, as :func:`exact_step` does.
     """
     queue, steps = loop.views, loop.steps
+    defer = session.cfg.train.defer_views  # false: wait for a late program (numbers independent of timing)
     if loop.batch_types is None:  # every batch of a run has the same types
         loop.batch_types = ahead_specs(session.batches(queue.next if queue.fresh_left() else queue.waiting[0].position))
     batch_types, tries = loop.batch_types, 0
@@ -382,7 +383,8 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
             if item.capacities is not None and not steps.covers(item.capacities):
                 steps.use(item.capacities)  # it holds what the step had (a union) and what the view needs
             steps.replays += 1
-            metrics = _step_batch(session, loop, session.batches(item.position), item.position, updates)
+            metrics = _step_batch(session, loop, session.batches(item.position), item.position if defer else None,
+                                  updates)
             if metrics is not None:
                 queue.trained(item, updates)
                 return metrics
@@ -390,7 +392,7 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
         if not queue.fresh_left():
             raise RuntimeError(f"no batch left to train after {updates} updates")  # cannot happen: T positions
         position = queue.take_fresh()
-        metrics = _step_batch(session, loop, session.batches(position), position, updates)
+        metrics = _step_batch(session, loop, session.batches(position), position if defer else None, updates)
         if metrics is not None:
             return metrics
         tries += 1

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 
 from cusgs_jax.model.decode import Gaussians
+from cusgs_jax.scan import first_true, running_sum
 from cusgs_jax.splat import RenderOutput
 
 
@@ -57,10 +58,10 @@ def select_active(active: jax.Array, capacity: int) -> ActiveSet:
       capacity: static Ga ≥ 1.
     """
     num = active.shape[0]
-    rank = jnp.cumsum(active.astype(jnp.int32)) - 1  # [G] index among the active ones
+    rank = running_sum(active) - 1  # [G] index among the active ones
     count = rank[-1] + 1 if num else jnp.int32(0)
     kept = active & (rank < capacity)
-    index = jnp.nonzero(active, size=capacity, fill_value=0)[0].astype(jnp.int32)
+    index = first_true(active, capacity)
     valid = jnp.arange(capacity) < count
     return ActiveSet(index=index, valid=valid, position=jnp.clip(rank, 0, capacity - 1).astype(jnp.int32),
                      kept=kept, count=count.astype(jnp.int32),

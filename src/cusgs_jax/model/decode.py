@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from cusgs_jax.config import DecoderConfig
 from cusgs_jax.model.anchors import AnchorParams, AnchorState
 from cusgs_jax.nn import apply_mlp, init_mlp
+from cusgs_jax.scan import first_true
 from cusgs_jax.splat.lens import Lens, distort, inside_bounds
 from cusgs_jax.types import Camera
 from cusgs_jax.precision import HIGHEST, network_precision
@@ -119,9 +120,9 @@ def visible_slots(anchors: AnchorState, camera: Camera, *, num_slots: int, margi
                            margin=margin, lens=camera.lens) & anchors.alive
     if num_slots >= capacity:
         return VisibleSlots(jnp.arange(capacity, dtype=jnp.int32), visible, jnp.int32(0))
-    (slots,) = jnp.nonzero(visible, size=num_slots, fill_value=0)
+    slots = first_true(visible, num_slots)
     valid = jnp.arange(num_slots) < jnp.sum(visible)
-    return VisibleSlots(slots.astype(jnp.int32), valid,
+    return VisibleSlots(slots, valid,
                         jnp.maximum(jnp.sum(visible) - num_slots, 0).astype(jnp.int32))
 
 

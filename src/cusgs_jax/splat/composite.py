@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from cusgs_jax.scan import running_sum
 from cusgs_jax.splat.tiles import TileGrid
 from cusgs_jax.precision import HIGHEST
 
@@ -168,7 +169,7 @@ def _next_tiles(schedule: _Schedule, tile, finished, cursor):
       (tile [M], cursor []) updated.
     """
     num_tiles = schedule.order.shape[0]
-    position = cursor + jnp.cumsum(finished, dtype=jnp.int32) - 1
+    position = cursor + running_sum(finished) - 1
     fresh = jnp.where(position < schedule.num_work,
                       schedule.order[jnp.clip(position, 0, num_tiles - 1)], num_tiles)
     return jnp.where(finished, fresh, tile), cursor + jnp.sum(finished, dtype=jnp.int32)

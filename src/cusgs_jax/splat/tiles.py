@@ -26,6 +26,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from cusgs_jax.scan import running_max, running_sum
 from cusgs_jax.splat.project import ALPHA_THRESHOLD, _two_prod
 
 ROW_GROUPS = 8
@@ -229,7 +230,7 @@ def footprint_rows(means2d: jax.Array, radii: jax.Array, grid: TileGrid, conics:
     col0 = jnp.where(ok[:, None], jnp.maximum(c_first, x0[:, None]), x0[:, None])
     col1 = jnp.where(ok[:, None], jnp.minimum(c_last + 1, x1[:, None]), x1[:, None])
     cols = jnp.maximum(col1 - col0, 0)
-    ends = jnp.cumsum(g_rows * cols, axis=1, dtype=jnp.int32)
+    ends = running_sum((g_rows * cols).astype(jnp.int32), axis=1)
     return FootprintRows(row0, row1, step, col0, cols, ends)
 
 
@@ -277,7 +278,7 @@ def _slot_pairs(rows: FootprintRows, starts: jax.Array, counts: jax.Array, max_p
     first = jnp.where(live, first, max_pairs).reshape(-1)
     group_id = jnp.arange(num_gaussians * groups, dtype=jnp.int32)
     group = jnp.zeros(max_pairs, jnp.int32).at[first].max(group_id, mode="drop")
-    group = jax.lax.cummax(group)
+    group = running_max(group)
     owner, j = group // groups, group % groups
     per_group = jnp.stack([first, rows.col0.reshape(-1), rows.cols.reshape(-1)], axis=-1)[group]  # one gather
     per_owner = jnp.stack([rows.row0, rows.step], axis=-1)[owner]
