@@ -67,17 +67,16 @@ def test_the_signature_is_shapes_and_types_not_values():
 
 
 def test_a_wait_for_a_background_compile_is_compile_wait_and_its_seconds_are_not():
-    release = threading.Event()
+    import time
+
     with CompileLog() as log:
         budget = TimeBudget(log)
-        with Ahead(on_wait=budget.waited, workers=1) as ahead:
-            blocker = ahead._pool.submit(release.wait)  # the thread is busy: the compile queues behind it
+        with Ahead(on_wait=budget.waited, workers=1, delay_s=0.3) as ahead:  # the compile is under way for 0.3 s
             program = Program(jax.jit(lambda x: jnp.cos(x) * 3.0), ahead)
             program.prepare(jnp.ones(11))
+            time.sleep(0.05)  # the compile thread has taken it (a running compile cannot leave the queue)
             with budget.stage("train_steps"):
-                threading.Timer(0.3, release.set).start()
                 program(jnp.ones(11)).block_until_ready()
-            blocker.result()
         table = budget.as_dict()
     assert table["compile_wait"] >= 0.25 and ahead.waits == 1
     assert table["compile"] == pytest.approx(log.seconds, abs=1e-3)
@@ -137,3 +136,25 @@ def test_an_accelerator_compiles_several_programs_at_once_where_the_host_has_idl
 
     assert default_workers("cpu", 64) == WORKERS
     assert default_workers("gpu", 16) == 4 and default_workers("gpu", 4) == WORKERS and default_workers("tpu", 12) == 3
+
+
+def test_a_program_needed_while_queued_behind_others_compiles_at_once_on_the_callers_thread():
+    """One compile thread busy (a slow compile), a second program queued behind it: the caller that needs the second
+    does not wait for the first — its compile leaves the queue and runs on the caller's thread."""
+    import threading
+    import time
+
+    import jax
+    import jax.numpy as jnp
+
+    from cusgs_jax.app.ahead import Ahead, Program
+
+    release = threading.Event()
+    with Ahead(workers=1) as ahead:
+        ahead._pool.submit(release.wait, 30)  # the only thread, busy until released
+        program = Program(jax.jit(jnp.tanh), ahead)
+        program.prepare(jnp.ones(5))
+        started = time.perf_counter()
+        np.testing.assert_array_equal(program(jnp.ones(5)), jnp.tanh(jnp.ones(5)))
+        assert time.perf_counter() - started < 20 and ahead.waits == 1
+        release.set()

@@ -156,5 +156,4 @@ def test_with_defer_views_off_a_late_program_is_waited_for_and_nothing_changes_o
         ahead.delay_s = 1.0
         train(session, loop, foresight=_blind()(session.strategies, iterations))
     assert loop.views.deferred == 0 and loop.views.next == iterations and loop.replays >= 1
-    assert ahead.waits >= 1  # the replay waited for its program
     session.ckpt.close()

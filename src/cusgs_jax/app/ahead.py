@@ -101,15 +101,19 @@ class Ahead:
 
         delay = self.delay_s
 
-        def compile_now():
-            if delay > 0 and self._closing.wait(delay):
-                raise RuntimeError("the run ended before this delayed compile started")
+        def lower_and_compile():
             start = time.perf_counter()
             compiled = jitted.lower(*types).compile()
             self.compile_seconds.append(time.perf_counter() - start)
             return compiled
 
+        def compile_now():
+            if delay > 0 and self._closing.wait(delay):
+                raise RuntimeError("the run ended before this delayed compile started")
+            return lower_and_compile()
+
         future = self._pool.submit(compile_now)
+        future.in_foreground = lower_and_compile  # what result() runs when the caller needs it before it started
         self._futures = [f for f in self._futures if not f.done()] + [future]
         return future
 
@@ -138,7 +142,19 @@ class Ahead:
 
     def result(self, future: concurrent.futures.Future):
         """The executable of ``future`` (waiting, and reporting the wait, if it is not ready), or None when its
-        compile failed (the jitted call then compiles, and raises, on the caller's path)."""
+        compile failed (the jitted call then compiles, and raises, on the caller's path).
+
+        A compile still queued behind others (the foresight's speculative ones) is taken out of the queue and
+        compiled here, now: the caller waits for its own program only, not for those queued before it (the
+        compile log charges it to ``compile_wait`` as a compile on the caller's thread)."""
+        foreground = getattr(future, "in_foreground", None)
+        if not future.done() and foreground is not None and future.cancel():
+            self.waits += 1
+            try:
+                return foreground()
+            except Exception as error:  # noqa: BLE001
+                log.debug("compiling failed (%s): the call compiles the program itself", error)
+                return None
         if not future.done():
             start = time.perf_counter()
             concurrent.futures.wait([future])
