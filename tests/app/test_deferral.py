@@ -132,6 +132,7 @@ def test_without_background_compiles_nothing_is_deferred(tiny_scene, tmp_path):
     session.ckpt.close()
 
 
+@pytest.mark.slow  # 45 s on a loaded 2-core machine; the deferring loop's own test stays in the default run
 def test_with_defer_views_off_a_late_program_is_waited_for_and_nothing_changes_order(tiny_scene, tmp_path):
     """``train.defer_views=false``: the loop waits for a late program (the numbers never depend on when a background
     compile finished); nothing is deferred, the replay still happens."""
