@@ -243,7 +243,7 @@ def test_a_scene_seen_whole_from_every_view_trains_without_dropping_work(tmp_pat
 
     monkeypatch.setattr(capacity, "PAIR_SLACK", 0)  # else the fixed slack alone holds this tiny scene's pairs
     tiny = capacity.Capacities(visible_fraction=0.05, active_fraction=0.05, pairs_per_active=0.05)
-    monkeypatch.setattr(loop_module, "_fitted_capacities", lambda session, state: tiny)  # start far below the need
+    monkeypatch.setattr(loop_module, "_fitted_capacities", lambda session, state, **kwargs: tiny)  # start far below the need
     scene = object_scene(tmp_path / "object", views=6, width=32, height=24, num_points=300)
     out = tmp_path / "run"
     result = run(_cfg(scene, "train.iterations=6", "train.log_every=1", "train.checkpoint_every=0", "eval.every=0",
