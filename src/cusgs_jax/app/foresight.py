@@ -127,7 +127,7 @@ class Foresight:
         capacity (an update that only removes anchors — a pruning pass, an early cull — needs none)."""
         if self._next_due is None or self._next_due <= done:
             self._next_due = next((d for d in range(done + 1, self.iterations + 1)
-                                   if any(s.due(d) and not _only_removes(s, d) for s in self.strategies)), None)
+                                   if any(s.due(d) and not only_removes(s, d) for s in self.strategies)), None)
         return self._next_due
 
     def lead_steps(self, compile_seconds: list[float]) -> int:
@@ -213,10 +213,10 @@ class Foresight:
         return grows or not planned[0].roomy(needs, capacity, cfg.model.n_offsets, headroom=FIT_HEADROOM), requests
 
 
-def _only_removes(strategy, step: int) -> bool:
+def only_removes(strategy, step: int) -> bool:
     """:meth:`~cusgs_jax.densify.base.Strategy.only_removes` (False for a strategy without the hook)."""
-    only_removes = getattr(strategy, "only_removes", None)
-    return bool(only_removes(step)) if only_removes is not None else False
+    hook = getattr(strategy, "only_removes", None)
+    return bool(hook(step)) if hook is not None else False
 
 
 @jax.jit

@@ -34,7 +34,7 @@ from cusgs_jax.app.ahead import Program
 from cusgs_jax.app.ahead import specs as ahead_specs
 from cusgs_jax.app.alarms import loss_alarms
 from cusgs_jax.app.deferral import ViewQueue
-from cusgs_jax.app.foresight import Foresight
+from cusgs_jax.app.foresight import Foresight, only_removes
 from cusgs_jax.app.programs import StepPrograms
 from cusgs_jax.app.resume import resume
 from cusgs_jax.app.session import Session, spread
@@ -156,8 +156,10 @@ def _start(session: Session) -> Loop:
 def _compile_ahead(session: Session, loop: Loop, requests) -> None:
     """Hand what the foresight plans (:class:`~cusgs_jax.app.foresight.Request` s) to the programs' owners: the
     step's to :class:`~cusgs_jax.app.programs.StepPrograms`, the evaluation render's to its render."""
-    for request in requests or ():
-        batch = loop.batch_types if loop.batch_types is not None else session.batches(0)  # one type for all
+    if not requests:
+        return
+    batch = loop.batch_types if loop.batch_types is not None else session.batches(0)  # one type for every batch
+    for request in requests:
         if loop.steps.prepare(request.capacities, request.state, batch):
             log.debug("compiling ahead the step for %d anchor slots, %s", request.state.anchors.capacity,
                       request.capacities)
@@ -191,7 +193,7 @@ def growth_forecast(session: Session, state: TrainState, backend: str | None = N
 def _will_grow(strategies, iterations: int) -> bool:
     """Whether an update of ``strategies`` within ``iterations`` steps may add anchors (one that does more than
     remove them: :meth:`~cusgs_jax.densify.base.Strategy.only_removes`)."""
-    return any(strategy.due(step) and not (getattr(strategy, "only_removes", None) and strategy.only_removes(step))
+    return any(strategy.due(step) and not only_removes(strategy, step)
                for strategy in strategies for step in range(1, iterations + 1))
 
 
