@@ -2,8 +2,8 @@
 
 On a CPU backend XLA runs ``jnp.cumsum`` and ``jax.lax.cummax`` as a reduce-window over the whole axis, and
 ``jnp.nonzero(..., size=...)`` adds two of them; a parallel prefix (``jax.lax.associative_scan``, Blelloch's
-work-efficient scan) is 1.7–4× faster on the step's sizes (``benchmarks/scan_bench.py``) and, for integers,
-gives the same values bit for bit. These helpers take integer or boolean inputs only (a float scan's rounding would
+work-efficient scan) is faster on the step's sizes (``benchmarks/scan_bench.py`` measures both) and, for
+integers, gives the same values bit for bit. These helpers take integer or boolean inputs only (a float scan's rounding would
 depend on the order of the additions).
 """
 

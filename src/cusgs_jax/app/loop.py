@@ -179,7 +179,7 @@ def _prepare_render(session: Session, loop: Loop, anchors) -> None:
 
 def growth_forecast(session: Session, state: TrainState, backend: str | None = None) -> float:
     """How much the start's fit scales the probed views' need (:meth:`~cusgs_jax.training.capacity.Capacities.fitted`'s
-    ``fill``): on an accelerator, where a wider step costs little and each step compile ~18 s, the growth the
+    ``fill``): on an accelerator, where a wider step costs little and a step compile much, the growth the
     strategies forecast when one of them grows the alive anchors into the capacity
     (:func:`~cusgs_jax.training.capacity.growth_fill`), so the replays a growth would bring do not happen; on a CPU,
     where every slot costs step time and a grown program compiles in the background while the loop trains around

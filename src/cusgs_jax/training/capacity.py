@@ -199,8 +199,7 @@ class Capacities:
             (:func:`cusgs_jax.training.render.view_work`).
           fill: the growth of the need the run forecasts (≥ 1): every need is scaled by it before the headroom —
             :func:`growth_fill` where a strategy will grow the alive anchors into the capacity (a view then sees
-            about ``fill`` times the anchors it sees now: the README's main job, A/alive = 2.0, measured 1.7–2.2×
-            by step 800–3000), 1 for a fit to what the views need now.
+            about ``fill`` times the anchors it sees now), 1 for a fit to what the views need now.
         Returns:
           visible slots ≥ 1.1 × the visible anchors (in buckets of 1/8 of A), active Gaussians
           ≥ 1.15 × the active ones (buckets of 1/16 of S·N), pairs ≥ 1.25 × the pairs (steps of 0.5
