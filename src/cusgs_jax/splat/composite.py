@@ -29,6 +29,12 @@ T, and uses
 
 the suffix sum obtained in the same front-to-back order from the saved total
 (gsplat's backward walks back to front and divides T by (1 − α) instead).
+
+The chain rule through σ needs, per pair, Σ_s ∂L/∂σ times dx, dy, dx², dx dy, dy² over the
+tile's pixels. With the pixel at (lx, ly) from the tile's top-left corner and the mean at
+(u, v) from it, dx = u − lx and dy = v − ly, so these are polynomials in (u, v) whose
+coefficients are the moments Σ_s ∂L/∂σ · {1, lx, ly, lx², lx ly, ly²} — one matmul of the
+chunk's ∂L/∂σ against a [S, 6] basis shared by every tile (``_pixel_basis``).
 """
 
 from __future__ import annotations
@@ -234,13 +240,13 @@ SMALL_CHANNELS = 8  # up to this many channels the per-lane contractions are wri
 def _weighted_sum(weight: jax.Array, feat: jax.Array) -> jax.Array:
     """Σ_b weight[m, b, s] · feat[m, b, c] → [M, S, C].
 
-    For few channels (RGB + depth) a batched ``dot_general`` of M tiny matrices is slow on CPU
-    (the largest single op of the forward loop at 640×480); one fused multiply-reduce per
-    channel is not.
+    For few channels (RGB + depth) a batched ``dot_general`` of M tiny matrices is slow on CPU;
+    one multiply-reduce over a broadcast [M, B, C, S] product is a single fused reduction (one per
+    channel was C passes over ``weight``).
     """
     if feat.shape[-1] > SMALL_CHANNELS:
         return jnp.einsum("mbs,mbc->msc", weight, feat, precision=HIGHEST)
-    return jnp.stack([jnp.sum(weight * feat[:, :, c, None], axis=1) for c in range(feat.shape[-1])], axis=-1)
+    return jnp.moveaxis(jnp.sum(weight[:, :, None, :] * feat[..., None], axis=1), 1, 2)
 
 
 def _channel_dot(lane_g: jax.Array, feat: jax.Array) -> jax.Array:
@@ -254,10 +260,21 @@ def _channel_dot(lane_g: jax.Array, feat: jax.Array) -> jax.Array:
 
 
 def _pixel_sum(weight: jax.Array, lane_g: jax.Array) -> jax.Array:
-    """Σ_s weight[m, b, s] · lane_g[m, s, c] → [M, B, C] (see :func:`_weighted_sum`)."""
+    """Σ_s weight[m, b, s] · lane_g[m, s, c] → [M, B, C] (one fused reduction, see :func:`_weighted_sum`)."""
     if lane_g.shape[-1] > SMALL_CHANNELS:
         return jnp.einsum("mbs,msc->mbc", weight, lane_g, precision=HIGHEST)
-    return jnp.stack([jnp.sum(weight * lane_g[:, None, :, c], axis=-1) for c in range(lane_g.shape[-1])], axis=-1)
+    return jnp.sum(weight[:, :, None, :] * jnp.moveaxis(lane_g, 1, 2)[:, None], axis=-1)
+
+
+def _pixel_basis(tile_size: int, dtype) -> jax.Array:
+    """[S, 6] the monomials {1, lx, ly, lx², lx ly, ly²} of each pixel centre from its tile's corner.
+
+    The same for every tile, so the backward's per-pair pixel moments of a whole chunk are one
+    plain [M·2·B, S] × [S, 6] matmul rather than six reductions over [M, B, S] products.
+    """
+    iy, ix = np.divmod(np.arange(tile_size * tile_size), tile_size)
+    lx, ly = ix + 0.5, iy + 0.5
+    return jnp.asarray(np.stack([np.ones_like(lx), lx, ly, lx * lx, lx * ly, ly * ly], axis=-1), dtype)
 
 
 def _records(means2d, conics, opacities):
@@ -364,6 +381,8 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
     total = jnp.sum(g_color * color_fg, axis=-1)
     tail = trans_final * g_trans
     need = jnp.max(last, axis=-1)  # [T] slots each tile must revisit
+    basis = _pixel_basis(grid.tile_size, dtype)
+    tile_origin = pixels[:, 0, :] - 0.5  # [T, 2] each tile's top-left corner
     schedule = _schedule(need)
     lanes = min(lanes, num_tiles)
 
@@ -388,9 +407,17 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
         d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
         d_sigma = -d_alpha * a
-        dx, dy = ch.dx, ch.dy
-        sx = jnp.sum(d_sigma * dx, axis=-1)
-        sy = jnp.sum(d_sigma * dy, axis=-1)
+        # The σ moments Σ_s dσ·{dx, dy, dx², dx dy, dy²} and Σ_s dα·G from one matmul against the
+        # tile-local pixel basis (module doc): dx = u − lx with u the mean from the tile's corner.
+        num_lanes, num_slots, num_pix = d_sigma.shape
+        left = jnp.stack([d_sigma, d_alpha * ch.gauss], axis=1).reshape(num_lanes * 2 * num_slots, num_pix)
+        moments = jnp.dot(left, basis, precision=HIGHEST).reshape(num_lanes, 2, num_slots, 6)
+        s0, s1, s2, s3, s4, s5 = (moments[:, 0, :, i] for i in range(6))
+        origin = tile_origin[safe]  # [M, 2]
+        u = ch.mean[..., 0] - origin[:, None, 0]
+        v = ch.mean[..., 1] - origin[:, None, 1]
+        sx = u * s0 - s1  # Σ dσ dx
+        sy = v * s0 - s2  # Σ dσ dy
         ca, cb, cc = ch.conic[..., 0], ch.conic[..., 1], ch.conic[..., 2]
         pair = jnp.concatenate(
             [
@@ -398,10 +425,10 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
                     [
                         ca * sx + cb * sy,  # ∂σ/∂μx = a dx + b dy
                         cc * sy + cb * sx,  # ∂σ/∂μy = c dy + b dx
-                        0.5 * jnp.sum(d_sigma * dx * dx, axis=-1),
-                        jnp.sum(d_sigma * dx * dy, axis=-1),
-                        0.5 * jnp.sum(d_sigma * dy * dy, axis=-1),
-                        jnp.sum(d_alpha * ch.gauss, axis=-1),
+                        0.5 * (u * u * s0 - 2.0 * u * s1 + s3),  # ½ Σ dσ dx²
+                        u * v * s0 - u * s2 - v * s1 + s4,  # Σ dσ dx dy
+                        0.5 * (v * v * s0 - 2.0 * v * s2 + s5),  # ½ Σ dσ dy²
+                        moments[:, 1, :, 0],  # Σ dα G
                     ],
                     axis=-1,
                 ),
