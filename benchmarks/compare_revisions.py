@@ -16,9 +16,13 @@ other work on the shared machine affects both alike. A round (``--child``):
 3. times the held-out render (``make_render_fn`` on the compacted anchors, median over the
    held-out views after one compiling call) and reports the process's peak RSS.
 
-The parent prints per-round step-time ratios old/new and their median.
+The parent prints per-round step-time ratios old/new and their median. With ``--lockstep`` both
+children run at once and take turns step by step (the parent signals one, waits for its step,
+then the other; who goes first alternates), and each round also reports the median of the
+per-step-pair ratios — on a machine whose speed drifts within seconds this is the steadier number.
 
     python benchmarks/compare_revisions.py --old e908d45 --scene demo --rounds 3
+    python benchmarks/compare_revisions.py --old-src /tmp/old/src --scene demo --lockstep --steps 60 --rounds 1
     python benchmarks/compare_revisions.py --old e908d45 --scene ~/.cache/cusgs_jax/scale_bench/<scene> \\
         --steps 5 --rounds 2
 """
@@ -106,6 +110,10 @@ def child(args) -> dict:
 
     step_fn, replays, compile_s, times, replays_timed = build(caps), 0, None, [], 0
     for i in range(args.warmup + args.steps):
+        if args.lockstep and i >= args.warmup:
+            if i == args.warmup:
+                print("READY", flush=True)
+            sys.stdin.readline()  # the parent's turn signal: the other revision is idle now
         v = int(train_idx[i % len(train_idx)])
         batch = dict(image=images[v], camera=Camera.of_scene(scene, v), index=jnp.int32(i % len(train_idx)))
         while True:
@@ -122,6 +130,8 @@ def child(args) -> dict:
             replays_timed += i >= args.warmup
         if i >= args.warmup:
             times.append(elapsed)
+            if args.lockstep:
+                print(f"STEP {elapsed!r}", flush=True)
     # held-out render of the compacted model
     anchors = compact(state.anchors)
     render = make_render_fn(cfg, caps) if new_api else make_render_fn(cfg)
@@ -164,6 +174,47 @@ def run_child(src: pathlib.Path, args) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def lockstep(old_src: pathlib.Path, new_src: pathlib.Path, args) -> dict:
+    """Both revisions' children at once, taking turns step by step (the parent hands one step to
+    one child, waits for its time, then the other; the first alternates), so a load change on the
+    shared machine lands on both alike. Returns both children's results and the per-pair ratios."""
+    cmd = [sys.executable, os.path.abspath(__file__), "--child", "--lockstep", "--scene", args.scene,
+           "--steps", str(args.steps), "--warmup", str(args.warmup), "--render-views", str(args.render_views),
+           "--seed", str(args.seed)]
+    procs = {name: subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(src)), stdin=subprocess.PIPE,
+                                    stdout=subprocess.PIPE, text=True, cwd=tempfile.gettempdir())
+             for name, src in (("old", old_src), ("new", new_src))}
+
+    def read(name):
+        line = procs[name].stdout.readline()
+        if not line:
+            raise SystemExit(f"the {name} child ended early (exit {procs[name].wait()})")
+        return line.strip()
+
+    for name in procs:  # compile and warm up, one after the other
+        while read(name) != "READY":
+            pass
+    times = {"old": [], "new": []}
+    for i in range(args.steps):
+        for name in (("old", "new") if i % 2 == 0 else ("new", "old")):
+            procs[name].stdin.write("go\n")
+            procs[name].stdin.flush()
+            line = read(name)
+            while not line.startswith("STEP "):
+                line = read(name)
+            times[name].append(float(line.split()[1]))
+    results = {}
+    for name, proc in procs.items():
+        out, _ = proc.communicate()
+        if proc.returncode:
+            raise SystemExit(f"the {name} child failed (exit {proc.returncode})")
+        results[name] = json.loads(out.strip().splitlines()[-1])
+    ratios = [a / b for a, b in zip(times["old"], times["new"])]
+    import statistics
+    return dict(results, pair_ratios_old_over_new=ratios,
+                median_pair_ratio_old_over_new=statistics.median(ratios))
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--old", default="e908d45", help="git revision to compare against (default: the "
@@ -176,6 +227,8 @@ def main(argv=None):
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--render-views", type=int, default=4)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--lockstep", action="store_true",
+                        help="run both revisions at once, taking turns step by step (ratios per step pair)")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.child:
@@ -192,12 +245,16 @@ def main(argv=None):
             order = [("old", old_src), ("new", args.new_src)]
             if r % 2:
                 order.reverse()
-            result = {name: run_child(src, args) for name, src in order}
+            if args.lockstep:
+                result = lockstep(old_src, args.new_src, args)
+            else:
+                result = {name: run_child(src, args) for name, src in order}
             result["ratio_old_over_new"] = result["old"]["median_step_s"] / result["new"]["median_step_s"]
             result["render_ratio_old_over_new"] = (result["old"]["render_ms_per_view"]
                                                    / result["new"]["render_ms_per_view"])
             rounds.append(result)
             print(json.dumps(dict(round=r, old_step_s=result["old"]["median_step_s"],
+                                  median_pair_ratio=result.get("median_pair_ratio_old_over_new"),
                                   new_step_s=result["new"]["median_step_s"],
                                   ratio=result["ratio_old_over_new"])), file=sys.stderr, flush=True)
     finally:
