@@ -111,9 +111,8 @@ def child(args) -> dict:
     step_fn, replays, compile_s, times, replays_timed = build(caps), 0, None, [], 0
     for i in range(args.warmup + args.steps):
         if args.lockstep and i >= args.warmup:
-            if i == args.warmup:
-                print("READY", flush=True)
-            sys.stdin.readline()  # the parent's turn signal: the other revision is idle now
+            from lockstep import wait_turn
+            wait_turn(first=i == args.warmup)  # the other revision is idle while this one steps
         v = int(train_idx[i % len(train_idx)])
         batch = dict(image=images[v], camera=Camera.of_scene(scene, v), index=jnp.int32(i % len(train_idx)))
         while True:
@@ -131,7 +130,8 @@ def child(args) -> dict:
         if i >= args.warmup:
             times.append(elapsed)
             if args.lockstep:
-                print(f"STEP {elapsed!r}", flush=True)
+                from lockstep import report_step
+                report_step(elapsed)
     # held-out render of the compacted model
     anchors = compact(state.anchors)
     render = make_render_fn(cfg, caps) if new_api else make_render_fn(cfg)
@@ -175,44 +175,17 @@ def run_child(src: pathlib.Path, args) -> dict:
 
 
 def lockstep(old_src: pathlib.Path, new_src: pathlib.Path, args) -> dict:
-    """Both revisions' children at once, taking turns step by step (the parent hands one step to
-    one child, waits for its time, then the other; the first alternates), so a load change on the
-    shared machine lands on both alike. Returns both children's results and the per-pair ratios."""
+    """Both revisions' children at once, taking turns step by step (``lockstep.py``)."""
+    from lockstep import run_pairs
+
     cmd = [sys.executable, os.path.abspath(__file__), "--child", "--lockstep", "--scene", args.scene,
            "--steps", str(args.steps), "--warmup", str(args.warmup), "--render-views", str(args.render_views),
            "--seed", str(args.seed)]
-    procs = {name: subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(src)), stdin=subprocess.PIPE,
-                                    stdout=subprocess.PIPE, text=True, cwd=tempfile.gettempdir())
-             for name, src in (("old", old_src), ("new", new_src))}
-
-    def read(name):
-        line = procs[name].stdout.readline()
-        if not line:
-            raise SystemExit(f"the {name} child ended early (exit {procs[name].wait()})")
-        return line.strip()
-
-    for name in procs:  # compile and warm up, one after the other
-        while read(name) != "READY":
-            pass
-    times = {"old": [], "new": []}
-    for i in range(args.steps):
-        for name in (("old", "new") if i % 2 == 0 else ("new", "old")):
-            procs[name].stdin.write("go\n")
-            procs[name].stdin.flush()
-            line = read(name)
-            while not line.startswith("STEP "):
-                line = read(name)
-            times[name].append(float(line.split()[1]))
-    results = {}
-    for name, proc in procs.items():
-        out, _ = proc.communicate()
-        if proc.returncode:
-            raise SystemExit(f"the {name} child failed (exit {proc.returncode})")
-        results[name] = json.loads(out.strip().splitlines()[-1])
-    ratios = [a / b for a, b in zip(times["old"], times["new"])]
-    import statistics
-    return dict(results, pair_ratios_old_over_new=ratios,
-                median_pair_ratio_old_over_new=statistics.median(ratios))
+    out = run_pairs({name: (cmd, dict(os.environ, PYTHONPATH=str(src)))
+                     for name, src in (("old", old_src), ("new", new_src))}, args.steps)
+    out["pair_ratios_old_over_new"] = out.pop("pair_ratios")
+    out["median_pair_ratio_old_over_new"] = out.pop("median_pair_ratio")
+    return out
 
 
 def main(argv=None):

@@ -7,6 +7,7 @@ JSON line per tree and round, then the per-round ratios old/new.
 
     git worktree add --detach /tmp/old 834d7df
     python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --rounds 3
+    python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --rounds 1 --lockstep
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import tempfile
 import time
 
 
-def child(src: str) -> dict:
+def child(src: str, lockstep: bool = False) -> dict:
     from cusgs_jax.app import loop as run_loop
     from cusgs_jax.app.session import setup
     from cusgs_jax.compose import compose_config
@@ -33,9 +34,15 @@ def child(src: str) -> dict:
         (getattr(run_loop, "exact_step", None) or run_loop._exact_step)(session, loop, batch(step))
     times = []
     for step in range(5, 45):
+        if lockstep:
+            from lockstep import wait_turn
+            wait_turn(first=step == 5)
         start = time.perf_counter()
         (getattr(run_loop, "exact_step", None) or run_loop._exact_step)(session, loop, batch(step))
         times.append(time.perf_counter() - start)
+        if lockstep:
+            from lockstep import report_step
+            report_step(times[-1])
     return dict(src=src, median_step_s=statistics.median(times))
 
 
@@ -44,10 +51,23 @@ def main() -> None:
     ap.add_argument("--old-src", required=True)
     ap.add_argument("--new-src", required=True)
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--lockstep", action="store_true",
+                    help="run both trees at once, taking turns step by step (per-pair ratios; lockstep.py)")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.child)))
+        print(json.dumps(child(args.child, args.lockstep)))
+        return
+    if args.lockstep:
+        from lockstep import run_pairs
+        for r in range(args.rounds):
+            cmds = {name: ([sys.executable, os.path.abspath(__file__), "--old-src", args.old_src, "--new-src",
+                            args.new_src, "--lockstep", "--child", src],
+                           dict(os.environ, PYTHONPATH=os.path.abspath(src)))
+                    for name, src in (("old", args.old_src), ("new", args.new_src))}
+            out = run_pairs(cmds, 40)
+            print(json.dumps(dict(round=r, old=out["old"], new=out["new"], median_pair_ratio_old_over_new=out[
+                "median_pair_ratio"], pair_ratios_old_over_new=out["pair_ratios"])), flush=True)
         return
     rows = []
     for _ in range(args.rounds):
