@@ -433,6 +433,7 @@ class FeatureConfig:
     hidden: int = 32
     weight: float = 0.5  # λ_e (M3)
     sample_pixels: int = 2000  # pixels per step for the feature loss; 0 = all
+    sparse_queries: bool = True  # the train step composites the queries only at the pixels the loss can read
     max_bank_entries: int = 1024  # PSC cap per model (rows are scanned in a seeded random order)
     psc_rows: int = 200_000  # training pixels (seeded random subset) the PSC scan looks at
     auto_extract: bool = True  # extract missing built-in features (daisy, hog, gabor, semantic, vgg16)

@@ -568,3 +568,48 @@ def test_step_settings_are_what_every_batch_carries(tiny_scene):
         for a, b in zip(jax.tree_util.tree_leaves(batch[key]), jax.tree_util.tree_leaves(value), strict=True):
             np.testing.assert_array_equal(a, b)
     assert float(settings["loss_weights"]["l1"]) == np.float32(0.7)
+
+
+def test_queries_composited_only_where_the_feature_loss_reads_take_the_dense_step(monkeypatch):
+    """``features.sparse_queries`` composites the queries at the pixels the feature loss can read (each map's
+    pixel centres) only: the step's loss and update are those of compositing them everywhere (to rounding)."""
+    from cusgs_jax.config import FeatureModelConfig
+    from cusgs_jax.splat.render import SparseChannels
+    from cusgs_jax.model.field import read_pixels
+    from cusgs_jax.testing.scenes import random_banks
+
+    models = (FeatureModelConfig("a", query_dim=4), FeatureModelConfig("b", query_dim=6))
+    banks = {name: jnp.asarray(b) for name, b in random_banks({"a": (5, 3), "b": (7, 2)}).items()}
+    rng = np.random.default_rng(4)
+    maps = {"a": (6, 8, 3), "b": (4, 5, 2)}  # coarser than the 24×32 image, as a stride-4/6 tap
+    batch = dict(_batch(1), banks=banks,
+                 features={name: jnp.asarray(rng.normal(size=shape).astype(np.float32)) for name, shape in maps.items()})
+    pixels = read_pixels({name: shape[:2] for name, shape in maps.items()}, (H, W))
+    assert pixels is not None and len(pixels) <= 6 * 8 + 4 * 5
+    listed = []
+    slots = SparseChannels.slots
+    monkeypatch.setattr(SparseChannels, "slots", lambda self, grid: listed.append(self) or slots(self, grid))
+    results = {}
+    for sparse in (False, True):
+        cfg = _cfg().replace(features=dict(models=models, hidden=8, sparse_queries=sparse, sample_pixels=0))
+        strategies = make_strategies(cfg)
+        state, tx = init_train_state(cfg, sfm_points(), 2, 2.0, strategies, banks)
+        step = make_train_step(cfg, tx, strategies)
+        state, metrics = step(state, batch)
+        state, metrics = step(state, batch)  # a second step: the first update moved the queries' heads
+        results[sparse] = jax.device_get((state.trainable, metrics["loss"]))
+        assert bool(listed) == sparse and all(x == SparseChannels(10, pixels) for x in listed)
+    np.testing.assert_allclose(results[True][1], results[False][1], rtol=1e-5)
+    for a, b in zip(jax.tree_util.tree_leaves(results[True][0]), jax.tree_util.tree_leaves(results[False][0])):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+
+
+def test_read_pixels_are_the_image_pixels_the_feature_loss_samples():
+    from cusgs_jax.model.field import image_pixel_of, read_pixels
+
+    pixels = read_pixels({"a": (30, 40), "b": (12, 16)}, (120, 160))
+    rows, cols = image_pixel_of(np.arange(30)[:, None].repeat(40, 1).ravel(), np.tile(np.arange(40), 30),
+                                (30, 40), (120, 160))
+    assert set(np.asarray(rows) * 160 + np.asarray(cols)) <= set(pixels)
+    assert len(pixels) == len(set(pixels)) <= 30 * 40 + 12 * 16
+    assert read_pixels({"full": (120, 160)}, (120, 160)) is None  # a full-resolution map: every pixel

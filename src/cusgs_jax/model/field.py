@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from cusgs_jax.config import FeatureConfig
 from cusgs_jax.memory.attention import attend, init_memory_head, precompute_keys
@@ -88,6 +89,29 @@ def image_pixel_of(row, col, feature_hw: tuple[int, int], image_hw: tuple[int, i
     img_row = jnp.minimum(((jnp.asarray(row) + 0.5) * height / fh).astype(jnp.int32), height - 1)
     img_col = jnp.minimum(((jnp.asarray(col) + 0.5) * width / fw).astype(jnp.int32), width - 1)
     return img_row, img_col
+
+
+def read_pixels(feature_hw: dict, image_hw: tuple[int, int], max_fraction: float = 0.5) -> tuple[int, ...] | None:
+    """The flat image pixels (``row · W + column``) :func:`sampled_feature_loss` can read: the pixel nearest
+    each feature-map pixel's centre (:func:`image_pixel_of`), over every model — what the rendered queries are
+    needed at (``splat.SparseChannels``). None when they cover more than ``max_fraction`` of the image (a
+    full-resolution map: compositing them everywhere costs about as much).
+
+    Args:
+      feature_hw: {name: (h, w)} each model's feature-map size (static shapes).
+      image_hw: (H, W).
+    """
+    height, width = image_hw
+    flat = []
+    with jax.ensure_compile_time_eval():  # the very arithmetic the loss traces, on concrete indices
+        for fh, fw in feature_hw.values():
+            index = np.arange(fh * fw)
+            row, col = image_pixel_of(index // fw, index % fw, (fh, fw), (height, width))
+            flat.append(np.asarray(row, np.int64) * width + np.asarray(col, np.int64))
+    pixels = np.unique(np.concatenate(flat)) if flat else np.zeros(0, np.int64)
+    if pixels.size == 0 or pixels.size > max_fraction * height * width:
+        return None
+    return tuple(int(p) for p in pixels)
 
 
 def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: dict, key: jax.Array,

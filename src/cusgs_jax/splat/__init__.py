@@ -12,6 +12,7 @@ from cusgs_jax.splat.render import (
     RASTERIZE_STATIC_ARGNAMES,
     Compositor,
     RenderOutput,
+    SparseChannels,
     check_inputs,
     check_values,
     default_max_pairs,
@@ -24,7 +25,7 @@ from cusgs_jax.splat.sh import sh_basis, sh_to_rgb
 from cusgs_jax.splat.tiles import TileGrid, TileIntersections, intersect_tiles
 
 __all__ = [
-    "RASTERIZE_STATIC_ARGNAMES", "Composite", "Compositor", "Projection", "RenderOutput", "TileGrid",
+    "RASTERIZE_STATIC_ARGNAMES", "Composite", "Compositor", "Projection", "RenderOutput", "SparseChannels", "TileGrid",
     "TileIntersections", "check_inputs", "check_values", "composite_tiles", "default_max_pairs", "intersect_tiles",
     "normalize_quats", "project_gaussians", "quats_to_rotmats", "rasterize", "rasterize_batch",
     "rasterize_batch_jit", "rasterize_jit", "sh_basis", "sh_to_rgb",

@@ -65,6 +65,8 @@ class Composite(NamedTuple):
       last: [T, S] int32 one past the slot (within the tile) of the last one.
       significance: [G] Σ over composited pixels of o·T (not differentiable).
       hits: [G] int32 number of pixels each Gaussian was composited into.
+      sparse: [T, K, Q] Σ c α T of the sparse channels at each tile's K listed pixels (``sparse_slots``),
+        or None when there are none.
     """
 
     colors: jax.Array
@@ -73,6 +75,7 @@ class Composite(NamedTuple):
     last: jax.Array
     significance: jax.Array
     hits: jax.Array
+    sparse: jax.Array | None = None
 
 
 def pixel_centers(grid: TileGrid, dtype=jnp.float32) -> tuple[jax.Array, jax.Array]:
@@ -277,11 +280,33 @@ def _pixel_basis(tile_size: int, dtype) -> jax.Array:
     return jnp.asarray(np.stack([np.ones_like(lx), lx, ly, lx * lx, lx * ly, ly * ly], axis=-1), dtype)
 
 
+def _at_slots(x: jax.Array, slots: jax.Array, listed: jax.Array) -> jax.Array:
+    """x [M, B, S] read at each lane's K listed pixels: [M, B, K] (0 at unlisted slots).
+
+    Args:
+      slots: [M, K] pixel index within the tile (clipped into range); listed: [M, K] bool.
+    """
+    taken = jnp.take_along_axis(x, jnp.broadcast_to(slots[:, None, :], x.shape[:2] + slots.shape[1:]), axis=2)
+    return jnp.where(listed[:, None, :], taken, jnp.zeros((), x.dtype))
+
+
+def _from_slots(values: jax.Array, slots: jax.Array, listed: jax.Array, num_pixels: int) -> jax.Array:
+    """The transpose of :func:`_at_slots`: [M, B, K] values placed at their pixels of [M, B, S] (the K listed
+    pixels of a tile are distinct), as K fused selects."""
+    pixel = jnp.arange(num_pixels, dtype=jnp.int32)
+    out = jnp.zeros(values.shape[:2] + (num_pixels,), values.dtype)
+    for k in range(values.shape[2]):
+        here = ((pixel[None, :] == slots[:, k, None]) & listed[:, k, None])[:, None, :]  # [M, 1, S]
+        out = out + jnp.where(here, values[:, :, k, None], jnp.zeros((), values.dtype))
+    return out
+
+
 def _records(means2d, conics, opacities):
     return jnp.concatenate([means2d, conics, opacities[:, None]], axis=-1)
 
 
-def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends) -> Composite:
+def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends,
+             sparse=None, sparse_slots=None) -> Composite:
     pixels, inside = pixel_centers(grid, means2d.dtype)
     num_tiles, num_pixels = pixels.shape[:2]
     num_gaussians, channels = features.shape
@@ -292,18 +317,27 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
     lanes = min(lanes, num_tiles)
     ones, zeros_i = jnp.ones((lanes, num_pixels), dtype), jnp.zeros((lanes, num_pixels), jnp.int32)
     inside_pad = jnp.concatenate([inside, jnp.zeros((1, num_pixels), bool)])
+    has_sparse = sparse is not None
+    if has_sparse:
+        num_listed, sparse_channels = sparse_slots.shape[1], sparse.shape[1]
+        slots_pad = jnp.concatenate([sparse_slots, jnp.full((1, num_listed), num_pixels, jnp.int32)])
 
     def cond(state):
         return jnp.any(state[0] < num_tiles)
 
     def body(state):
-        tile, k0, cursor, trans, done, color, n_contrib, last, out, stats = state
+        tile, k0, cursor, trans, done, color, n_contrib, last, out, stats, acc = state
         ch = _chunk(tile, k0, chunk, records, pairs, starts, ends, pixels, inside)
         a = jnp.where(ch.valid, ch.alpha, 0.0)
         t_before, t_after = _running_product(1.0 - a, trans)
         keep = ch.valid & (t_after > TRANSMITTANCE_STOP) & ~done[:, None, :]
         weight = jnp.where(keep, a * t_before, 0.0)
         color = color + _weighted_sum(weight, features[ch.gid])
+        if has_sparse:  # the sparse channels at the tile's listed pixels only: [M, B, K] × [M, B, Q]
+            lane_slots = slots_pad[tile]
+            listed = lane_slots < num_pixels
+            weight_k = _at_slots(weight, jnp.minimum(lane_slots, num_pixels - 1), listed)
+            acc = acc + jnp.einsum("mbk,mbq->mkq", weight_k, sparse[ch.gid], precision=HIGHEST)
         done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
         trans, n_contrib, last = _fold_kept(keep, a, k0, trans, n_contrib, last)
         # LightGaussian significance Σ o·T and hit counts, per pair then per Gaussian.
@@ -316,7 +350,7 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         safe = jnp.minimum(tile, num_tiles - 1)
         finished = (tile < num_tiles) & ((k0 >= lengths[safe]) | jnp.all(done, axis=-1))
         target = jnp.where(finished, tile, num_tiles)
-        out = tuple(o.at[target].set(v, mode="drop") for o, v in zip(out, (color, trans, n_contrib, last)))
+        out = tuple(o.at[target].set(v, mode="drop") for o, v in zip(out, (color, trans, n_contrib, last, acc)))
         tile, cursor = _next_tiles(schedule, tile, finished, cursor)
         reset = finished[:, None]
         k0 = jnp.where(finished, 0, k0)
@@ -325,26 +359,31 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         color = jnp.where(reset[..., None], 0.0, color)
         n_contrib = jnp.where(reset, 0, n_contrib)
         last = jnp.where(reset, 0, last)
-        return tile, k0, cursor, trans, done, color, n_contrib, last, out, stats
+        if has_sparse:
+            acc = jnp.where(reset[..., None], 0.0, acc)
+        return tile, k0, cursor, trans, done, color, n_contrib, last, out, stats, acc
 
     tile, cursor = _initial_lanes(schedule, lanes)
+    acc_shape = (num_listed, sparse_channels) if has_sparse else (0, 0)
     out = (
         jnp.zeros((num_tiles, num_pixels, channels), dtype),
         jnp.ones((num_tiles, num_pixels), dtype),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
+        jnp.zeros((num_tiles,) + acc_shape, dtype),
     )
     init = (tile, jnp.zeros(lanes, jnp.int32), cursor, ones, ~inside_pad[tile],
             jnp.zeros((lanes, num_pixels, channels), dtype), zeros_i, zeros_i, out,
-            jnp.zeros((num_gaussians, 2), dtype))
+            jnp.zeros((num_gaussians, 2), dtype), jnp.zeros((lanes,) + acc_shape, dtype))
     state = jax.lax.while_loop(cond, body, init)
-    (color, trans, n_contrib, last), stats = state[8], state[9]
+    (color, trans, n_contrib, last, sparse_out), stats = state[8], state[9]
     hits = jnp.round(stats[:, 1]).astype(jnp.int32)
-    return Composite(color, trans, n_contrib, last, stats[:, 0], hits)
+    return Composite(color, trans, n_contrib, last, stats[:, 0], hits, sparse_out if has_sparse else None)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
-def composite_tiles(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends):
+def composite_tiles(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends,
+                    sparse=None, sparse_slots=None):
     """Composite depth-sorted Gaussians into tiles.
 
     Args:
@@ -355,23 +394,31 @@ def composite_tiles(grid, chunk, lanes, means2d, conics, opacities, features, pa
         all in front-to-back order.
       pairs: [P] int32 sorted-Gaussian index per slot, grouped by tile.
       starts, ends: [T] int32 each tile's slot range.
+      sparse: [G, Q] or None — channels composited only at the pixels ``sparse_slots`` lists (what a loss
+        that reads a few pixels needs, at K/S of the work of ``features``).
+      sparse_slots: [T, K] int32 pixel index within each tile (< S, distinct within a tile; S = unused
+        entry), with ``sparse``.
     Returns:
-      :class:`Composite`; differentiable in ``colors`` and ``transmittance``.
+      :class:`Composite`; differentiable in ``colors``, ``transmittance`` and ``sparse``.
     """
-    return _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends)
+    return _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends,
+                    sparse, sparse_slots)
 
 
-def _composite_fwd(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends):
-    out = _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends)
+def _composite_fwd(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends,
+                   sparse=None, sparse_slots=None):
+    out = _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, starts, ends,
+                   sparse, sparse_slots)
     residuals = (means2d, conics, opacities, features, pairs, starts, ends,
-                 out.colors, out.transmittance, out.last)
+                 out.colors, out.transmittance, out.last, sparse, sparse_slots, out.sparse)
     return out, residuals
 
 
 def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
     (means2d, conics, opacities, features, pairs, starts, ends,
-     color_fg, trans_final, last) = residuals
+     color_fg, trans_final, last, sparse, sparse_slots, sparse_fg) = residuals
     g_color, g_trans = cotangents.colors, cotangents.transmittance
+    has_sparse = sparse is not None
     pixels, inside = pixel_centers(grid, means2d.dtype)
     num_tiles, num_pixels = pixels.shape[:2]
     channels = features.shape[1]
@@ -380,6 +427,10 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
     # Total Σ_k (g·c_k) α_k T_k and the background-side term of S_k.
     total = jnp.sum(g_color * color_fg, axis=-1)
     tail = trans_final * g_trans
+    if has_sparse:  # the sparse channels' share of S_k, at each tile's listed pixels
+        g_sparse = cotangents.sparse  # [T, K, Q]
+        total_sparse = jnp.sum(g_sparse * sparse_fg, axis=-1)  # [T, K]
+        num_listed, sparse_channels = sparse_slots.shape[1], sparse.shape[1]
     need = jnp.max(last, axis=-1)  # [T] slots each tile must revisit
     basis = _pixel_basis(grid.tile_size, dtype)
     tile_origin = pixels[:, 0, :] - 0.5  # [T, 2] each tile's top-left corner
@@ -390,7 +441,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         return jnp.any(state[0] < num_tiles)
 
     def body(state):
-        tile, k0, cursor, trans, prefix, grads = state
+        tile, k0, cursor, trans, prefix, prefix_sparse, grads = state
         safe = jnp.minimum(tile, num_tiles - 1)
         ch = _chunk(tile, k0, chunk, records, pairs, starts, ends, pixels, inside)
         slot = k0[:, None] + jnp.arange(chunk, dtype=jnp.int32)[None, :]
@@ -406,6 +457,22 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         suffix = (total[safe] - prefix + tail[safe])[:, None, :] - running
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
         d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
+        if has_sparse:  # the same terms for the sparse channels at the K listed pixels, then placed there
+            lane_slots = jnp.minimum(sparse_slots[safe], num_pixels - 1)
+            listed = sparse_slots[safe] < num_pixels
+            weight_k = _at_slots(weight, lane_slots, listed)
+            t_before_k = _at_slots(t_before, lane_slots, listed)
+            a_k = _at_slots(a, lane_slots, listed)
+            feat_sparse = sparse[ch.gid]  # [M, B, Q]
+            lane_gs = g_sparse[safe]  # [M, K, Q]
+            g_dot_k = jnp.einsum("mkq,mbq->mbk", lane_gs, feat_sparse, precision=HIGHEST)
+            running_k = _running_sum(g_dot_k * weight_k)
+            suffix_k = (total_sparse[safe] - prefix_sparse)[:, None, :] - running_k
+            d_alpha_k = t_before_k * g_dot_k - suffix_k / (1.0 - a_k)
+            d_alpha_k = jnp.where(_at_slots(keep & ch.unclamped, lane_slots, listed), d_alpha_k, 0.0)
+            d_alpha = d_alpha + _from_slots(d_alpha_k, lane_slots, listed, num_pixels)
+            pair_sparse = jnp.einsum("mbk,mkq->mbq", weight_k, lane_gs, precision=HIGHEST)
+            prefix_sparse = prefix_sparse + running_k[:, -1]
         d_sigma = -d_alpha * a
         # The σ moments Σ_s dσ·{dx, dy, dx², dx dy, dy²} and Σ_s dα·G from one matmul against the
         # tile-local pixel basis (module doc): dx = u − lx with u the mean from the tile's corner.
@@ -433,7 +500,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
                     axis=-1,
                 ),
                 _pixel_sum(weight, lane_g),
-            ],
+            ] + ([pair_sparse] if has_sparse else []),
             axis=-1,
         )
         grads = grads.at[ch.gid].add(jnp.where(ch.in_range[..., None], pair, 0.0))
@@ -445,17 +512,22 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         k0 = jnp.where(finished, 0, k0)
         trans = jnp.where(finished[:, None], 1.0, trans)
         prefix = jnp.where(finished[:, None], 0.0, prefix)
-        return tile, k0, cursor, trans, prefix, grads
+        prefix_sparse = jnp.where(finished[:, None], 0.0, prefix_sparse)
+        return tile, k0, cursor, trans, prefix, prefix_sparse, grads
 
     tile, cursor = _initial_lanes(schedule, lanes)
+    extra = sparse_channels if has_sparse else 0
     init = (
         tile, jnp.zeros(lanes, jnp.int32), cursor,
         jnp.ones((lanes, num_pixels), dtype),
         jnp.zeros((lanes, num_pixels), dtype),
-        jnp.zeros((means2d.shape[0], 6 + channels), dtype),
+        jnp.zeros((lanes, num_listed if has_sparse else 0), dtype),
+        jnp.zeros((means2d.shape[0], 6 + channels + extra), dtype),
     )
     grads = jax.lax.while_loop(cond, body, init)[-1]
-    return grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:], None, None, None
+    g_sparse_in = grads[:, 6 + channels:] if has_sparse else None
+    return (grads[:, 0:2], grads[:, 2:5], grads[:, 5], grads[:, 6:6 + channels], None, None, None,
+            g_sparse_in, None)
 
 
 composite_tiles.defvjp(_composite_fwd, _composite_bwd)

@@ -84,6 +84,46 @@ class Compositor(NamedTuple):
     tiles: str = "box"
 
 
+class SparseChannels(NamedTuple):
+    """The last ``count`` colour channels composited only at some pixels (static, hashable).
+
+    A loss that reads a few pixels of some channels — the feature loss reads each feature map's pixel
+    centres only — needs those channels nowhere else; the JAX compositor then evaluates them at each
+    tile's listed pixels (K of S), not at all S. Elsewhere the image holds 0 in those channels (the
+    background is added at the listed pixels only). The Pallas compositor composites them everywhere and
+    the same zeros are applied, so both give the same image.
+
+    Attributes:
+      count: Q, the number of trailing channels of ``colors`` this applies to (≥ 1).
+      pixels: the flat pixel indices ``row · width + column`` where they are composited, distinct.
+    """
+
+    count: int
+    pixels: tuple[int, ...]
+
+    def slots(self, grid: TileGrid) -> tuple[np.ndarray, np.ndarray]:
+        """([T, K] int32 pixel index within each tile, S where unused; [T, K] int32 flat image pixel, H·W where
+        unused), K = the most listed pixels in one tile (at least 1)."""
+        flat = np.unique(np.asarray(self.pixels, np.int64))
+        if flat.size and (flat.min() < 0 or flat.max() >= grid.width * grid.height):
+            raise ValueError(f"SparseChannels.pixels must lie in [0, {grid.width * grid.height}) for a "
+                             f"{grid.width}x{grid.height} image, got {flat.min()}..{flat.max()}")
+        row, col = np.divmod(flat, grid.width)
+        ts = grid.tile_size
+        tile = (row // ts) * grid.tiles_x + col // ts
+        within = (row % ts) * ts + col % ts
+        counts = np.bincount(tile, minlength=grid.num_tiles)
+        k = max(1, int(counts.max()) if flat.size else 1)
+        order = np.argsort(tile, kind="stable")
+        tile, within, flat = tile[order], within[order], flat[order]
+        rank = np.arange(flat.size) - np.searchsorted(tile, tile, side="left")
+        slots = np.full((grid.num_tiles, k), ts * ts, np.int32)
+        image = np.full((grid.num_tiles, k), grid.width * grid.height, np.int32)
+        slots[tile, rank] = within
+        image[tile, rank] = flat
+        return slots, image
+
+
 def default_max_pairs(num_gaussians: int, width: int, height: int, tile_size: int = 16) -> int:
     """Default tile–Gaussian pair capacity.
 
@@ -152,7 +192,8 @@ def _tiles_to_image(tiles: jax.Array, grid: TileGrid) -> jax.Array:
 
 
 RASTERIZE_STATIC_ARGNAMES = (
-    "width", "height", "near", "far", "antialiased", "eps2d", "tile_size", "max_pairs", "compositor", "validate",
+    "width", "height", "near", "far", "antialiased", "eps2d", "tile_size", "max_pairs", "compositor",
+    "sparse_channels", "validate",
 )
 """The arguments of :func:`rasterize` and :func:`rasterize_batch` that must be static under ``jax.jit``:
 ``jax.jit(rasterize, static_argnames=RASTERIZE_STATIC_ARGNAMES)`` is :data:`rasterize_jit`."""
@@ -215,6 +256,7 @@ def rasterize(
     means2d_delta: jax.Array | None = None,
     lens: Lens | None = None,
     compositor: Compositor = Compositor(),
+    sparse_channels: SparseChannels | None = None,
     validate: bool = True,
     **removed,
 ) -> RenderOutput:
@@ -226,7 +268,7 @@ def rasterize(
         fast = jax.jit(rasterize, static_argnames=cusgs_jax.splat.RASTERIZE_STATIC_ARGNAMES)
         # = cusgs_jax.splat.rasterize_jit; RASTERIZE_STATIC_ARGNAMES is
         # ("width", "height", "near", "far", "antialiased", "eps2d", "tile_size", "max_pairs", "compositor",
-        #  "validate")
+        #  "sparse_channels", "validate")
 
     Input checks: outside jit (no argument is a tracer) the inputs are checked before rendering —
     shapes and dtypes (:func:`check_shapes`), finite values, ``scales ≥ 0``, ``opacities`` in [0, 1] — and a
@@ -264,6 +306,8 @@ def rasterize(
       compositor: static; how the tiles are composited (:class:`Compositor`: backend, the JAX compositor's
         chunk size and lanes; the former ``backend=``, ``chunk_size=`` and ``lanes=`` keywords). Projection,
         sorting and binning are the same for all; the image agrees to rounding.
+      sparse_channels: static; the last Q channels composited only at the pixels it lists
+        (:class:`SparseChannels`; 0 elsewhere), or None (every channel everywhere).
       validate: static; False skips the value checks outside jit (shapes are always checked).
     Returns:
       :class:`RenderOutput`. Differentiable with respect to means, quats,
@@ -275,7 +319,8 @@ def rasterize(
     """
     _refuse_keywords("rasterize", removed)
     _require_static("rasterize", width=width, height=height, tile_size=tile_size, max_pairs=max_pairs, near=near,
-                    far=far, eps2d=eps2d, antialiased=antialiased, compositor=compositor, validate=validate)
+                    far=far, eps2d=eps2d, antialiased=antialiased, compositor=compositor,
+                    sparse_channels=sparse_channels, validate=validate)
     means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta = (
         _as_array(a) for a in (means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta))
     if validate and not _is_traced(means, quats, scales, opacities, colors, viewmat, K, background, means2d_delta,
@@ -286,7 +331,8 @@ def rasterize(
                      K=K, background=background, means2d_delta=means2d_delta)
     return _rasterize_jit(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near, far=far,
                           background=background, antialiased=antialiased, eps2d=eps2d, tile_size=tile_size,
-                          max_pairs=max_pairs, means2d_delta=means2d_delta, lens=lens, compositor=compositor)
+                          max_pairs=max_pairs, means2d_delta=means2d_delta, lens=lens, compositor=compositor,
+                          sparse_channels=sparse_channels)
 
 
 def _rasterize(
@@ -310,6 +356,7 @@ def _rasterize(
     means2d_delta: jax.Array | None = None,
     lens: Lens | None = None,
     compositor: Compositor = Compositor(),
+    sparse_channels: SparseChannels | None = None,
 ) -> RenderOutput:
     """:func:`rasterize` without its host-side checks (traced once per static configuration)."""
     check_shapes(means, quats, scales, opacities, colors, viewmat, K, width, height, background=background,
@@ -319,8 +366,12 @@ def _rasterize(
         return _rasterize_nothing(means, quats, scales, opacities, colors, viewmat, K, width, height, near=near,
                                   far=far, background=background, antialiased=antialiased, eps2d=eps2d,
                                   tile_size=tile_size, max_pairs=max_pairs, means2d_delta=means2d_delta, lens=lens,
-                                  compositor=compositor)
+                                  compositor=compositor, sparse_channels=sparse_channels)
     grid = TileGrid(int(width), int(height), int(tile_size))
+    if sparse_channels is not None and not (isinstance(sparse_channels, SparseChannels)
+                                            and 1 <= int(sparse_channels.count) <= channels):
+        raise ValueError(f"sparse_channels must be a SparseChannels with 1 <= count <= C = {channels}, "
+                         f"got {sparse_channels!r:.120}")
     if max_pairs is None:
         max_pairs = default_max_pairs(num_gaussians, width, height, tile_size)
     dtype = means.dtype
@@ -334,31 +385,57 @@ def _rasterize(
     order = isect.order
     means2d = proj.means2d if means2d_delta is None else proj.means2d + means2d_delta
     depth = jnp.where(proj.visible, proj.depths, 0.0)
-    features = jnp.concatenate([colors.astype(dtype), depth[:, None]], axis=-1)
+    dense = channels - (0 if sparse_channels is None else int(sparse_channels.count))  # composited everywhere
+    features = jnp.concatenate([colors[:, :dense].astype(dtype), depth[:, None]], axis=-1)
     sorted_inputs = (means2d[order], proj.conics[order], proj.opacities[order], features[order],
                      isect.pair_gaussians, isect.tile_starts, isect.tile_ends)
     if not isinstance(compositor, Compositor):
         raise TypeError(f"compositor must be a cusgs_jax.splat.Compositor, got {type(compositor).__name__}: "
                         "e.g. Compositor(backend='jax', chunk_size=16)")
+    sparse_fg = None
+    if sparse_channels is not None:
+        slots, slot_pixels = sparse_channels.slots(grid)
+        slot_pixels = jnp.asarray(slot_pixels.reshape(-1))
     if resolve_backend(compositor.backend) == "pallas":
         interpret = jax.default_backend() != "gpu"  # Triton needs an NVIDIA (or ROCm) GPU
-        out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs)
+        if sparse_channels is not None:  # every channel everywhere, then read at the listed pixels
+            everything = jnp.concatenate([features, colors[:, dense:].astype(dtype)], axis=-1)[order]
+            out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs[:3], everything,
+                                         *sorted_inputs[4:])
+            sparse_fg = jnp.take_along_axis(out.colors[..., dense + 1:],
+                                            jnp.asarray(np.minimum(slots, grid.tile_size ** 2 - 1))[..., None], axis=1)
+            out = out._replace(colors=out.colors[..., :dense + 1])
+        else:
+            out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs)
     else:
         lanes = default_lanes(grid.num_tiles) if compositor.lanes is None else int(compositor.lanes)
-        out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs)
+        if sparse_channels is not None:
+            out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs,
+                                  colors[:, dense:].astype(dtype)[order], jnp.asarray(slots))
+            sparse_fg = out.sparse
+        else:
+            out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs)
     color_fg = _tiles_to_image(out.colors, grid)
     trans = _tiles_to_image(out.transmittance, grid)
     if background is None:
-        image = color_fg[..., :channels]
+        image = color_fg[..., :dense]
     else:
-        image = color_fg[..., :channels] + trans[..., None] * jnp.asarray(background, dtype)
+        image = color_fg[..., :dense] + trans[..., None] * jnp.asarray(background, dtype)[:dense]
+    if sparse_channels is not None:  # [T, K, Q] → the listed pixels of an [H, W, Q] image of zeros
+        count = channels - dense
+        values = sparse_fg.reshape(-1, count)
+        if background is not None:
+            values = values + trans.reshape(-1)[jnp.minimum(slot_pixels, width * height - 1)][:, None] \
+                * jnp.asarray(background, dtype)[dense:]
+        sparse_image = jnp.zeros((width * height, count), dtype).at[slot_pixels].set(values, mode="drop")
+        image = jnp.concatenate([image, sparse_image.reshape(height, width, count)], axis=-1)
     significance = jnp.zeros_like(out.significance).at[order].set(out.significance)
     hits = jnp.zeros_like(out.hits).at[order].set(out.hits)
     radii = jnp.minimum(proj.radii, float(2**30)).astype(jnp.int32)
     return RenderOutput(
         image=image,
         alpha=1.0 - trans,
-        depth=color_fg[..., channels],
+        depth=color_fg[..., dense],
         n_contrib=_tiles_to_image(out.n_contrib, grid),
         means2d=means2d,
         radii=radii,

@@ -19,7 +19,7 @@ from cusgs_jax.model.decode import (Gaussians, ViewInputs, VisibleSlots, decode_
                                     gather_visible, view_inputs, visible_slots)
 from cusgs_jax.model.field import retrieve
 from cusgs_jax.model.queries import decode_queries
-from cusgs_jax.splat import Compositor, RenderOutput, rasterize
+from cusgs_jax.splat import Compositor, RenderOutput, SparseChannels, rasterize
 from cusgs_jax.splat.project import project_gaussians
 from cusgs_jax.splat.tiles import TileGrid, count_pairs
 from cusgs_jax.training.capacity import Capacities, ExactRender, max_pairs
@@ -28,7 +28,8 @@ from cusgs_jax.types import Camera
 
 def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, active_capacity: int | None = None,
                      pair_capacity: int | None = None, means2d_delta=None,
-                     extra_channels=None) -> tuple[RenderOutput, ActiveSet]:
+                     extra_channels=None, extra_pixels: tuple[int, ...] | None = None,
+                     ) -> tuple[RenderOutput, ActiveSet]:
     """Rasterise the active decoded Gaussians with the configured splatter settings.
 
     Only the Gaussians that pass the opacity mask (``gaussians.active``) are rasterised: they
@@ -43,6 +44,9 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
       means2d_delta: [G_act, 2] or None (differentiate with respect to it for ∂L/∂μ_2D).
       extra_channels: [G, Q] or None, composited in the same pass after RGB
         (background 0), e.g. the feature queries; ``image`` is then [H, W, 3+Q].
+      extra_pixels: static flat pixel indices (``row · W + column``) or None: the extra channels are composited
+        there only and are 0 elsewhere (:class:`~cusgs_jax.splat.SparseChannels`; what the feature loss reads,
+        :func:`~cusgs_jax.model.field.read_pixels`).
     Returns:
       (the render of the compacted Gaussians — per-Gaussian fields [G_act]; ``expand_render``
       maps them back to [G] —, the :class:`~cusgs_jax.model.active.ActiveSet`).
@@ -61,7 +65,9 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
                     camera.world_to_camera, camera.K, camera.width, camera.height, background=background,
                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, max_pairs=int(pair_capacity),
                     means2d_delta=means2d_delta, lens=camera.lens,
-                    compositor=Compositor(cfg.backend, cfg.chunk_size, tiles=cfg.tiles))
+                    compositor=Compositor(cfg.backend, cfg.chunk_size, tiles=cfg.tiles),
+                    sparse_channels=(None if extra_channels is None or extra_pixels is None
+                                     else SparseChannels(int(extra_channels.shape[-1]), tuple(extra_pixels))))
     return out, chosen
 
 
