@@ -280,24 +280,24 @@ def _pixel_basis(tile_size: int, dtype) -> jax.Array:
     return jnp.asarray(np.stack([np.ones_like(lx), lx, ly, lx * lx, lx * ly, ly * ly], axis=-1), dtype)
 
 
-def _at_slots(x: jax.Array, slots: jax.Array, listed: jax.Array) -> jax.Array:
-    """x [M, B, S] read at each lane's K listed pixels: [M, B, K] (0 at unlisted slots).
-
-    Args:
-      slots: [M, K] pixel index within the tile (clipped into range); listed: [M, K] bool.
-    """
-    taken = jnp.take_along_axis(x, jnp.broadcast_to(slots[:, None, :], x.shape[:2] + slots.shape[1:]), axis=2)
-    return jnp.where(listed[:, None, :], taken, jnp.zeros((), x.dtype))
+def _slot_onehot(slots: jax.Array, num_pixels: int, dtype) -> jax.Array:
+    """[M, K, S] 1 where pixel s is a lane's k-th listed pixel (``slots`` [M, K], S = unused entry)."""
+    return (jnp.arange(num_pixels, dtype=jnp.int32)[None, None, :] == slots[:, :, None]).astype(dtype)
 
 
-def _from_slots(values: jax.Array, slots: jax.Array, listed: jax.Array, num_pixels: int) -> jax.Array:
+def _at_slots(x: jax.Array, slots: jax.Array) -> jax.Array:
+    """[M, B, S] (or [M, B, R, S]) read at each lane's K listed pixels: [M, B, K] ([M, B, R, K]), one gather;
+    ``slots`` [M, K] clipped into [0, S) (an unused entry reads a real pixel: mask it)."""
+    index = slots[:, None, :] if x.ndim == 3 else slots[:, None, None, :]
+    return jnp.take_along_axis(x, jnp.broadcast_to(index, x.shape[:-1] + slots.shape[1:]), axis=-1)
+
+
+def _from_slots(values: jax.Array, onehot: jax.Array) -> jax.Array:
     """The transpose of :func:`_at_slots`: [M, B, K] values placed at their pixels of [M, B, S] (the K listed
-    pixels of a tile are distinct), as K fused selects."""
-    pixel = jnp.arange(num_pixels, dtype=jnp.int32)
-    out = jnp.zeros(values.shape[:2] + (num_pixels,), values.dtype)
-    for k in range(values.shape[2]):
-        here = ((pixel[None, :] == slots[:, k, None]) & listed[:, k, None])[:, None, :]  # [M, 1, S]
-        out = out + jnp.where(here, values[:, :, k, None], jnp.zeros((), values.dtype))
+    pixels of a tile are distinct), as K fused multiply-adds."""
+    out = values[:, :, 0, None] * onehot[:, None, 0, :]
+    for k in range(1, values.shape[2]):
+        out = out + values[:, :, k, None] * onehot[:, None, k, :]
     return out
 
 
@@ -335,8 +335,8 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         color = color + _weighted_sum(weight, features[ch.gid])
         if has_sparse:  # the sparse channels at the tile's listed pixels only: [M, B, K] × [M, B, Q]
             lane_slots = slots_pad[tile]
-            listed = lane_slots < num_pixels
-            weight_k = _at_slots(weight, jnp.minimum(lane_slots, num_pixels - 1), listed)
+            weight_k = jnp.where((lane_slots < num_pixels)[:, None, :],
+                                 _at_slots(weight, jnp.minimum(lane_slots, num_pixels - 1)), 0.0)
             acc = acc + jnp.einsum("mbk,mbq->mkq", weight_k, sparse[ch.gid], precision=HIGHEST)
         done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
         trans, n_contrib, last = _fold_kept(keep, a, k0, trans, n_contrib, last)
@@ -458,19 +458,22 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
         d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
         if has_sparse:  # the same terms for the sparse channels at the K listed pixels, then placed there
-            lane_slots = jnp.minimum(sparse_slots[safe], num_pixels - 1)
-            listed = sparse_slots[safe] < num_pixels
-            weight_k = _at_slots(weight, lane_slots, listed)
-            t_before_k = _at_slots(t_before, lane_slots, listed)
-            a_k = _at_slots(a, lane_slots, listed)
+            lane_slots = sparse_slots[safe]
+            onehot = _slot_onehot(lane_slots, num_pixels, dtype)  # idle lanes keep nothing: zeros
+            kept = (keep & ch.unclamped).astype(dtype)
+            weight_k, t_before_k, a_k, kept_k = jnp.moveaxis(
+                _at_slots(jnp.stack([weight, t_before, a, kept], axis=2), jnp.minimum(lane_slots, num_pixels - 1)),
+                2, 0)
+            listed = (lane_slots < num_pixels)[:, None, :]
+            weight_k, kept_k = jnp.where(listed, weight_k, 0.0), jnp.where(listed, kept_k, 0.0)
             feat_sparse = sparse[ch.gid]  # [M, B, Q]
             lane_gs = g_sparse[safe]  # [M, K, Q]
             g_dot_k = jnp.einsum("mkq,mbq->mbk", lane_gs, feat_sparse, precision=HIGHEST)
             running_k = _running_sum(g_dot_k * weight_k)
             suffix_k = (total_sparse[safe] - prefix_sparse)[:, None, :] - running_k
             d_alpha_k = t_before_k * g_dot_k - suffix_k / (1.0 - a_k)
-            d_alpha_k = jnp.where(_at_slots(keep & ch.unclamped, lane_slots, listed), d_alpha_k, 0.0)
-            d_alpha = d_alpha + _from_slots(d_alpha_k, lane_slots, listed, num_pixels)
+            d_alpha_k = jnp.where(kept_k > 0, d_alpha_k, 0.0)
+            d_alpha = d_alpha + _from_slots(d_alpha_k, onehot)
             pair_sparse = jnp.einsum("mbk,mkq->mbq", weight_k, lane_gs, precision=HIGHEST)
             prefix_sparse = prefix_sparse + running_k[:, -1]
         d_sigma = -d_alpha * a
