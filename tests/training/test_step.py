@@ -604,22 +604,12 @@ def test_queries_composited_only_where_the_feature_loss_reads_take_the_dense_ste
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
 
 
-def test_read_pixels_are_the_image_pixels_the_feature_loss_samples_and_only_coarse_maps_go_sparse():
-    from cusgs_jax.config import FeatureConfig, FeatureModelConfig
-    from cusgs_jax.model.field import image_pixel_of, query_layout, read_pixels
+def test_read_pixels_are_the_image_pixels_the_feature_loss_samples():
+    from cusgs_jax.model.field import image_pixel_of, read_pixels
 
     pixels = read_pixels({"a": (30, 40), "b": (12, 16)}, (120, 160))
     rows, cols = image_pixel_of(np.arange(30)[:, None].repeat(40, 1).ravel(), np.tile(np.arange(40), 30),
                                 (30, 40), (120, 160))
     assert set(np.asarray(rows) * 160 + np.asarray(cols)) <= set(pixels)
     assert len(pixels) == len(set(pixels)) <= 30 * 40 + 12 * 16
-    cfg = FeatureConfig(models=(FeatureModelConfig("full", query_dim=3), FeatureModelConfig("coarse", query_dim=2),
-                                FeatureModelConfig("half", query_dim=4)))
-    layout = query_layout(cfg, {"full": (120, 160), "coarse": (30, 40), "half": (60, 80)}, (120, 160))
-    # the stride-4 map at its pixels only, placed last; the stride-2 map's pixels (a quarter, disjoint from the
-    # stride-4 map's) would take the two past a quarter of the image, so it stays dense with the full one
-    assert layout.order == (0, 1, 2, 5, 6, 7, 8, 3, 4) and layout.sparse == 2
-    assert layout.pixels == read_pixels({"coarse": (30, 40)}, (120, 160))
-    alone = query_layout(cfg, {"full": (120, 160), "coarse": (120, 160), "half": (60, 80)}, (120, 160))
-    assert alone.order == (0, 1, 2, 3, 4, 5, 6, 7, 8) and alone.sparse == 4  # a quarter of the pixels fits
-    assert query_layout(cfg, {"full": (120, 160), "coarse": (120, 160), "half": (120, 160)}, (120, 160)) is None
+    assert read_pixels({"full": (120, 160)}, (120, 160)) is None  # a full-resolution map: every pixel

@@ -11,8 +11,6 @@ Nothing here is traced when a scene has no feature models: callers check
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -93,58 +91,27 @@ def image_pixel_of(row, col, feature_hw: tuple[int, int], image_hw: tuple[int, i
     return img_row, img_col
 
 
-def read_pixels(feature_hw: dict, image_hw: tuple[int, int]) -> tuple[int, ...]:
-    """The flat image pixels (``row · W + column``) :func:`sampled_feature_loss` can read for the models of
-    ``feature_hw`` ({name: (h, w)} feature-map sizes, static): the pixel nearest each feature-map pixel's
-    centre (:func:`image_pixel_of`), sorted."""
+def read_pixels(feature_hw: dict, image_hw: tuple[int, int], max_fraction: float = 0.5) -> tuple[int, ...] | None:
+    """The flat image pixels (``row · W + column``) :func:`sampled_feature_loss` can read: the pixel nearest
+    each feature-map pixel's centre (:func:`image_pixel_of`), over every model — what the rendered queries are
+    needed at (``splat.SparseChannels``). None when they cover more than ``max_fraction`` of the image (a
+    full-resolution map: compositing them everywhere costs about as much).
+
+    Args:
+      feature_hw: {name: (h, w)} each model's feature-map size (static shapes).
+      image_hw: (H, W).
+    """
     height, width = image_hw
-    flat = [np.zeros(0, np.int64)]
+    flat = []
     with jax.ensure_compile_time_eval():  # the very arithmetic the loss traces, on concrete indices
         for fh, fw in feature_hw.values():
             index = np.arange(fh * fw)
             row, col = image_pixel_of(index // fw, index % fw, (fh, fw), (height, width))
             flat.append(np.asarray(row, np.int64) * width + np.asarray(col, np.int64))
-    return tuple(int(p) for p in np.unique(np.concatenate(flat)))
-
-
-class QueryLayout(NamedTuple):
-    """Which query channels the train step composites everywhere and which only where the loss reads them.
-
-    Attributes:
-      order: [Q] channel permutation: the dense models' channels first, then the sparse ones'.
-      sparse: how many trailing channels (of the permuted queries) are sparse.
-      pixels: :func:`read_pixels` of the sparse models.
-    """
-
-    order: tuple[int, ...]
-    sparse: int
-    pixels: tuple[int, ...]
-
-
-SPARSE_FRACTION = 0.25  # a model is sparse when the loss reads at most this share of the image's pixels
-
-
-def query_layout(cfg: FeatureConfig, feature_hw: dict, image_hw: tuple[int, int]) -> QueryLayout | None:
-    """The layout for models whose maps are coarser than the image — the coarsest first, as long as the pixels
-    the loss reads of them all stay ≤ ``SPARSE_FRACTION`` of the image's (a stride-2 map or coarser) —, or None
-    when no model fits (every query everywhere).
-
-    At a quarter of the pixels a tile lists ≤ 16 of its 64, where compositing there only is still cheaper than
-    everywhere (``benchmarks/composite_profile.py --sparse``); a full-resolution map reads every pixel."""
-    height, width = image_hw
-    budget = SPARSE_FRACTION * height * width
-    slices = dict(cfg.slices())
-    sparse_hw, pixels = {}, ()
-    for name in sorted(slices, key=lambda n: (feature_hw[n][0] * feature_hw[n][1], n)):  # coarsest first
-        candidate = read_pixels({**sparse_hw, name: tuple(feature_hw[name])}, image_hw)
-        if len(candidate) > budget:  # this map (and every finer one) stays dense
-            break
-        sparse_hw[name], pixels = tuple(feature_hw[name]), candidate
-    if not sparse_hw:
+    pixels = np.unique(np.concatenate(flat)) if flat else np.zeros(0, np.int64)
+    if pixels.size == 0 or pixels.size > max_fraction * height * width:
         return None
-    dense = [i for name, c in cfg.slices() if name not in sparse_hw for i in range(c.start, c.stop)]
-    sparse = [i for name, c in cfg.slices() if name in sparse_hw for i in range(c.start, c.stop)]
-    return QueryLayout(tuple(dense + sparse), len(sparse), pixels)
+    return tuple(int(p) for p in pixels)
 
 
 def sampled_feature_loss(queries: jax.Array, targets: dict, heads: dict, banks: dict, key: jax.Array,

@@ -28,7 +28,7 @@ from cusgs_jax.types import Camera
 
 def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, active_capacity: int | None = None,
                      pair_capacity: int | None = None, means2d_delta=None,
-                     extra_channels=None, sparse_channels: SparseChannels | None = None,
+                     extra_channels=None, extra_pixels: tuple[int, ...] | None = None,
                      ) -> tuple[RenderOutput, ActiveSet]:
     """Rasterise the active decoded Gaussians with the configured splatter settings.
 
@@ -44,9 +44,9 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
       means2d_delta: [G_act, 2] or None (differentiate with respect to it for ∂L/∂μ_2D).
       extra_channels: [G, Q] or None, composited in the same pass after RGB
         (background 0), e.g. the feature queries; ``image`` is then [H, W, 3+Q].
-      sparse_channels: static, or None: the last ``count`` extra channels composited only at its pixels, 0
-        elsewhere (:class:`~cusgs_jax.splat.SparseChannels`; the train step's queries of coarse feature maps,
-        :func:`~cusgs_jax.model.field.query_layout`).
+      extra_pixels: static flat pixel indices (``row · W + column``) or None: the extra channels are composited
+        there only and are 0 elsewhere (:class:`~cusgs_jax.splat.SparseChannels`; what the feature loss reads,
+        :func:`~cusgs_jax.model.field.read_pixels`).
     Returns:
       (the render of the compacted Gaussians — per-Gaussian fields [G_act]; ``expand_render``
       maps them back to [G] —, the :class:`~cusgs_jax.model.active.ActiveSet`).
@@ -66,7 +66,8 @@ def render_gaussians(gaussians: Gaussians, camera: Camera, cfg: SplatConfig, *, 
                     antialiased=cfg.antialiased, tile_size=cfg.tile_size, max_pairs=int(pair_capacity),
                     means2d_delta=means2d_delta, lens=camera.lens,
                     compositor=Compositor(cfg.backend, cfg.chunk_size, tiles=cfg.tiles),
-                    sparse_channels=None if extra_channels is None else sparse_channels)
+                    sparse_channels=(None if extra_channels is None or extra_pixels is None
+                                     else SparseChannels(int(extra_channels.shape[-1]), tuple(extra_pixels))))
     return out, chosen
 
 

@@ -32,8 +32,7 @@ from cusgs_jax.densify.base import Strategy, ViewRecord
 from cusgs_jax.model.active import expand_render, scatter_back
 from cusgs_jax.model.anchors import is_per_anchor, map_rows
 from cusgs_jax.model.decode import gather_visible, to_slots, view_inputs, visible_slots
-from cusgs_jax.model.field import query_layout, sampled_feature_loss
-from cusgs_jax.splat import SparseChannels
+from cusgs_jax.model.field import read_pixels, sampled_feature_loss
 from cusgs_jax.training.capacity import Capacities
 from cusgs_jax.training.optim import group_rates, rate_arguments
 from cusgs_jax.training.loss_terms import TermRender, check_loss_terms, term_weights
@@ -88,20 +87,13 @@ def _view_pass(cfg: Config, capacities: Capacities, anchor_capacity: int, loss_t
         # a scene without feature models (static) traces no query head
         inputs = view_inputs(local, local["anchor"], centers, decoded, camera, batch["index"], model)
         gaussians, queries = decode_view_inputs(local, inputs, cfg, queries=features.enabled)
-        # coarse maps' queries only where the feature loss can read them (static: the maps' and the image's sizes)
-        layout = (query_layout(features, {name: target.shape[:2] for name, target in batch["features"].items()},
-                               (camera.height, camera.width))
+        # the queries only where the feature loss can read them (static: the maps' and the image's sizes)
+        pixels = (read_pixels({name: target.shape[:2] for name, target in batch["features"].items()},
+                              (camera.height, camera.width))
                   if features.enabled and features.sparse_queries else None)
-        sparse = None
-        if layout is not None:
-            queries = queries[:, np.asarray(layout.order)]
-            sparse = SparseChannels(layout.sparse, layout.pixels)
         out, chosen = render_gaussians(gaussians, camera, cfg.splat, active_capacity=active_capacity,
                                        pair_capacity=pair_capacity, means2d_delta=delta, extra_channels=queries,
-                                       sparse_channels=sparse)
-        if layout is not None:  # the queries back in the models' order
-            out = out._replace(image=jnp.concatenate(
-                [out.image[..., :3], out.image[..., 3:][..., np.argsort(layout.order)]], axis=-1))
+                                       extra_pixels=pixels)
         loss, terms = losses.image_loss(out.image[..., :3], batch["image"], gaussians.scales, gaussians.active,
                                         pixel_mask=batch.get("valid"), l1_weight=weights["l1"],
                                         ssim_weight=weights["ssim"], volume_weight=weights["volume"])
