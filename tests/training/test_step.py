@@ -613,3 +613,5 @@ def test_read_pixels_are_the_image_pixels_the_feature_loss_samples():
     assert set(np.asarray(rows) * 160 + np.asarray(cols)) <= set(pixels)
     assert len(pixels) == len(set(pixels)) <= 30 * 40 + 12 * 16
     assert read_pixels({"full": (120, 160)}, (120, 160)) is None  # a full-resolution map: every pixel
+    assert read_pixels({"full": (120, 160), "coarse": (30, 40)}, (120, 160)) is None  # one map that reads all
+    assert len(read_pixels({"half": (60, 80)}, (120, 160))) == 60 * 80  # a quarter of the pixels: sparse

@@ -91,11 +91,12 @@ def image_pixel_of(row, col, feature_hw: tuple[int, int], image_hw: tuple[int, i
     return img_row, img_col
 
 
-def read_pixels(feature_hw: dict, image_hw: tuple[int, int], max_fraction: float = 0.5) -> tuple[int, ...] | None:
+def read_pixels(feature_hw: dict, image_hw: tuple[int, int], max_fraction: float = 0.25) -> tuple[int, ...] | None:
     """The flat image pixels (``row · W + column``) :func:`sampled_feature_loss` can read: the pixel nearest
     each feature-map pixel's centre (:func:`image_pixel_of`), over every model — what the rendered queries are
-    needed at (``splat.SparseChannels``). None when they cover more than ``max_fraction`` of the image (a
-    full-resolution map: compositing them everywhere costs about as much).
+    needed at (``splat.SparseChannels``). None when they cover more than ``max_fraction`` of the image: a map
+    finer than stride 2, where a tile lists more than 16 of its 64 pixels and compositing there only is no
+    longer cheaper (``benchmarks/sparse_channels.py``).
 
     Args:
       feature_hw: {name: (h, w)} each model's feature-map size (static shapes).
