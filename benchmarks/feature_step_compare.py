@@ -8,6 +8,8 @@ JSON line per tree and round, then the per-round ratios old/new.
     git worktree add --detach /tmp/old 834d7df
     python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --rounds 3
     python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --rounds 1 --lockstep
+    python benchmarks/feature_step_compare.py --old-src /tmp/old/src --new-src src --lockstep \
+        --set 'features.models=[{name: vgg16}]'
 """
 
 from __future__ import annotations
@@ -22,12 +24,12 @@ import tempfile
 import time
 
 
-def child(src: str, lockstep: bool = False) -> dict:
+def child(src: str, lockstep: bool = False, overrides=()) -> dict:
     from cusgs_jax.app import loop as run_loop
     from cusgs_jax.app.session import setup
     from cusgs_jax.compose import compose_config
 
-    session = setup(compose_config(["train.progress=false"]), tempfile.mkdtemp())
+    session = setup(compose_config(["train.progress=false", *overrides]), tempfile.mkdtemp())
     loop = run_loop.start(session)
     batch = session.batches
     for step in range(5):
@@ -46,6 +48,10 @@ def child(src: str, lockstep: bool = False) -> dict:
     return dict(src=src, median_step_s=statistics.median(times))
 
 
+def _set_args(args) -> list[str]:
+    return [item for value in args.set for item in ("--set", value)]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--old-src", required=True)
@@ -53,16 +59,18 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--lockstep", action="store_true",
                     help="run both trees at once, taking turns step by step (per-pair ratios; lockstep.py)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a config override for both trees (repeatable), e.g. features.models=[{name: vgg16}]")
     ap.add_argument("--child", default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
-        print(json.dumps(child(args.child, args.lockstep)))
+        print(json.dumps(child(args.child, args.lockstep, args.set)))
         return
     if args.lockstep:
         from lockstep import run_pairs
         for r in range(args.rounds):
             cmds = {name: ([sys.executable, os.path.abspath(__file__), "--old-src", args.old_src, "--new-src",
-                            args.new_src, "--lockstep", "--child", src],
+                            args.new_src, "--lockstep", "--child", src, *_set_args(args)],
                            dict(os.environ, PYTHONPATH=os.path.abspath(src)))
                     for name, src in (("old", args.old_src), ("new", args.new_src))}
             out = run_pairs(cmds, 40)
@@ -74,7 +82,8 @@ def main() -> None:
         for src in (args.old_src, args.new_src):
             env = dict(os.environ, PYTHONPATH=os.path.abspath(src))
             out = subprocess.run([sys.executable, os.path.abspath(__file__), "--old-src", args.old_src,
-                                  "--new-src", args.new_src, "--child", src], env=env, capture_output=True,
+                                  "--new-src", args.new_src, "--child", src, *_set_args(args)], env=env,
+                                 capture_output=True,
                                  text=True, check=True)
             rows.append(json.loads(out.stdout.strip().splitlines()[-1]))
             print(json.dumps(rows[-1]), flush=True)
