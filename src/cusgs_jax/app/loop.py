@@ -340,8 +340,7 @@ def _step_batch(session: Session, loop: Loop, batch: dict, position: int | None 
                                   steps.grown(metrics, anchor_capacity, announce=False))
         if steps.ready(target, loop.state, batch):  # compiled (ahead, or nothing compiles ahead): replay now
             steps.grown(metrics, anchor_capacity)  # logs the growth
-            steps.use(target)
-            steps.replays += 1
+            steps.replay(target)
             continue
         if steps.prepare(target, loop.state, batch):
             log.info("step %d: a view needs more work capacity than the step has (%s): it waits for the step "
@@ -382,9 +381,7 @@ def next_update(session: Session, loop: Loop, updates: int) -> dict:
                 steps.program(item.capacities).wait(loop.state, batch_types)
                 queue.waited(time.perf_counter() - started)
         if item is not None:
-            if item.capacities is not None and not steps.covers(item.capacities):
-                steps.use(item.capacities)  # it holds what the step had (a union) and what the view needs
-            steps.replays += 1
+            steps.replay(item.capacities)  # a union: what the step had and what the view needs
             metrics = _step_batch(session, loop, session.batches(item.position), item.position if defer else None,
                                   updates)
             if metrics is not None:

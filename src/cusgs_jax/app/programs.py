@@ -76,7 +76,13 @@ class StepPrograms:
 
     def grow(self, metrics: dict, anchor_capacity: int) -> Capacities:
         """Grow for a step that dropped work, to replay it: :meth:`grown`, used; counts a replay."""
-        self.use(self.grown(metrics, anchor_capacity))
+        return self.replay(self.grown(metrics, anchor_capacity))
+
+    def replay(self, capacities: Capacities | None = None) -> Capacities:
+        """A step runs (again) with ``capacities`` — a dropped step replayed, or a deferred view trained once its
+        program is ready: they are used unless the current ones already hold them; counts a replay."""
+        if capacities is not None and not self.covers(capacities):
+            self.use(capacities)
         self.replays += 1
         return self.capacities
 
