@@ -23,7 +23,7 @@ def main(argv=None):
     import numpy as np
 
     from composite_profile import sorted_inputs
-    from cusgs_jax.model.field import image_pixel_of
+    from cusgs_jax.model.field import read_pixels
     from cusgs_jax.splat.composite import composite_tiles, default_lanes
     from cusgs_jax.splat.render import SparseChannels
 
@@ -40,10 +40,8 @@ def main(argv=None):
     for q in args.channels:
         extra = jnp.asarray(np.random.default_rng(5).normal(size=(base[0].shape[0], q)).astype(np.float32))
         for stride in args.stride:
-            fh, fw = max(1, grid.height // stride), max(1, grid.width // stride)
-            index = np.arange(fh * fw)
-            r, c = image_pixel_of(index // fw, index % fw, (fh, fw), (grid.height, grid.width))
-            pixels = tuple(int(p) for p in np.unique(np.asarray(r) * grid.width + np.asarray(c)))
+            feature_hw = {"map": (max(1, grid.height // stride), max(1, grid.width // stride))}
+            pixels = read_pixels(feature_hw, (grid.height, grid.width), max_fraction=1.0)  # what the loss reads
             slots = jnp.asarray(SparseChannels(q, pixels).slots(grid)[0])
 
             def dense(m, co, o, f, e):

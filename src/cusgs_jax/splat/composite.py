@@ -287,9 +287,14 @@ def _slot_onehot(slots: jax.Array, num_pixels: int, dtype) -> jax.Array:
 
 def _at_slots(x: jax.Array, slots: jax.Array) -> jax.Array:
     """[M, B, S] (or [M, B, R, S]) read at each lane's K listed pixels: [M, B, K] ([M, B, R, K]), one gather;
-    ``slots`` [M, K] clipped into [0, S) (an unused entry reads a real pixel: mask it)."""
-    index = slots[:, None, :] if x.ndim == 3 else slots[:, None, None, :]
-    return jnp.take_along_axis(x, jnp.broadcast_to(index, x.shape[:-1] + slots.shape[1:]), axis=-1)
+    ``slots`` [M, K] (S = unused entry, read as 0)."""
+    num_pixels = x.shape[-1]
+    index = jnp.minimum(slots, num_pixels - 1)
+    index = index[:, None, :] if x.ndim == 3 else index[:, None, None, :]
+    taken = jnp.take_along_axis(x, jnp.broadcast_to(index, x.shape[:-1] + slots.shape[1:]), axis=-1)
+    listed = slots < num_pixels
+    listed = listed[:, None, :] if x.ndim == 3 else listed[:, None, None, :]
+    return jnp.where(listed, taken, jnp.zeros((), x.dtype))
 
 
 def _from_slots(values: jax.Array, onehot: jax.Array) -> jax.Array:
@@ -326,7 +331,7 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         return jnp.any(state[0] < num_tiles)
 
     def body(state):
-        tile, k0, cursor, trans, done, color, n_contrib, last, out, stats, acc = state
+        tile, k0, cursor, trans, done, color, n_contrib, last, out, stats, acc = state  # acc: None without sparse
         ch = _chunk(tile, k0, chunk, records, pairs, starts, ends, pixels, inside)
         a = jnp.where(ch.valid, ch.alpha, 0.0)
         t_before, t_after = _running_product(1.0 - a, trans)
@@ -334,9 +339,7 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         weight = jnp.where(keep, a * t_before, 0.0)
         color = color + _weighted_sum(weight, features[ch.gid])
         if has_sparse:  # the sparse channels at the tile's listed pixels only: [M, B, K] × [M, B, Q]
-            lane_slots = slots_pad[tile]
-            weight_k = jnp.where((lane_slots < num_pixels)[:, None, :],
-                                 _at_slots(weight, jnp.minimum(lane_slots, num_pixels - 1)), 0.0)
+            weight_k = _at_slots(weight, slots_pad[tile])
             acc = acc + jnp.einsum("mbk,mbq->mkq", weight_k, sparse[ch.gid], precision=HIGHEST)
         done = done | jnp.any(ch.valid & (t_after <= TRANSMITTANCE_STOP), axis=1)
         trans, n_contrib, last = _fold_kept(keep, a, k0, trans, n_contrib, last)
@@ -350,7 +353,8 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         safe = jnp.minimum(tile, num_tiles - 1)
         finished = (tile < num_tiles) & ((k0 >= lengths[safe]) | jnp.all(done, axis=-1))
         target = jnp.where(finished, tile, num_tiles)
-        out = tuple(o.at[target].set(v, mode="drop") for o, v in zip(out, (color, trans, n_contrib, last, acc)))
+        values = (color, trans, n_contrib, last) + ((acc,) if has_sparse else ())
+        out = tuple(o.at[target].set(v, mode="drop") for o, v in zip(out, values))
         tile, cursor = _next_tiles(schedule, tile, finished, cursor)
         reset = finished[:, None]
         k0 = jnp.where(finished, 0, k0)
@@ -364,21 +368,20 @@ def _forward(grid, chunk, lanes, means2d, conics, opacities, features, pairs, st
         return tile, k0, cursor, trans, done, color, n_contrib, last, out, stats, acc
 
     tile, cursor = _initial_lanes(schedule, lanes)
-    acc_shape = (num_listed, sparse_channels) if has_sparse else (0, 0)
     out = (
         jnp.zeros((num_tiles, num_pixels, channels), dtype),
         jnp.ones((num_tiles, num_pixels), dtype),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
         jnp.zeros((num_tiles, num_pixels), jnp.int32),
-        jnp.zeros((num_tiles,) + acc_shape, dtype),
-    )
+    ) + ((jnp.zeros((num_tiles, num_listed, sparse_channels), dtype),) if has_sparse else ())
+    acc = jnp.zeros((lanes, num_listed, sparse_channels), dtype) if has_sparse else None
     init = (tile, jnp.zeros(lanes, jnp.int32), cursor, ones, ~inside_pad[tile],
             jnp.zeros((lanes, num_pixels, channels), dtype), zeros_i, zeros_i, out,
-            jnp.zeros((num_gaussians, 2), dtype), jnp.zeros((lanes,) + acc_shape, dtype))
+            jnp.zeros((num_gaussians, 2), dtype), acc)
     state = jax.lax.while_loop(cond, body, init)
-    (color, trans, n_contrib, last, sparse_out), stats = state[8], state[9]
+    out, stats = state[8], state[9]
     hits = jnp.round(stats[:, 1]).astype(jnp.int32)
-    return Composite(color, trans, n_contrib, last, stats[:, 0], hits, sparse_out if has_sparse else None)
+    return Composite(*out[:4], stats[:, 0], hits, out[4] if has_sparse else None)
 
 
 @partial(jax.custom_vjp, nondiff_argnums=(0, 1, 2))
@@ -441,7 +444,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         return jnp.any(state[0] < num_tiles)
 
     def body(state):
-        tile, k0, cursor, trans, prefix, prefix_sparse, grads = state
+        tile, k0, cursor, trans, prefix, prefix_sparse, grads = state  # prefix_sparse: None without sparse
         safe = jnp.minimum(tile, num_tiles - 1)
         ch = _chunk(tile, k0, chunk, records, pairs, starts, ends, pixels, inside)
         slot = k0[:, None] + jnp.arange(chunk, dtype=jnp.int32)[None, :]
@@ -456,16 +459,13 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         running = _running_sum(contrib)
         suffix = (total[safe] - prefix + tail[safe])[:, None, :] - running
         d_alpha = t_before * g_dot_c - suffix / (1.0 - a)
-        d_alpha = jnp.where(keep & ch.unclamped, d_alpha, 0.0)
+        kept = keep & ch.unclamped  # where ∂L/∂α is not zero
+        d_alpha = jnp.where(kept, d_alpha, 0.0)
         if has_sparse:  # the same terms for the sparse channels at the K listed pixels, then placed there
             lane_slots = sparse_slots[safe]
             onehot = _slot_onehot(lane_slots, num_pixels, dtype)  # idle lanes keep nothing: zeros
-            kept = (keep & ch.unclamped).astype(dtype)
             weight_k, t_before_k, a_k, kept_k = jnp.moveaxis(
-                _at_slots(jnp.stack([weight, t_before, a, kept], axis=2), jnp.minimum(lane_slots, num_pixels - 1)),
-                2, 0)
-            listed = (lane_slots < num_pixels)[:, None, :]
-            weight_k, kept_k = jnp.where(listed, weight_k, 0.0), jnp.where(listed, kept_k, 0.0)
+                _at_slots(jnp.stack([weight, t_before, a, kept.astype(dtype)], axis=2), lane_slots), 2, 0)
             feat_sparse = sparse[ch.gid]  # [M, B, Q]
             lane_gs = g_sparse[safe]  # [M, K, Q]
             g_dot_k = jnp.einsum("mkq,mbq->mbk", lane_gs, feat_sparse, precision=HIGHEST)
@@ -515,7 +515,8 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         k0 = jnp.where(finished, 0, k0)
         trans = jnp.where(finished[:, None], 1.0, trans)
         prefix = jnp.where(finished[:, None], 0.0, prefix)
-        prefix_sparse = jnp.where(finished[:, None], 0.0, prefix_sparse)
+        if has_sparse:
+            prefix_sparse = jnp.where(finished[:, None], 0.0, prefix_sparse)
         return tile, k0, cursor, trans, prefix, prefix_sparse, grads
 
     tile, cursor = _initial_lanes(schedule, lanes)
@@ -524,7 +525,7 @@ def _composite_bwd(grid, chunk, lanes, residuals, cotangents):
         tile, jnp.zeros(lanes, jnp.int32), cursor,
         jnp.ones((lanes, num_pixels), dtype),
         jnp.zeros((lanes, num_pixels), dtype),
-        jnp.zeros((lanes, num_listed if has_sparse else 0), dtype),
+        jnp.zeros((lanes, num_listed), dtype) if has_sparse else None,
         jnp.zeros((means2d.shape[0], 6 + channels + extra), dtype),
     )
     grads = jax.lax.while_loop(cond, body, init)[-1]

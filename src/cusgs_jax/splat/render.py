@@ -112,8 +112,7 @@ class SparseChannels(NamedTuple):
         ts = grid.tile_size
         tile = (row // ts) * grid.tiles_x + col // ts
         within = (row % ts) * ts + col % ts
-        counts = np.bincount(tile, minlength=grid.num_tiles)
-        k = max(1, int(counts.max()) if flat.size else 1)
+        k = max(1, int(np.bincount(tile, minlength=grid.num_tiles).max()))
         order = np.argsort(tile, kind="stable")
         tile, within, flat = tile[order], within[order], flat[order]
         rank = np.arange(flat.size) - np.searchsorted(tile, tile, side="left")
@@ -392,29 +391,25 @@ def _rasterize(
     if not isinstance(compositor, Compositor):
         raise TypeError(f"compositor must be a cusgs_jax.splat.Compositor, got {type(compositor).__name__}: "
                         "e.g. Compositor(backend='jax', chunk_size=16)")
-    sparse_fg = None
+    sparse = ()  # (sorted sparse colours [G, Q], [T, K] slots) for the JAX compositor
     if sparse_channels is not None:
         slots, slot_pixels = sparse_channels.slots(grid)
         slot_pixels = jnp.asarray(slot_pixels.reshape(-1))
+        sparse = (colors[:, dense:].astype(dtype)[order], jnp.asarray(slots))
     if resolve_backend(compositor.backend) == "pallas":
         interpret = jax.default_backend() != "gpu"  # Triton needs an NVIDIA (or ROCm) GPU
-        if sparse_channels is not None:  # every channel everywhere, then read at the listed pixels
-            everything = jnp.concatenate([features, colors[:, dense:].astype(dtype)], axis=-1)[order]
+        if sparse:  # every channel everywhere, then read at the listed pixels
+            everything = jnp.concatenate([sorted_inputs[3], sparse[0]], axis=-1)
             out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs[:3], everything,
                                          *sorted_inputs[4:])
-            sparse_fg = jnp.take_along_axis(out.colors[..., dense + 1:],
-                                            jnp.asarray(np.minimum(slots, grid.tile_size ** 2 - 1))[..., None], axis=1)
-            out = out._replace(colors=out.colors[..., :dense + 1])
+            listed = jnp.asarray(np.minimum(slots, grid.tile_size ** 2 - 1))[..., None]
+            out = out._replace(colors=out.colors[..., :dense + 1],
+                               sparse=jnp.take_along_axis(out.colors[..., dense + 1:], listed, axis=1))
         else:
             out = composite_tiles_pallas(grid, PALLAS_BATCH, interpret, *sorted_inputs)
     else:
         lanes = default_lanes(grid.num_tiles) if compositor.lanes is None else int(compositor.lanes)
-        if sparse_channels is not None:
-            out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs,
-                                  colors[:, dense:].astype(dtype)[order], jnp.asarray(slots))
-            sparse_fg = out.sparse
-        else:
-            out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs)
+        out = composite_tiles(grid, int(compositor.chunk_size), lanes, *sorted_inputs, *sparse)
     color_fg = _tiles_to_image(out.colors, grid)
     trans = _tiles_to_image(out.transmittance, grid)
     if background is None:
@@ -423,7 +418,7 @@ def _rasterize(
         image = color_fg[..., :dense] + trans[..., None] * jnp.asarray(background, dtype)[:dense]
     if sparse_channels is not None:  # [T, K, Q] → the listed pixels of an [H, W, Q] image of zeros
         count = channels - dense
-        values = sparse_fg.reshape(-1, count)
+        values = out.sparse.reshape(-1, count)
         if background is not None:
             values = values + trans.reshape(-1)[jnp.minimum(slot_pixels, width * height - 1)][:, None] \
                 * jnp.asarray(background, dtype)[dense:]
